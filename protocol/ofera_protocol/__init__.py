@@ -1,0 +1,59 @@
+"""OFERA wire protocol v1: sans-I/O codec (no sockets, no asyncio; numpy + msgpack only).
+
+The normative text is protocol/PROTOCOL.md. Modules: `constants` (versions, layouts, limits),
+`errors` (codes, close codes, ProtocolError), `messages` (typed messages), `encodings` (frame array
+encodings f32/f16/q13), `coords` (FLAME <-> Unity), `avatar` (chunks, client state), `codec`
+(bytes <-> messages), `connection` (ServerConnection / ClientConnection state machines).
+"""
+
+from .avatar import Avatar, AvatarAssembler, GaussianState, split_avatar
+from .codec import (
+    decode_client_message,
+    decode_server_message,
+    encode,
+    encode_avatar_chunk,
+    encode_frame,
+    frame_format,
+)
+from .connection import ClientConnection, ClientState, ServerConnection, ServerState
+from .constants import (
+    BYTES_PER_GAUSSIAN,
+    COORDS,
+    ENCODINGS,
+    ENDPOINT,
+    LAYOUTS,
+    MAX_CLIENT_MESSAGE,
+    MAX_SERVER_MESSAGE,
+    PROTOCOL_VERSION,
+)
+from .coords import mirror_x_position, mirror_x_rotation, mirror_x_sh, to_coords
+from .encodings import FrameFormat, decode_arrays, encode_arrays, make_quant
+from .errors import CLOSE_NORMAL, ERRORS, LocalProtocolError, ProtocolError, close_code
+from .messages import (
+    AvatarChunk,
+    AvatarInfo,
+    Blendshapes,
+    Bye,
+    ClientMessage,
+    ErrorMessage,
+    Frame,
+    Hello,
+    Message,
+    Ping,
+    Pong,
+    Quant,
+    ServerMessage,
+    Welcome,
+)
+
+__all__ = [
+    "BYTES_PER_GAUSSIAN", "CLOSE_NORMAL", "COORDS", "ENCODINGS", "ENDPOINT", "ERRORS", "LAYOUTS",
+    "MAX_CLIENT_MESSAGE", "MAX_SERVER_MESSAGE", "PROTOCOL_VERSION",
+    "Avatar", "AvatarAssembler", "AvatarChunk", "AvatarInfo", "Blendshapes", "Bye", "ClientConnection",
+    "ClientMessage", "ClientState", "ErrorMessage", "Frame", "FrameFormat", "GaussianState", "Hello",
+    "LocalProtocolError", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
+    "ServerMessage", "ServerState", "Welcome",
+    "close_code", "decode_arrays", "decode_client_message", "decode_server_message", "encode",
+    "encode_arrays", "encode_avatar_chunk", "encode_frame", "frame_format", "make_quant",
+    "mirror_x_position", "mirror_x_rotation", "mirror_x_sh", "split_avatar", "to_coords",
+]

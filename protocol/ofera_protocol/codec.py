@@ -1,0 +1,426 @@
+"""Encode and decode every message of protocol v1 (bytes <-> typed messages), with strict validation.
+
+Decoders raise only ProtocolError, with the exact code and a message naming the field. Encoders
+write small fields with msgpack and append numeric arrays as raw `bin` payloads, so a frame's big
+arrays are copied once (into the returned bytes) after their encoding.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from . import _fields as F
+from .avatar import sh_coeffs
+from .constants import (
+    COORDS,
+    ENCODINGS,
+    INT64_MAX,
+    LAYOUTS,
+    MAX_CLIENT_MESSAGE,
+    MAX_CONTAINER_LEN,
+    MAX_DEPTH,
+    MAX_ID_LEN,
+    MAX_SERVER_MESSAGE,
+    MAX_SH_DEGREE,
+    MAX_STR_LEN,
+    MAX_TIMING_STAGES,
+    PROTOCOL_VERSION,
+    UINT32_MAX,
+)
+from .encodings import FrameFormat, decode_arrays, encode_arrays, validate_quant
+from .errors import (
+    BAD_FIELD,
+    BAD_LENGTH,
+    MALFORMED,
+    MESSAGE_TOO_LARGE,
+    NOT_READY,
+    UNKNOWN_ENCODING,
+    UNKNOWN_LAYOUT,
+    UNKNOWN_TYPE,
+    UNSUPPORTED_PROTOCOL,
+    ProtocolError,
+)
+from .messages import (
+    CLIENT_TYPES,
+    SERVER_TYPES,
+    AvatarChunk,
+    AvatarInfo,
+    Blendshapes,
+    Bye,
+    ClientMessage,
+    ErrorMessage,
+    Frame,
+    Hello,
+    Message,
+    Ping,
+    Pong,
+    Quant,
+    ServerMessage,
+    Welcome,
+)
+
+# ============================================================================= packing
+
+
+def _bin_header(n: int) -> bytes:
+    if n < 0x100:
+        return b"\xc4" + n.to_bytes(1, "big")
+    if n < 0x10000:
+        return b"\xc5" + n.to_bytes(2, "big")
+    return b"\xc6" + n.to_bytes(4, "big")
+
+
+def _map_header(n: int) -> bytes:
+    return (0x80 | n).to_bytes(1, "big") if n < 16 else b"\xde" + n.to_bytes(2, "big")
+
+
+def _pack_into(parts: list[Any], value: Any) -> None:
+    if isinstance(value, dict):
+        parts.append(_map_header(len(value)))
+        for k, v in value.items():
+            parts.append(msgpack.packb(k))
+            _pack_into(parts, v)
+    elif isinstance(value, np.ndarray):
+        # C-contiguous little-endian array: its raw bytes are the bin payload (no copy until join).
+        parts.append(_bin_header(value.nbytes))
+        parts.append(memoryview(value).cast("B") if value.ndim != 1 or value.itemsize != 1 else value)
+    else:
+        parts.append(msgpack.packb(value, use_bin_type=True))
+
+
+def pack_map(items: dict[str, Any]) -> bytes:
+    """msgpack a map in key order; numpy arrays (C-contiguous, little-endian) become `bin`."""
+    parts: list[Any] = []
+    _pack_into(parts, items)
+    return b"".join(parts)
+
+
+def _le(a: Any, dtype: str, shape: tuple[int, ...], name: str) -> np.ndarray:
+    out = np.ascontiguousarray(a, dtype=dtype)
+    if out.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {out.shape}")
+    return out
+
+
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in d.items() if v is not None}
+
+
+# ============================================================================= encoders
+
+
+def encode_hello(m: Hello) -> bytes:
+    return pack_map(_drop_none({
+        "type": "hello", "protocol": m.protocol, "layout": m.layout, "avatar": m.avatar,
+        "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse, "device": m.device,
+        "token": m.token, "max_gaussians": m.max_gaussians,
+    }))
+
+
+def encode_bs(m: Blendshapes) -> bytes:
+    w = np.ascontiguousarray(m.w, dtype="<f4")
+    if w.ndim != 1:
+        raise ValueError(f"bs.w must be 1-D, got shape {w.shape}")
+    return pack_map({"type": "bs", "seq": m.seq, "t": m.t, "w": w})
+
+
+def encode_welcome(m: Welcome) -> bytes:
+    d: dict[str, Any] = {
+        "type": "welcome", "protocol": m.protocol, "session": m.session,
+        "avatar": {"id": m.avatar.id, "count": m.avatar.count, "sh_degree": m.avatar.sh_degree},
+        "layout": m.layout, "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse,
+    }
+    if m.quant is not None:
+        validate_quant(m.quant)
+        d["quant"] = {"pos_min": m.quant.pos_min.astype("<f4"), "pos_max": m.quant.pos_max.astype("<f4"),
+                      "log_scale": m.quant.log_scale.astype("<f4")}
+    if m.server is not None:
+        d["server"] = m.server
+    return pack_map(d)
+
+
+def encode_avatar_chunk(m: AvatarChunk) -> bytes:
+    """`avatar` message; arrays are converted to float32 little-endian (no copy if they already are)."""
+    n, k = m.n, sh_coeffs(m.sh_degree)
+    return pack_map({
+        "type": "avatar", "count": m.count, "sh_degree": m.sh_degree, "chunk": m.chunk,
+        "chunks": m.chunks, "offset": m.offset, "n": n,
+        "opacity": _le(m.opacity, "<f4", (n,), "opacity"), "sh": _le(m.sh, "<f4", (n, k, 3), "sh"),
+        "position": _le(m.position, "<f4", (n, 3), "position"),
+        "rotation": _le(m.rotation, "<f4", (n, 4), "rotation"), "scale": _le(m.scale, "<f4", (n, 3), "scale"),
+    })
+
+
+def encode_frame(m: Frame, fmt: FrameFormat) -> bytes:
+    """`frame` in the session's encoding. Hot path: encoded arrays are copied once, into the result.
+
+    A dense frame (index None) must carry fmt.count Gaussians; a sparse one needs fmt.sparse and an
+    index (n,) of strictly ascending ids below fmt.count. ValueError on misuse.
+    """
+    n = m.n
+    if m.position.shape != (n, 3) or m.rotation.shape != (n, 4) or m.scale.shape != (n, 3):
+        raise ValueError(f"frame arrays must be (n, 3), (n, 4), (n, 3); got {m.position.shape}, "
+                         f"{m.rotation.shape}, {m.scale.shape}")
+    d: dict[str, Any] = {"type": "frame", "seq": m.seq, "t": m.t, "timing": m.timing, "n": n}
+    if m.index is None:
+        if n != fmt.count:
+            raise ValueError(f"dense frame carries {n} Gaussians, the avatar has {fmt.count}")
+    else:
+        if not fmt.sparse:
+            raise ValueError("frame has an index but the session is not sparse")
+        index = _le(m.index, "<u4", (n,), "index")
+        if n and (int(index[-1]) >= fmt.count or (n > 1 and not (np.diff(index.astype(np.int64)) > 0).all())):
+            raise ValueError(f"index must be strictly ascending and below {fmt.count}")
+        d["index"] = index
+    d["position"], d["rotation"], d["scale"] = encode_arrays(fmt.encoding, m.position, m.rotation, m.scale,
+                                                             fmt.quant)
+    return pack_map(d)
+
+
+def encode_error(m: ErrorMessage) -> bytes:
+    return pack_map(_drop_none({"type": "error", "code": m.code, "message": m.message, "fatal": m.fatal,
+                                "seq": m.seq}))
+
+
+def encode(m: Message, fmt: FrameFormat | None = None) -> bytes:
+    """Encode any message; `fmt` is required for Frame."""
+    if isinstance(m, Frame):
+        if fmt is None:
+            raise ValueError("encoding a frame needs the session's FrameFormat")
+        return encode_frame(m, fmt)
+    if isinstance(m, Hello):
+        return encode_hello(m)
+    if isinstance(m, Blendshapes):
+        return encode_bs(m)
+    if isinstance(m, (Ping, Pong)):
+        return pack_map({"type": m.TYPE, "t": m.t})
+    if isinstance(m, Bye):
+        return pack_map({"type": "bye"})
+    if isinstance(m, Welcome):
+        return encode_welcome(m)
+    if isinstance(m, AvatarChunk):
+        return encode_avatar_chunk(m)
+    if isinstance(m, ErrorMessage):
+        return encode_error(m)
+    raise TypeError(f"not a protocol message: {type(m).__name__}")
+
+
+# ============================================================================= decoding
+
+
+def _check_structure(obj: Any) -> None:
+    """Nesting depth <= MAX_DEPTH and string keys everywhere (iterative; visits containers only)."""
+    stack = [(obj, 1)]
+    while stack:
+        o, depth = stack.pop()
+        if depth > MAX_DEPTH:
+            raise ProtocolError(MALFORMED, f"containers nested deeper than {MAX_DEPTH} levels")
+        if isinstance(o, dict):
+            for k, v in o.items():
+                if type(k) is not str:
+                    raise ProtocolError(MALFORMED, f"map key {k!r} is not a string")
+                if isinstance(v, (dict, list)):
+                    stack.append((v, depth + 1))
+        else:
+            stack.extend((v, depth + 1) for v in o if isinstance(v, (dict, list)))
+
+
+def unpack_message(data: bytes | bytearray | memoryview, max_size: int) -> dict[str, Any]:
+    """Bytes -> top-level map, refusing oversize input, huge declared lengths, ext types, trailing
+    bytes, non-string keys and deep nesting without allocating them."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError(MALFORMED, f"expected bytes, got {type(data).__name__}")
+    size = memoryview(data).nbytes
+    if size > max_size:
+        raise ProtocolError(MESSAGE_TOO_LARGE, f"message of {size} bytes exceeds the limit of {max_size}")
+    try:
+        obj = msgpack.unpackb(
+            data, raw=False, strict_map_key=True, use_list=True, max_bin_len=max_size,
+            max_str_len=MAX_STR_LEN, max_array_len=MAX_CONTAINER_LEN,
+            max_map_len=MAX_CONTAINER_LEN, max_ext_len=0,
+        )
+    except Exception as e:  # msgpack raises ValueError subclasses, UnicodeDecodeError, StackError...
+        raise ProtocolError(MALFORMED, f"not a valid msgpack message: {type(e).__name__}: {e}") from None
+    if not isinstance(obj, dict):
+        raise ProtocolError(MALFORMED, f"message must be a msgpack map, got {F._type_name(obj)}")
+    _check_structure(obj)
+    return obj
+
+
+def _message_type(m: dict[str, Any], known: dict[str, type], direction: str) -> str:
+    t = F.get_str(m, "type", "message", max_len=MAX_ID_LEN)
+    if t not in known:
+        raise ProtocolError(UNKNOWN_TYPE, f"unknown {direction} message type {t!r}; expected one of "
+                            f"{', '.join(known)}")
+    return t
+
+
+def decode_hello(m: dict[str, Any]) -> Hello:
+    w = "hello"
+    protocol = F.get_int(m, "protocol", w)
+    if protocol != PROTOCOL_VERSION:
+        raise ProtocolError(UNSUPPORTED_PROTOCOL, f"protocol {protocol} is not supported; this server "
+                            f"speaks protocol {PROTOCOL_VERSION}")
+    return Hello(
+        protocol=protocol,
+        layout=F.get_choice(m, "layout", w, LAYOUTS, UNKNOWN_LAYOUT),
+        avatar=F.get_str(m, "avatar", w, default="default"),
+        encoding=F.get_choice(m, "encoding", w, ENCODINGS, UNKNOWN_ENCODING, default="f32"),
+        coords=F.get_choice(m, "coords", w, COORDS, BAD_FIELD, default="flame"),
+        sparse=F.get_bool(m, "sparse", w, default=False),
+        device=F.get_str(m, "device", w, default=None),
+        token=F.get_str(m, "token", w, max_len=MAX_STR_LEN, default=None),
+        max_gaussians=F.get_int(m, "max_gaussians", w, lo=1, hi=UINT32_MAX, default=None),
+    )
+
+
+def decode_bs(m: dict[str, Any], layout: str | None) -> Blendshapes:
+    w = "bs"
+    seq = F.get_int(m, "seq", w, lo=0)
+    t = F.get_int(m, "t", w)
+    buf = F.get_bin(m, "w", w)
+    if layout is not None:
+        n = LAYOUTS[layout]
+    elif len(buf) % 4 == 0 and 4 <= len(buf) <= 4 * max(LAYOUTS.values()):
+        n = len(buf) // 4
+    else:
+        raise ProtocolError(BAD_LENGTH, f"bs: field 'w' has {len(buf)} bytes, not a whole number of "
+                            "float32 weights of a known layout")
+    if len(buf) != 4 * n:
+        raise ProtocolError(BAD_LENGTH, f"bs: field 'w' has {len(buf)} bytes; layout {layout} needs "
+                            f"{n} float32 = {4 * n} bytes")
+    return Blendshapes(seq=seq, t=t, w=F.get_array(m, "w", w, "<f4", (n,)))
+
+
+def decode_client_message(data: bytes | bytearray | memoryview, layout: str | None = None,
+                          max_size: int = MAX_CLIENT_MESSAGE) -> ClientMessage:
+    """Decode a client -> server message. `layout` (the session's) fixes the length of `bs.w`;
+    without it any known layout length is accepted. Raises ProtocolError."""
+    m = unpack_message(data, max_size)
+    t = _message_type(m, CLIENT_TYPES, "client")
+    if t == "bs":
+        return decode_bs(m, layout)
+    if t == "hello":
+        return decode_hello(m)
+    if t == "ping":
+        return Ping(t=F.get_int(m, "t", "ping"))
+    return Bye()
+
+
+def decode_quant(m: dict[str, Any]) -> Quant:
+    w = "welcome.quant"
+    q = Quant(pos_min=F.get_array(m, "pos_min", w, "<f4", (3,)).astype(np.float32),
+              pos_max=F.get_array(m, "pos_max", w, "<f4", (3,)).astype(np.float32),
+              log_scale=F.get_array(m, "log_scale", w, "<f4", (2,)).astype(np.float32))
+    try:
+        validate_quant(q)
+    except ValueError as e:
+        raise ProtocolError(BAD_FIELD, f"{w}: {e}") from None
+    return q
+
+
+def decode_welcome(m: dict[str, Any]) -> Welcome:
+    w = "welcome"
+    protocol = F.get_int(m, "protocol", w)
+    if protocol != PROTOCOL_VERSION:
+        raise ProtocolError(UNSUPPORTED_PROTOCOL, f"server speaks protocol {protocol}; this client "
+                            f"speaks {PROTOCOL_VERSION}")
+    av = F.get_map(m, "avatar", w)
+    avatar = AvatarInfo(id=F.get_str(av, "id", "welcome.avatar"),
+                        count=F.get_int(av, "count", "welcome.avatar", lo=0, hi=UINT32_MAX),
+                        sh_degree=F.get_int(av, "sh_degree", "welcome.avatar", lo=0, hi=MAX_SH_DEGREE))
+    encoding = F.get_choice(m, "encoding", w, ENCODINGS, UNKNOWN_ENCODING)
+    qm = F.get_map(m, "quant", w, required=encoding == "q13")
+    return Welcome(
+        protocol=protocol, session=F.get_str(m, "session", w), avatar=avatar,
+        layout=F.get_choice(m, "layout", w, LAYOUTS, UNKNOWN_LAYOUT), encoding=encoding,
+        coords=F.get_choice(m, "coords", w, COORDS, BAD_FIELD),
+        sparse=F.get_bool(m, "sparse", w),
+        quant=decode_quant(qm) if qm is not None and encoding == "q13" else None,
+        server=F.get_str(m, "server", w, default=None),
+    )
+
+
+def decode_avatar_chunk(m: dict[str, Any]) -> AvatarChunk:
+    w = "avatar"
+    count = F.get_int(m, "count", w, lo=0, hi=UINT32_MAX)
+    deg = F.get_int(m, "sh_degree", w, lo=0, hi=MAX_SH_DEGREE)
+    chunks = F.get_int(m, "chunks", w, lo=1, hi=UINT32_MAX)
+    chunk = F.get_int(m, "chunk", w, lo=0, hi=chunks - 1)
+    offset = F.get_int(m, "offset", w, lo=0, hi=count)
+    n = F.get_int(m, "n", w, lo=0, hi=count - offset)
+    opacity = F.get_array(m, "opacity", w, "<f4", (n,))
+    if n and not ((opacity >= 0) & (opacity <= 1)).all():
+        raise ProtocolError(BAD_FIELD, "avatar: field 'opacity' has values outside [0, 1]")
+    return AvatarChunk(
+        count=count, sh_degree=deg, chunk=chunk, chunks=chunks, offset=offset, opacity=opacity,
+        sh=F.get_array(m, "sh", w, "<f4", (n, sh_coeffs(deg), 3)),
+        position=F.get_array(m, "position", w, "<f4", (n, 3)),
+        rotation=F.get_array(m, "rotation", w, "<f4", (n, 4)),
+        scale=F.get_array(m, "scale", w, "<f4", (n, 3)),
+    )
+
+
+def decode_timing(m: dict[str, Any]) -> dict[str, int]:
+    tm = F.get_map(m, "timing", "frame")
+    if len(tm) > MAX_TIMING_STAGES:
+        raise ProtocolError(BAD_FIELD, f"frame: 'timing' has {len(tm)} stages, at most {MAX_TIMING_STAGES}")
+    for k in tm:
+        if len(k) > MAX_ID_LEN:
+            raise ProtocolError(BAD_FIELD, f"frame: timing stage name longer than {MAX_ID_LEN}")
+        F.get_int(tm, k, "frame.timing", lo=0, hi=INT64_MAX)
+    return tm
+
+
+def decode_frame(m: dict[str, Any], fmt: FrameFormat) -> Frame:
+    w = "frame"
+    seq = F.get_int(m, "seq", w, lo=0)
+    t = F.get_int(m, "t", w)
+    timing = decode_timing(m)
+    n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
+    index = F.get_array(m, "index", w, "<u4", (n,), required=False)
+    if index is None:
+        if n != fmt.count:
+            raise ProtocolError(BAD_LENGTH, f"frame: dense frame carries n={n} Gaussians, the avatar "
+                                f"has {fmt.count}")
+    else:
+        if not fmt.sparse:
+            raise ProtocolError(BAD_FIELD, "frame: 'index' in a session that did not ask for sparse frames")
+        if n and int(index[-1]) >= fmt.count:
+            raise ProtocolError(BAD_FIELD, f"frame: index {int(index[-1])} >= avatar count {fmt.count}")
+        if n > 1 and not (index[1:] > index[:-1]).all():
+            raise ProtocolError(BAD_FIELD, "frame: 'index' must be strictly ascending")
+    bufs = [F.get_bin(m, k, w) for k in ("position", "rotation", "scale")]
+    p, r, s = decode_arrays(fmt.encoding, n, bufs[0], bufs[1], bufs[2], fmt.quant)
+    return Frame(seq=seq, t=t, timing=timing, index=index, position=p, rotation=r, scale=s)
+
+
+def decode_server_message(data: bytes | bytearray | memoryview, fmt: FrameFormat | None = None,
+                          max_size: int = MAX_SERVER_MESSAGE) -> ServerMessage:
+    """Decode a server -> client message. `fmt` (from `welcome`) is needed for frames; a frame
+    without it raises `not_ready`. Raises ProtocolError."""
+    m = unpack_message(data, max_size)
+    t = _message_type(m, SERVER_TYPES, "server")
+    if t == "frame":
+        if fmt is None:
+            raise ProtocolError(NOT_READY, "frame before welcome: the session's format is unknown")
+        return decode_frame(m, fmt)
+    if t == "avatar":
+        return decode_avatar_chunk(m)
+    if t == "welcome":
+        return decode_welcome(m)
+    if t == "error":
+        w = "error"
+        return ErrorMessage(code=F.get_str(m, "code", w), message=F.get_str(m, "message", w,
+                            max_len=MAX_STR_LEN, min_len=0), fatal=F.get_bool(m, "fatal", w),
+                            seq=F.get_int(m, "seq", w, lo=0, default=None))
+    return Pong(t=F.get_int(m, "t", "pong"))
+
+
+def frame_format(welcome: Welcome) -> FrameFormat:
+    """The FrameFormat a `welcome` announces."""
+    return FrameFormat(encoding=welcome.encoding, count=welcome.avatar.count, sparse=welcome.sparse,
+                       quant=welcome.quant)

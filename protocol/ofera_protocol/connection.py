@@ -1,0 +1,322 @@
+"""Sans-I/O state machines of the two ends of a session (in the style of h11 / websockets' protocol).
+
+Feed each received WebSocket message to `receive` (binary) or `receive_text` (text); get a typed
+message back or a ProtocolError. Call the sending methods to get the bytes to send. Nothing here does
+I/O: the caller owns the socket, closes it with `ProtocolError.close_code` after a fatal error, and
+with 1000 after `bye`.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+import numpy as np
+
+from .avatar import DEFAULT_CHUNK_BYTES, Avatar, AvatarAssembler, GaussianState, split_avatar
+from .codec import (
+    decode_client_message,
+    decode_server_message,
+    encode,
+    encode_avatar_chunk,
+    encode_frame,
+    frame_format,
+)
+from .constants import (
+    COORDS,
+    DEFAULT_AVATAR,
+    DEFAULT_COORDS,
+    DEFAULT_ENCODING,
+    ENCODINGS,
+    LAYOUTS,
+    MAX_CLIENT_MESSAGE,
+    MAX_SERVER_MESSAGE,
+    PROTOCOL_VERSION,
+)
+from .encodings import FrameFormat
+from .errors import (
+    BAD_FIELD,
+    DUPLICATE_HELLO,
+    NOT_READY,
+    TEXT_FRAME,
+    LocalProtocolError,
+    ProtocolError,
+)
+from .messages import (
+    AvatarChunk,
+    AvatarInfo,
+    Blendshapes,
+    Bye,
+    ClientMessage,
+    ErrorMessage,
+    Frame,
+    Hello,
+    Ping,
+    Pong,
+    Quant,
+    ServerMessage,
+    Welcome,
+)
+
+
+def _text_error() -> ProtocolError:
+    return ProtocolError(TEXT_FRAME, "text WebSocket messages are not allowed; send msgpack as binary", True)
+
+
+# ============================================================================= server side
+
+
+class ServerState(Enum):
+    AWAITING_HELLO = "awaiting_hello"  # nothing valid received yet
+    HELLO_RECEIVED = "hello_received"  # the application must accept() or reject()
+    STREAMING = "streaming"            # welcome sent
+    CLOSED = "closed"                  # bye received, or a fatal error either way
+
+
+class ServerConnection:
+    """Server end of one session.
+
+    Typical use::
+
+        try:
+            msg = conn.receive(data)
+        except ProtocolError as e:
+            send(conn.error(e)); if e.fatal: close(e.close_code)
+        if isinstance(msg, Hello):
+            send(conn.accept(session, AvatarInfo(...)))
+            for b in conn.avatar(avatar): send(b)
+        elif isinstance(msg, Blendshapes):
+            send(conn.frame(frame))  # for many viewers: codec.encode_frame once per FrameFormat
+    """
+
+    def __init__(self, max_message_size: int = MAX_CLIENT_MESSAGE) -> None:
+        self.max_message_size = max_message_size
+        self.state = ServerState.AWAITING_HELLO
+        self.hello: Hello | None = None
+        self.welcome: Welcome | None = None
+        self.format: FrameFormat | None = None
+        self.avatar_sent = False
+
+    # -- receiving
+
+    def receive(self, data: bytes | bytearray | memoryview) -> ClientMessage:
+        """Decode one binary message and advance the state. Raises ProtocolError; a fatal one (any
+        error while awaiting hello, or an always-fatal code) moves the connection to CLOSED."""
+        if self.state is ServerState.CLOSED:
+            raise LocalProtocolError("receive() on a closed connection")
+        try:
+            layout = self.hello.layout if self.hello else None
+            msg = decode_client_message(data, layout, self.max_message_size)
+            return self._advance(msg)
+        except ProtocolError as e:
+            if self.state is ServerState.AWAITING_HELLO:
+                e = e.as_fatal()
+            if e.fatal:
+                self.state = ServerState.CLOSED
+            raise e from None
+
+    def receive_text(self, text: str) -> None:
+        """A text message arrived: always a fatal `text_frame` ProtocolError (close 1003)."""
+        self.state = ServerState.CLOSED
+        raise _text_error()
+
+    def _advance(self, msg: ClientMessage) -> ClientMessage:
+        if isinstance(msg, Hello):
+            if self.state is not ServerState.AWAITING_HELLO:
+                raise ProtocolError(DUPLICATE_HELLO, "hello already received; the first one stays in force")
+            self.hello = msg
+            self.state = ServerState.HELLO_RECEIVED
+        elif isinstance(msg, Blendshapes):
+            if self.state is ServerState.AWAITING_HELLO:
+                raise ProtocolError(NOT_READY, "bs before hello: send hello first", True)
+            if self.state is not ServerState.STREAMING:
+                raise ProtocolError(NOT_READY, "bs before welcome: wait for welcome", False)
+        elif isinstance(msg, Bye):
+            self.state = ServerState.CLOSED
+        return msg
+
+    # -- sending
+
+    def accept(self, session: str, avatar: AvatarInfo, *, encoding: str | None = None,
+               quant: Quant | None = None, server: str | None = None) -> bytes:
+        """Accept the received hello: returns `welcome` and enters STREAMING. `encoding` defaults to
+        the one asked for; `quant` is required for q13 (see encodings.make_quant)."""
+        if self.state is not ServerState.HELLO_RECEIVED or self.hello is None:
+            raise LocalProtocolError(f"accept() needs a received hello (state {self.state.value})")
+        encoding = encoding or self.hello.encoding
+        if encoding not in ENCODINGS:
+            raise LocalProtocolError(f"unknown encoding {encoding!r}")
+        if self.hello.max_gaussians is not None and avatar.count > self.hello.max_gaussians:
+            raise LocalProtocolError(f"avatar has {avatar.count} Gaussians, the client allows "
+                                     f"{self.hello.max_gaussians}")
+        welcome = Welcome(session=session, avatar=avatar, layout=self.hello.layout, encoding=encoding,
+                          coords=self.hello.coords, sparse=self.hello.sparse,
+                          quant=quant if encoding == "q13" else None, server=server)
+        try:
+            self.format = frame_format(welcome)
+        except ValueError as e:
+            raise LocalProtocolError(str(e)) from None
+        data = encode(welcome)
+        self.welcome = welcome
+        self.state = ServerState.STREAMING
+        return data
+
+    def reject(self, code: str, message: str) -> bytes:
+        """Refuse the session: returns a fatal `error` and enters CLOSED; close with
+        errors.close_code(code)."""
+        return self.error(ProtocolError(code, message, True))
+
+    def error(self, err: ProtocolError | str, message: str = "", seq: int | None = None,
+              fatal: bool | None = None) -> bytes:
+        """`error` message for a ProtocolError (or a code + message). Allowed in every state, so that a
+        fatal error from receive() can still be reported. A fatal error closes the connection."""
+        if isinstance(err, str):
+            err = ProtocolError(err, message, fatal)
+        if err.fatal:
+            self.state = ServerState.CLOSED
+        return encode(ErrorMessage(code=err.code, message=err.message, fatal=err.fatal, seq=seq))
+
+    def avatar(self, avatar: Avatar, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> list[bytes]:
+        """The `avatar` messages (in session coordinates already), to send right after welcome."""
+        self._require_streaming("avatar()")
+        assert self.welcome is not None
+        info = self.welcome.avatar
+        if avatar.count != info.count or avatar.sh_degree != info.sh_degree:
+            raise LocalProtocolError(f"avatar has {avatar.count} Gaussians of SH degree {avatar.sh_degree}, "
+                                     f"welcome announced {info.count} of degree {info.sh_degree}")
+        out = [encode_avatar_chunk(c) for c in split_avatar(avatar, max_chunk_bytes)]
+        self.avatar_sent = True
+        return out
+
+    def frame(self, frame: Frame) -> bytes:
+        """Encode a frame for this session (for many viewers, call codec.encode_frame once instead)."""
+        self._require_streaming("frame()")
+        if not self.avatar_sent:
+            raise LocalProtocolError("frame() before avatar(): the client needs the avatar first")
+        assert self.format is not None
+        return encode_frame(frame, self.format)
+
+    def pong(self, t: int) -> bytes:
+        if self.state is ServerState.CLOSED:
+            raise LocalProtocolError("pong() on a closed connection")
+        return encode(Pong(t=t))
+
+    def _require_streaming(self, what: str) -> None:
+        if self.state is not ServerState.STREAMING:
+            raise LocalProtocolError(f"{what} needs state streaming, not {self.state.value}")
+
+
+# ============================================================================= client side
+
+
+class ClientState(Enum):
+    IDLE = "idle"                          # hello not sent yet
+    AWAITING_WELCOME = "awaiting_welcome"
+    RECEIVING_AVATAR = "receiving_avatar"  # welcome received, avatar chunks pending
+    STREAMING = "streaming"                # avatar complete, frames flow
+    CLOSED = "closed"
+
+
+class ClientConnection:
+    """Client end of one session. After the avatar is complete `avatar` holds it and, with
+    `track_gaussians`, `gaussians` holds the latest position/rotation/scale (sparse frames applied)."""
+
+    def __init__(self, max_message_size: int = MAX_SERVER_MESSAGE, track_gaussians: bool = True) -> None:
+        self.max_message_size = max_message_size
+        self.track_gaussians = track_gaussians
+        self.state = ClientState.IDLE
+        self.sent_hello: Hello | None = None
+        self.welcome: Welcome | None = None
+        self.format: FrameFormat | None = None
+        self.avatar: Avatar | None = None
+        self.gaussians: GaussianState | None = None
+        self._assembler: AvatarAssembler | None = None
+
+    # -- sending
+
+    def hello(self, layout: str, avatar: str = DEFAULT_AVATAR, *, encoding: str = DEFAULT_ENCODING,
+              coords: str = DEFAULT_COORDS, sparse: bool = False, device: str | None = None,
+              token: str | None = None, max_gaussians: int | None = None) -> bytes:
+        if self.state is not ClientState.IDLE:
+            raise LocalProtocolError("hello() may be sent once, first")
+        for name, value, allowed in (("layout", layout, LAYOUTS), ("encoding", encoding, ENCODINGS),
+                                     ("coords", coords, COORDS)):
+            if value not in allowed:
+                raise LocalProtocolError(f"unknown {name} {value!r}; expected one of {', '.join(allowed)}")
+        msg = Hello(layout=layout, avatar=avatar, encoding=encoding, coords=coords, sparse=sparse,
+                    device=device, token=token, max_gaussians=max_gaussians, protocol=PROTOCOL_VERSION)
+        self.sent_hello = msg
+        self.state = ClientState.AWAITING_WELCOME
+        return encode(msg)
+
+    def bs(self, seq: int, t: int, w: np.ndarray) -> bytes:
+        """A blendshape sample: `w` (L,) weights of the session's layout, `t` client clock in µs."""
+        if self.state not in (ClientState.RECEIVING_AVATAR, ClientState.STREAMING):
+            raise LocalProtocolError(f"bs() needs a welcome first (state {self.state.value})")
+        assert self.sent_hello is not None
+        w = np.asarray(w, dtype=np.float32).reshape(-1)
+        n = LAYOUTS[self.sent_hello.layout]
+        if w.shape != (n,):
+            raise LocalProtocolError(f"layout {self.sent_hello.layout} needs {n} weights, got {w.shape[0]}")
+        return encode(Blendshapes(seq=seq, t=t, w=w))
+
+    def ping(self, t: int) -> bytes:
+        if self.state is ClientState.CLOSED:
+            raise LocalProtocolError("ping() on a closed connection")
+        return encode(Ping(t=t))
+
+    def bye(self) -> bytes:
+        self.state = ClientState.CLOSED
+        return encode(Bye())
+
+    # -- receiving
+
+    def receive(self, data: bytes | bytearray | memoryview) -> ServerMessage:
+        """Decode one server message and advance the state. Raises ProtocolError (fatal before the
+        stream starts; a bad frame is non-fatal)."""
+        if self.state is ClientState.CLOSED:
+            raise LocalProtocolError("receive() on a closed connection")
+        try:
+            msg = decode_server_message(data, self.format, self.max_message_size)
+            return self._advance(msg)
+        except ProtocolError as e:
+            if self.state is not ClientState.STREAMING:
+                e = e.as_fatal()
+            if e.fatal:
+                self.state = ClientState.CLOSED
+            raise e from None
+
+    def receive_text(self, text: str) -> None:
+        self.state = ClientState.CLOSED
+        raise _text_error()
+
+    def _advance(self, msg: ServerMessage) -> ServerMessage:
+        if isinstance(msg, Welcome):
+            if self.state is not ClientState.AWAITING_WELCOME:
+                raise ProtocolError(NOT_READY, f"unexpected welcome in state {self.state.value}", True)
+            assert self.sent_hello is not None
+            if msg.layout != self.sent_hello.layout or msg.coords != self.sent_hello.coords:
+                raise ProtocolError(BAD_FIELD, "welcome's layout/coords differ from hello's", True)
+            self.welcome, self.format = msg, frame_format(msg)
+            self._assembler = AvatarAssembler(msg.avatar.count, msg.avatar.sh_degree)
+            self.state = ClientState.RECEIVING_AVATAR
+        elif isinstance(msg, AvatarChunk):
+            if self.state is not ClientState.RECEIVING_AVATAR or self._assembler is None:
+                raise ProtocolError(NOT_READY, f"unexpected avatar chunk in state {self.state.value}")
+            if self._assembler.add(msg):
+                self.avatar = self._assembler.result()
+                self._assembler = None
+                if self.track_gaussians:
+                    self.gaussians = GaussianState.from_avatar(self.avatar)
+                self.state = ClientState.STREAMING
+        elif isinstance(msg, Frame):
+            if self.state is not ClientState.STREAMING:
+                raise ProtocolError(NOT_READY, "frame before the avatar was complete "
+                                    f"(state {self.state.value})")
+            if self.gaussians is not None:
+                self.gaussians.apply(msg)
+        elif isinstance(msg, ErrorMessage):
+            if msg.fatal:
+                self.state = ClientState.CLOSED
+        elif not isinstance(msg, Pong):  # pragma: no cover - decode returns only server messages
+            raise AssertionError(msg)
+        return msg

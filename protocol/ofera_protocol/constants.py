@@ -1,0 +1,54 @@
+"""Constants of the OFERA wire protocol v1 (see protocol/PROTOCOL.md)."""
+
+from __future__ import annotations
+
+PROTOCOL_VERSION = 1
+"""The only protocol version this codec speaks."""
+
+ENDPOINT = "/v1/stream"
+"""WebSocket path of the streaming endpoint."""
+
+LAYOUTS: dict[str, int] = {
+    "arkit52": 52,
+    "arkit51": 51,
+    "mediapipe52": 52,
+    "ovr63": 63,
+    "ovr70": 70,
+    "livelink61": 61,
+}
+"""Blendshape layout name -> number of float32 weights in a `bs` message."""
+
+ENCODINGS: tuple[str, ...] = ("f32", "f16", "q13")
+"""Frame encodings, in order of decreasing size."""
+
+BYTES_PER_GAUSSIAN: dict[str, int] = {"f32": 40, "f16": 20, "q13": 13}
+"""Frame payload bytes per Gaussian (position + rotation + scale), excluding a sparse `index`."""
+
+COORDS: tuple[str, ...] = ("flame", "unity")
+"""Coordinate conventions: FLAME space (right-handed, y up, face looks +z) or Unity (x mirrored)."""
+
+DEFAULT_ENCODING = "f32"
+DEFAULT_COORDS = "flame"
+DEFAULT_AVATAR = "default"
+
+MAX_SH_DEGREE = 3
+
+# Limits. A receiver refuses anything larger without allocating it.
+MAX_CLIENT_MESSAGE = 64 * 1024
+"""Largest client -> server message in bytes (a `bs` of 70 weights is about 320 B)."""
+MAX_SERVER_MESSAGE = 64 * 1024 * 1024
+"""Largest server -> client message in bytes (a dense f32 frame of 1M Gaussians is 40 MB)."""
+MAX_DEPTH = 4
+"""Deepest container nesting allowed in a message (the top-level map is depth 1)."""
+MAX_CONTAINER_LEN = 256
+"""Most entries in any msgpack map or array."""
+MAX_STR_LEN = 4096
+"""Longest msgpack string in bytes (tokens included)."""
+MAX_ID_LEN = 256
+"""Longest id-like string (`avatar`, `device`, `session`, timing stage names), in characters."""
+MAX_TIMING_STAGES = 64
+"""Most entries in a frame's `timing` map."""
+
+INT64_MIN = -(2**63)
+INT64_MAX = 2**63 - 1
+UINT32_MAX = 2**32 - 1

@@ -1,0 +1,197 @@
+"""Typed messages of protocol v1: one dataclass per message `type`.
+
+Arrays are numpy arrays in their decoded form: float32, C-contiguous, with the shapes given per field.
+Quaternions are (x, y, z, w). Units: metres, microseconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import ClassVar
+
+import numpy as np
+
+from .constants import DEFAULT_AVATAR, DEFAULT_COORDS, DEFAULT_ENCODING, PROTOCOL_VERSION
+
+
+class _ArrayEq:
+    """Field-wise equality that compares numpy arrays by shape, dtype and values."""
+
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for f in fields(self):  # type: ignore[arg-type]
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
+                    return False
+                if a.shape != b.shape or a.dtype != b.dtype or not np.array_equal(a, b, equal_nan=True):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+# ----------------------------------------------------------------------------- client -> server
+
+
+@dataclass
+class Hello:
+    """`hello`: opens a session. Only `layout` is required besides the protocol version."""
+
+    TYPE: ClassVar[str] = "hello"
+    layout: str
+    avatar: str = DEFAULT_AVATAR
+    encoding: str = DEFAULT_ENCODING
+    coords: str = DEFAULT_COORDS
+    sparse: bool = False
+    device: str | None = None
+    token: str | None = None
+    max_gaussians: int | None = None
+    protocol: int = PROTOCOL_VERSION
+
+
+@dataclass(eq=False)
+class Blendshapes(_ArrayEq):
+    """`bs`: one face-tracking sample. `w`: (L,) float32 in the session's layout, L = LAYOUTS[layout]."""
+
+    TYPE: ClassVar[str] = "bs"
+    seq: int
+    t: int
+    w: np.ndarray
+
+
+@dataclass
+class Ping:
+    """`ping`: `t` is echoed in `pong` (sender's clock, microseconds)."""
+
+    TYPE: ClassVar[str] = "ping"
+    t: int
+
+
+@dataclass
+class Bye:
+    """`bye`: the client ends the session; the server closes with 1000."""
+
+    TYPE: ClassVar[str] = "bye"
+
+
+# ----------------------------------------------------------------------------- server -> client
+
+
+@dataclass(eq=False)
+class Quant(_ArrayEq):
+    """Quantisation parameters of `q13`, fixed for a session.
+
+    pos_min, pos_max: (3,) float32, metres, the box positions are quantised in (pos_max > pos_min).
+    log_scale: (2,) float32, [min, max] of ln(scale in metres) (max > min).
+    """
+
+    pos_min: np.ndarray
+    pos_max: np.ndarray
+    log_scale: np.ndarray
+
+
+@dataclass
+class AvatarInfo:
+    """`welcome.avatar`: the avatar streamed in this session."""
+
+    id: str
+    count: int
+    sh_degree: int
+
+
+@dataclass(eq=False)
+class Welcome(_ArrayEq):
+    """`welcome`: the server accepted `hello`. Echoes the settings in force for the session."""
+
+    TYPE: ClassVar[str] = "welcome"
+    session: str
+    avatar: AvatarInfo
+    layout: str
+    encoding: str = DEFAULT_ENCODING
+    coords: str = DEFAULT_COORDS
+    sparse: bool = False
+    quant: Quant | None = None  # present iff encoding == "q13"
+    server: str | None = None
+    protocol: int = PROTOCOL_VERSION
+
+
+@dataclass(eq=False)
+class AvatarChunk(_ArrayEq):
+    """`avatar`: Gaussians [offset, offset + n) of the avatar, chunk `chunk` of `chunks`.
+
+    opacity (n,) linear 0..1; sh (n, (sh_degree+1)**2, 3) raw SH coefficients (3DGS order, RGB last);
+    position (n, 3) metres, neutral expression; rotation (n, 4) unit quaternion (x, y, z, w);
+    scale (n, 3) linear metres. All float32, in the session's coordinates.
+    """
+
+    TYPE: ClassVar[str] = "avatar"
+    count: int
+    sh_degree: int
+    chunk: int
+    chunks: int
+    offset: int
+    opacity: np.ndarray
+    sh: np.ndarray
+    position: np.ndarray
+    rotation: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def n(self) -> int:
+        """Number of Gaussians in this chunk."""
+        return int(self.opacity.shape[0])
+
+
+@dataclass(eq=False)
+class Frame(_ArrayEq):
+    """`frame`: the Gaussians computed from `bs` number `seq` (its `t` echoed).
+
+    position (n, 3) metres, rotation (n, 4) quaternion (x, y, z, w), scale (n, 3) metres, float32.
+    index: None for a dense frame (n == avatar count), else (n,) uint32 strictly ascending ids of the
+    Gaussians carried (sparse sessions only). timing: stage name -> duration in microseconds.
+    """
+
+    TYPE: ClassVar[str] = "frame"
+    seq: int
+    t: int
+    position: np.ndarray
+    rotation: np.ndarray
+    scale: np.ndarray
+    index: np.ndarray | None = None
+    timing: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        """Number of Gaussians carried."""
+        return int(self.position.shape[0])
+
+
+@dataclass
+class ErrorMessage:
+    """`error`: `code` is a stable string (see errors.ERRORS); `seq` names the offending `bs` if known."""
+
+    TYPE: ClassVar[str] = "error"
+    code: str
+    message: str
+    fatal: bool
+    seq: int | None = None
+
+
+@dataclass
+class Pong:
+    """`pong`: answers `ping`, echoing its `t`."""
+
+    TYPE: ClassVar[str] = "pong"
+    t: int
+
+
+ClientMessage = Hello | Blendshapes | Ping | Bye
+ServerMessage = Welcome | AvatarChunk | Frame | ErrorMessage | Pong
+Message = ClientMessage | ServerMessage
+
+CLIENT_TYPES: dict[str, type] = {c.TYPE: c for c in (Hello, Blendshapes, Ping, Bye)}
+SERVER_TYPES: dict[str, type] = {c.TYPE: c for c in (Welcome, AvatarChunk, Frame, ErrorMessage, Pong)}

@@ -1,0 +1,1 @@
+"""The `ofera` command line."""

@@ -1,0 +1,34 @@
+"""Turn expected failures into one clear line and a non-zero exit, never a traceback."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from typing import TypeVar
+
+import typer
+
+F = TypeVar("F", bound=Callable)
+
+
+class CliError(Exception):
+    """A user-facing failure: the message says what was wrong and what to do."""
+
+
+def user_errors(*types: type[BaseException]) -> Callable[[F], F]:
+    """Decorate a command so that ``CliError`` and the given exception types print ``error: ...``."""
+    caught = (CliError, FileNotFoundError, ValueError, *types)
+
+    def wrap(fn: F) -> F:
+        @functools.wraps(fn)
+        def inner(*args, **kwargs):
+            try:
+                return fn(*args, **kwargs)
+            except caught as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                raise typer.Exit(2) from None
+
+        return inner  # type: ignore[return-value]
+
+    return wrap

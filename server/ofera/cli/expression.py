@@ -1,0 +1,48 @@
+"""Expression options shared by `head render`, `avatar render` and `avatar export`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..head.model import HeadModel
+from ..head.rotations import euler_xy_to_matrix
+from .errors import CliError
+
+
+@dataclass(frozen=True)
+class ExpressionArgs:
+    """Parsed ``--expr I=V``, ``--jaw DEG``, ``--eyes YAW,PITCH`` (degrees)."""
+
+    expr: np.ndarray  # (E,)
+    jaw: np.ndarray  # (3, 3)
+    eyes: np.ndarray  # (3, 3), both eyes
+
+    @classmethod
+    def parse(cls, model: HeadModel, expr: list[str] | None, jaw: float, eyes: str | None) -> ExpressionArgs:
+        values = np.zeros(model.expr_dims)
+        for item in expr or []:
+            try:
+                i, v = item.split("=")
+                idx, val = int(i), float(v)
+            except ValueError:
+                raise CliError(f"--expr {item!r}: expected INDEX=VALUE, e.g. --expr 0=2.0") from None
+            if not 0 <= idx < model.expr_dims:
+                raise CliError(f"--expr {item!r}: index must be 0..{model.expr_dims - 1}")
+            values[idx] = val
+        yaw = pitch = 0.0
+        if eyes:
+            try:
+                yaw, pitch = (float(t) for t in eyes.split(","))
+            except ValueError:
+                raise CliError(f"--eyes {eyes!r}: expected YAW,PITCH in degrees, e.g. --eyes 15,-5") from None
+        jaw_m = euler_xy_to_matrix(0.0, np.radians(jaw))
+        eye_m = euler_xy_to_matrix(np.radians(yaw), np.radians(pitch))
+        return cls(values, jaw_m, eye_m)
+
+    def vertices(self, model: HeadModel) -> np.ndarray:
+        """Deformed vertices (V, 3) of ``model`` for these options."""
+        from ..head.lbs import forward
+
+        return forward(model, self.expr[None], jaw=self.jaw, left_eye=self.eyes, right_eye=self.eyes)[0]

@@ -1,0 +1,19 @@
+"""Entry point of the `ofera` command."""
+
+from __future__ import annotations
+
+import typer
+
+from . import head
+
+app = typer.Typer(help="OFERA server: blendshape-driven Gaussian head avatars.", no_args_is_help=True,
+                  pretty_exceptions_enable=False)
+app.add_typer(head.app, name="head")
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()

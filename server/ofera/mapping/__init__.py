@@ -1,0 +1,1 @@
+"""Blendshape layouts and the mappings from headset blendshapes to the avatar's expression input."""

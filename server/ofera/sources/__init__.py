@@ -1,0 +1,33 @@
+"""Face-tracking inputs read into a common `FaceLog`: face-log CSV, Live Link CSV/UDP/.gesichter,
+MediaPipe/ARKit CSV, and VMC (OSC) blendshape messages."""
+
+from ofera.sources.facelog import DATA_SOURCES, FaceLog, SourceFormatError
+from ofera.sources.facelog_csv import read_facelog_csv, write_facelog
+from ofera.sources.gesichter import read_gesichter, write_gesichter
+from ofera.sources.livelink_csv import parse_timecode, read_livelink_csv
+from ofera.sources.livelink_packet import (
+    LiveLinkPacket,
+    LiveLinkPacketError,
+    build_livelink_packet,
+    parse_livelink_packet,
+)
+from ofera.sources.read import read_facelog
+from ofera.sources.vmc import VmcBlendshapeAccumulator
+
+__all__ = [
+    "DATA_SOURCES",
+    "FaceLog",
+    "LiveLinkPacket",
+    "LiveLinkPacketError",
+    "SourceFormatError",
+    "VmcBlendshapeAccumulator",
+    "build_livelink_packet",
+    "parse_livelink_packet",
+    "parse_timecode",
+    "read_facelog",
+    "read_facelog_csv",
+    "read_gesichter",
+    "read_livelink_csv",
+    "write_facelog",
+    "write_gesichter",
+]
