@@ -23,8 +23,9 @@ CONTAINER_VERSION = 6
 
 def read_gesichter(path: str | Path) -> FaceLog:
     """Read a capture as a livelink61 `FaceLog`; times from frame numbers and each packet's fps."""
+    raw = Path(path).read_bytes()
     try:
-        data = gzip.decompress(Path(path).read_bytes())
+        data = gzip.decompress(raw)
     except (OSError, EOFError, zlib.error) as exc:
         raise SourceFormatError(f"not a gzip .gesichter capture ({exc})", path) from None
     if len(data) < 5:
