@@ -76,12 +76,8 @@ def test_facelog_unity_names_shuffled_without_layout_comment(tmp_path):
 
 
 def test_facelog_layout_comment_must_match_header(tmp_path):
-    path = write_text(
-        tmp_path / "x.csv", ["# layout: ovr63", "time," + ",".join(ARKIT52_NAMES), "0" + ",0" * 52]
-    )
-    with pytest.raises(
-        SourceFormatError, match=r"x\.csv, line 2: .*layout 'ovr63'.*unknown names: eyeBlinkLeft"
-    ):
+    path = write_text(tmp_path / "x.csv", ["# layout: ovr63", "time," + ",".join(ARKIT52_NAMES), "0" + ",0" * 52])
+    with pytest.raises(SourceFormatError, match=r"x\.csv, line 2: .*layout 'ovr63'.*unknown names: eyeBlinkLeft"):
         read_facelog(path)
 
 
@@ -126,9 +122,7 @@ def test_facelog_column_errors(tmp_path, header, row, match):
 
 
 def test_facelog_data_source_accepts_codes_and_empty_log(tmp_path):
-    log = read_facelog(
-        write_text(tmp_path / "a.csv", [ARKIT_HEADER + ",data_source", arkit_row("0", "0") + ",1"])
-    )
+    log = read_facelog(write_text(tmp_path / "a.csv", [ARKIT_HEADER + ",data_source", arkit_row("0", "0") + ",1"]))
     assert log.data_source.tolist() == [1]
     empty = read_facelog(write_text(tmp_path / "e.csv", [ARKIT_HEADER]))
     assert len(empty) == 0 and empty.weights.shape == (0, 51) and empty.duration == 0.0
@@ -183,35 +177,27 @@ def test_livelink_csv_parses_by_name_across_midnight(tmp_path, count_column):
     header = livelink_csv_header(count_column)
     timecodes = ["23:59:59:58.500", "23:59:59:59.500", "00:00:00:00.500", "00:00:00:01.500"]
     values = RNG.uniform(0, 1, (4, 61)).round(5)
-    lines = [",".join(header)] + [
-        f"{tc},61," + ",".join(map(str, v)) for tc, v in zip(timecodes, values, strict=True)
-    ]
+    lines = [",".join(header)] + [f"{tc},61," + ",".join(map(str, v)) for tc, v in zip(timecodes, values, strict=True)]
     log = read_livelink_csv(write_text(tmp_path / "llf.csv", lines))
     assert log.layout.name == "livelink61"
     np.testing.assert_allclose(log.times, np.arange(4) / 60, atol=1e-9)
     ll = get_layout("livelink61")
     file_columns = header[2:]
     for name in ("JawLeft", "JawRight", "MouthLeft", "MouthRight", "HeadYaw"):
-        np.testing.assert_allclose(
-            log.weights[:, ll.index(name)], values[:, file_columns.index(name)], atol=1e-6
-        )
+        np.testing.assert_allclose(log.weights[:, ll.index(name)], values[:, file_columns.index(name)], atol=1e-6)
     assert read_facelog(tmp_path / "llf.csv").layout.name == "livelink61"
 
 
 def test_livelink_csv_fps_and_backwards_time(tmp_path):
     header = ",".join(livelink_csv_header("BlendshapeCount"))
     zeros = ",61" + ",0" * 61
-    log = read_facelog(
-        write_text(tmp_path / "a.csv", [header, "10:00:00:00" + zeros, "10:00:00:15" + zeros]), fps=30
-    )
+    log = read_facelog(write_text(tmp_path / "a.csv", [header, "10:00:00:00" + zeros, "10:00:00:15" + zeros]), fps=30)
     np.testing.assert_allclose(log.times, [0.0, 0.5])
     back = write_text(tmp_path / "b.csv", [header, "10:00:01:00.000" + zeros, "10:00:00:59.000" + zeros])
     with pytest.raises(SourceFormatError, match=r"b\.csv, line 3: time goes backwards"):
         read_livelink_csv(back)
     bad = write_text(tmp_path / "c.csv", [header, "10:00:01" + zeros])
-    with pytest.raises(
-        SourceFormatError, match=r"c\.csv, line 2: timecode '10:00:01' is not HH:MM:SS:FF.fff"
-    ):
+    with pytest.raises(SourceFormatError, match=r"c\.csv, line 2: timecode '10:00:01' is not HH:MM:SS:FF.fff"):
         read_livelink_csv(bad)
 
 
@@ -269,9 +255,7 @@ def test_malformed_packets_raise_clear_errors():
 def test_gesichter_built_in_test(tmp_path):
     values = RNG.uniform(0, 1, (5, 61)).astype(np.float32)
     frames = [100, 101, 102, 104, 105]
-    packets = [
-        build_livelink_packet(v, frame_number=f, subframe=0.5) for v, f in zip(values, frames, strict=True)
-    ]
+    packets = [build_livelink_packet(v, frame_number=f, subframe=0.5) for v, f in zip(values, frames, strict=True)]
     body = struct.pack(">BI", 6, 5) + b"".join(struct.pack(">I", len(p)) + p for p in packets)
     path = tmp_path / "take.bin"  # detected by content, not extension
     path.write_bytes(gzip.compress(body))
@@ -309,14 +293,9 @@ def test_real_livelink_capture():
     assert len(log) == 180 and log.layout.name == "livelink61"
     assert log.metadata["fps"] == "60/1" and log.metadata["device_id"] == "DEADC0DE-1337-1337-1337-CAFEBABE"
     assert log.times[0] == 0.0 and np.all(np.diff(log.times) > 0)
-    np.testing.assert_allclose(
-        log.weights[0, :8], [0.0, 0.164, 0.104, 0.0, 0.0, 0.044, 0.028, 0.0], atol=1e-3
-    )
+    np.testing.assert_allclose(log.weights[0, :8], [0.0, 0.164, 0.104, 0.0, 0.0, 0.044, 0.028, 0.0], atol=1e-3)
     a = log.to_arkit51()
-    peak = {
-        n: a[:, [ARKIT51_NAMES.index(n + s) for s in ("Left", "Right")]].max()
-        for n in ("eyeBlink", "mouthSmile")
-    }
+    peak = {n: a[:, [ARKIT51_NAMES.index(n + s) for s in ("Left", "Right")]].max() for n in ("eyeBlink", "mouthSmile")}
     assert peak["eyeBlink"] == pytest.approx(0.94, abs=0.03)
     assert peak["mouthSmile"] == pytest.approx(0.92, abs=0.03)
     assert a[:, ARKIT51_NAMES.index("jawOpen")].max() == pytest.approx(0.78, abs=0.03)

@@ -86,7 +86,9 @@ def _pack_into(parts: list[Any], value: Any) -> None:
     elif isinstance(value, np.ndarray):
         # C-contiguous little-endian array: its raw bytes are the bin payload (no copy until join).
         parts.append(_bin_header(value.nbytes))
-        parts.append(memoryview(value).cast("B") if value.ndim != 1 or value.itemsize != 1 else value)
+        if not value.flags.c_contiguous:
+            raise ValueError("arrays must be C-contiguous to be packed as bin")
+        parts.append(value.reshape(-1).view(np.uint8))
     else:
         parts.append(msgpack.packb(value, use_bin_type=True))
 

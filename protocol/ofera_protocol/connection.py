@@ -301,7 +301,7 @@ class ClientConnection:
             self.state = ClientState.RECEIVING_AVATAR
         elif isinstance(msg, AvatarChunk):
             if self.state is not ClientState.RECEIVING_AVATAR or self._assembler is None:
-                raise ProtocolError(NOT_READY, f"unexpected avatar chunk in state {self.state.value}")
+                raise ProtocolError(NOT_READY, f"unexpected avatar chunk in state {self.state.value}", True)
             if self._assembler.add(msg):
                 self.avatar = self._assembler.result()
                 self._assembler = None

@@ -32,7 +32,7 @@ SQRT1_2 = float(np.sqrt(0.5))
 """Largest magnitude of a non-largest component of a unit quaternion (1/sqrt 2)."""
 
 POS_LEVELS = 65535
-ROT_LEVELS = 1023
+ROT_LEVELS = 511  # SNORM10: -511..511
 SCALE_LEVELS = 255
 
 FIELD_BYTES: dict[str, tuple[int, int, int]] = {"f32": (12, 16, 12), "f16": (6, 8, 6), "q13": (6, 4, 3)}
@@ -44,15 +44,10 @@ _DTYPES: dict[str, tuple[str, str, str]] = {
     "q13": ("<u2", "<u4", "u1"),
 }
 _SHAPES: tuple[int, int, int] = (3, 4, 3)
-_Q13_SHAPES: tuple[int, int, int] = (3, 1, 3)
-
-# For each dropped index i, the indices of the three components kept, in increasing order.
-_KEPT = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.intp)
-
-assert all(sum(FIELD_BYTES[e]) == BYTES_PER_GAUSSIAN[e] for e in ENCODINGS)
+_FLOAT_LIMIT = {"f32": float(np.finfo(np.float32).max), "f16": float(np.finfo(np.float16).max)}
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True)
 class FrameFormat:
     """What a receiver needs to decode a session's frames (all of it is in `welcome`).
 
@@ -65,13 +60,22 @@ class FrameFormat:
     sparse: bool = False
     quant: Quant | None = None
 
+    def __hash__(self) -> int:  # usable as a dict key, e.g. to encode a frame once per format
+        q = self.quant
+        qkey = None if q is None else (q.pos_min.tobytes(), q.pos_max.tobytes(), q.log_scale.tobytes())
+        return hash((self.encoding, self.count, self.sparse, qkey))
+
     def __post_init__(self) -> None:
         if self.encoding not in ENCODINGS:
             raise ValueError(f"unknown encoding {self.encoding!r}; expected one of {ENCODINGS}")
         if not 0 <= self.count <= UINT32_MAX:
             raise ValueError(f"count {self.count} out of range")
-        if self.encoding == "q13" and self.quant is None:
-            raise ValueError("encoding 'q13' needs quant parameters")
+        if self.encoding == "q13":
+            if self.quant is None:
+                raise ValueError("encoding 'q13' needs quant parameters")
+            validate_quant(self.quant)
+        else:
+            object.__setattr__(self, "quant", None)
 
     def payload_bytes(self, n: int | None = None) -> int:
         """Array bytes of a frame: dense (n None) or sparse with n Gaussians (4 B of index each)."""
@@ -125,10 +129,14 @@ def make_quant(position: np.ndarray, scale: np.ndarray, margin: float = 0.25,
 
 
 def quantize_positions(position: np.ndarray, quant: Quant) -> np.ndarray:
-    """(N, 3) metres -> (N, 3) uint16: round((p - min) / (max - min) * 65535), clamped to the box."""
+    """(N, 3) metres -> (N, 3) uint16: round((p - min) / (max - min) * 65535), clamped to the box.
+
+    Computed in float64, so the result is exact up to ties."""
     lo = quant.pos_min.astype(np.float64)
     k = POS_LEVELS / (quant.pos_max.astype(np.float64) - lo)
-    q = np.rint((np.asarray(position, dtype=np.float64) - lo) * k)
+    q = np.asarray(position, dtype=np.float64).reshape(-1, 3) - lo
+    q *= k
+    np.rint(q, out=q)
     np.clip(q, 0, POS_LEVELS, out=q)
     return q.astype("<u2")
 
@@ -143,57 +151,82 @@ def dequantize_positions(q: np.ndarray, quant: Quant) -> np.ndarray:
 def pack_smallest_three(rotation: np.ndarray) -> np.ndarray:
     """(N, 4) quaternions (x, y, z, w) -> (N,) uint32 "smallest three" 10.10.10.2.
 
-    Bits 31-30: index i of the largest-magnitude component (0=x .. 3=w; first on ties), dropped.
-    The quaternion is normalised and negated if needed so that component i is >= 0. The three other
-    components, in increasing index order, go to bits 29-20, 19-10, 9-0 as
-    u = round((c * sqrt2 + 1) / 2 * 1023), i.e. [-1/sqrt2, 1/sqrt2] -> [0, 1023].
-    A zero or non-finite quaternion encodes the identity.
+    Bits 31-30: index i of the largest-magnitude component (0=x .. 3=w; the first on ties), dropped.
+    The quaternion is normalised, and negated if needed so that component i is >= 0. The three other
+    components c, in increasing index order, go to bits 29-20, 19-10, 9-0 as 10-bit two's-complement
+    SNORM of c * sqrt2: s = clamp(round(c * sqrt2 * 511), -511, 511). Zero is exact.
+    A zero or non-finite quaternion encodes the identity. Computed column-wise in float32.
     """
-    q = np.asarray(rotation, dtype=np.float64).reshape(-1, 4)
-    norm = np.sqrt(np.einsum("ij,ij->i", q, q))
-    bad = ~(np.isfinite(norm) & (norm > 0))
+    q = np.array(np.asarray(rotation, dtype=np.float32).reshape(-1, 4).T, order="C")  # (4, N) copy
+    n2 = np.einsum("ij,ij->j", q, q)
+    bad = ~(np.isfinite(n2) & (n2 > 0))
     if bad.any():
-        q = q.copy()
-        q[bad] = (0.0, 0.0, 0.0, 1.0)
-        norm = np.where(bad, 1.0, norm)
-    q = q / norm[:, None]
-    i = np.argmax(np.abs(q), axis=1)
-    rows = np.arange(q.shape[0])
-    q *= np.where(q[rows, i] < 0, -1.0, 1.0)[:, None]
-    kept = np.take_along_axis(q, _KEPT[i], axis=1)
-    u = np.rint((kept * np.sqrt(2.0) + 1.0) * (ROT_LEVELS / 2))
-    np.clip(u, 0, ROT_LEVELS, out=u)
-    u = u.astype(np.uint32)
-    out = (i.astype(np.uint32) << 30) | (u[:, 0] << 20) | (u[:, 1] << 10) | u[:, 2]
+        q[:, bad] = np.array([[0.0], [0.0], [0.0], [1.0]], dtype=np.float32)
+        n2[bad] = 1.0
+    # Branch-free selection (np.where on random masks is slow): index of the largest |component|.
+    a = np.abs(q)
+    hi01, hi23 = a[1] > a[0], a[3] > a[2]
+    upper = np.maximum(a[2], a[3]) > np.maximum(a[0], a[1])
+    i = upper.astype(np.uint8) * np.uint8(2) + ((upper & hi23) | (~upper & hi01))
+    neg = np.zeros(q.shape[1], dtype=bool)
+    for c in range(4):
+        neg |= (i == c) & (q[c] < 0)
+    f = np.float32(np.sqrt(2.0) * ROT_LEVELS) / np.sqrt(n2)
+    f *= 1 - 2 * neg.astype(np.float32)
+    q *= f
+    np.rint(q, out=q)
+    np.clip(q, -ROT_LEVELS, ROT_LEVELS, out=q)
+    u = (q.astype(np.int32) & 0x3FF).view(np.uint32)  # 10-bit two's complement codes, (4, N)
+    x, y, z, w = u[0], u[1], u[2], u[3]
+    i32 = i.astype(np.uint32)
+    out = i32 << 30
+    for c, (k0, k1, k2) in enumerate(((y, z, w), (x, z, w), (x, y, w), (x, y, z))):
+        out |= ((k0 << 20) | (k1 << 10) | k2) * (i32 == c).astype(np.uint32)
     return out.astype("<u4")
 
 
 def unpack_smallest_three(packed: np.ndarray) -> np.ndarray:
     """(N,) uint32 10.10.10.2 -> (N, 4) float32 unit quaternions (x, y, z, w).
 
-    c = (u * 2 / 1023 - 1) / sqrt2 for the three kept components; the dropped one is
-    sqrt(max(0, 1 - sum c^2)).
+    Each kept 10-bit field s (two's complement, -512..511) gives c = max(s / 511, -1) / sqrt2; the
+    dropped component is sqrt(max(0, 1 - sum c^2)).
     """
     v = np.asarray(packed).astype(np.uint32).reshape(-1)
-    i = (v >> 30).astype(np.intp)
-    u = np.stack([(v >> 20) & 1023, (v >> 10) & 1023, v & 1023], axis=1).astype(np.float64)
-    kept = (u * (2.0 / ROT_LEVELS) - 1.0) * SQRT1_2
-    dropped = np.sqrt(np.maximum(0.0, 1.0 - np.einsum("ij,ij->i", kept, kept)))
-    q = np.empty((v.shape[0], 4), dtype=np.float64)
-    rows = np.arange(v.shape[0])[:, None]
-    q[rows, _KEPT[i]] = kept
-    q[rows[:, 0], i] = dropped
-    return q.astype(np.float32)
+    i = v >> 30
+    f = np.empty((3, v.shape[0]), dtype=np.int32)
+    f[0], f[1], f[2] = (v >> 20) & 1023, (v >> 10) & 1023, v & 1023
+    f ^= 512
+    f -= 512  # sign-extend 10 bits
+    np.maximum(f, -ROT_LEVELS, out=f)
+    k = f.astype(np.float32)
+    k *= np.float32(SQRT1_2 / ROT_LEVELS)
+    d = np.einsum("ij,ij->j", k, k)
+    np.subtract(1.0, d, out=d)
+    np.maximum(d, 0.0, out=d)
+    np.sqrt(d, out=d)
+    # Branch-free scatter: output column c takes the dropped value if c == i, else kept[c - (c > i)].
+    out = np.empty((v.shape[0], 4), dtype=np.float32)
+    for c in range(4):
+        col = d * (i == c).astype(np.float32)
+        if c < 3:
+            col += k[c] * (i > c).astype(np.float32)
+        if c > 0:
+            col += k[c - 1] * (i < c).astype(np.float32)
+        out[:, c] = col
+    return out
 
 
 def quantize_log_scale(scale: np.ndarray, quant: Quant) -> np.ndarray:
-    """(N, 3) metres -> (N, 3) uint8: round((ln s - lmin) / (lmax - lmin) * 255), clamped."""
+    """(N, 3) metres -> (N, 3) uint8: round((ln s - lmin) / (lmax - lmin) * 255), clamped (float32;
+    zero, negative or NaN scales give 0)."""
     lmin, lmax = float(quant.log_scale[0]), float(quant.log_scale[1])
-    s = np.asarray(scale, dtype=np.float64)
+    s = np.asarray(scale, dtype=np.float32).reshape(-1, 3)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ls = np.log(s)
-    ls = np.nan_to_num(ls, nan=lmin, posinf=lmax, neginf=lmin)
-    q = np.rint((ls - lmin) * (SCALE_LEVELS / (lmax - lmin)))
+        q = np.log(s)
+    q -= np.float32(lmin)
+    q *= np.float32(SCALE_LEVELS / (lmax - lmin))
+    np.nan_to_num(q, copy=False, nan=0.0, posinf=SCALE_LEVELS, neginf=0.0)
+    np.rint(q, out=q)
     np.clip(q, 0, SCALE_LEVELS, out=q)
     return q.astype(np.uint8)
 
@@ -223,12 +256,15 @@ def encode_arrays(encoding: str, position: np.ndarray, rotation: np.ndarray, sca
     if encoding not in ("f32", "f16"):
         raise ValueError(f"unknown encoding {encoding!r}")
     dt = _DTYPES[encoding][0]
-    out = tuple(np.ascontiguousarray(a, dtype=dt) for a in (position, rotation, scale))
-    for name, a in zip(("position", "rotation", "scale"), out, strict=True):
-        if not np.isfinite(a).all():
-            raise ValueError(f"{name} has non-finite values after conversion to {encoding} "
-                             "(NaN, infinity, or beyond the float16 range)")
-    return out  # type: ignore[return-value]
+    limit = _FLOAT_LIMIT[encoding]
+    out = []
+    for name, a in zip(("position", "rotation", "scale"), (position, rotation, scale), strict=True):
+        a = np.asarray(a)
+        # min/max propagate NaN, so one comparison each catches NaN, infinity and float16 overflow.
+        if a.size and not (-limit <= a.min() and a.max() <= limit):
+            raise ValueError(f"{name} has NaN, infinity or values beyond +-{limit:g} ({encoding})")
+        out.append(np.ascontiguousarray(a, dtype=dt))
+    return out[0], out[1], out[2]
 
 
 def decode_arrays(encoding: str, n: int, position: bytes, rotation: bytes, scale: bytes,
@@ -254,9 +290,11 @@ def decode_arrays(encoding: str, n: int, position: bytes, rotation: bytes, scale
     out = []
     for name, buf, dt, width in zip(("position", "rotation", "scale"), bufs, dtypes, _SHAPES, strict=True):
         a = np.frombuffer(buf, dtype=dt).reshape(n, width)
+        if encoding == "f16":
+            a = a.astype(np.float32)  # isfinite is much faster on float32 than on float16
         if not np.isfinite(a).all():
             raise ProtocolError(NON_FINITE, f"frame field {name!r} holds NaN or infinity")
-        out.append(a if encoding == "f32" else a.astype(np.float32))
+        out.append(a)
     return out[0], out[1], out[2]
 
 
@@ -269,7 +307,7 @@ def position_error_bound(encoding: str, quant: Quant | None = None,
 
     f32: 0. f16: half an ulp, 2^-11 |x| for |x| >= 2^-14, else 2^-25. q13: half a step,
     (max - min) / 65535 / 2 per axis, for positions inside the box (outside: clamped to it), plus
-    the float32 rounding of the result (2^-24 |x|).
+    the float32 rounding of the result (2^-24 |decoded| <= 2^-24 (|x| + step)).
     """
     m = np.abs(np.asarray(magnitude, dtype=np.float64))
     if encoding == "f32":
@@ -278,11 +316,11 @@ def position_error_bound(encoding: str, quant: Quant | None = None,
         return np.broadcast_to(np.maximum(m * 2.0**-11, 2.0**-25), np.broadcast_shapes(m.shape, (3,)))
     assert quant is not None
     step = (quant.pos_max.astype(np.float64) - quant.pos_min.astype(np.float64)) / POS_LEVELS
-    return step / 2 + m * 2.0**-24
+    return step / 2 + (m + step) * 2.0**-24
 
 
-Q13_ROTATION_COMPONENT_ERROR = SQRT1_2 / ROT_LEVELS
-"""Largest error of one kept component in q13: half a step, (sqrt2 / 1023) / 2."""
+Q13_ROTATION_COMPONENT_ERROR = SQRT1_2 / ROT_LEVELS / 2
+"""Largest error of one kept component in q13: half a step, (1/sqrt2) / 511 / 2 (about 6.9e-4)."""
 Q13_ROTATION_ERROR = 4 * Q13_ROTATION_COMPONENT_ERROR
 """Bound on the Euclidean distance between a unit quaternion and its q13 decoding (up to sign),
 about 2.8e-3, i.e. a rotation error below 0.32 degrees."""
@@ -290,7 +328,11 @@ F16_ROTATION_ERROR = 2.0**-12
 """Largest per-component error of a unit quaternion in f16 (half an ulp of values in [0.5, 1])."""
 
 
+LOG_SCALE_SLACK = 1e-5
+"""Float32 arithmetic of the reference q13 scale encoder, in ln units (|ln s| < 40)."""
+
+
 def log_scale_error_bound(quant: Quant) -> float:
-    """Largest |ln decoded - ln sent| of a q13 scale inside the log range: (lmax - lmin) / 255 / 2
-    (plus float32 rounding, 2^-23)."""
-    return float(quant.log_scale[1] - quant.log_scale[0]) / SCALE_LEVELS / 2 + 2.0**-23
+    """Largest |ln decoded - ln sent| of a q13 scale inside the log range: half a step,
+    (lmax - lmin) / 255 / 2, plus LOG_SCALE_SLACK. Outside the range scales are clamped to it."""
+    return float(quant.log_scale[1] - quant.log_scale[0]) / SCALE_LEVELS / 2 + LOG_SCALE_SLACK

@@ -177,9 +177,7 @@ def layout_from_names(names: Sequence[str], layout: str | Layout | None = None) 
     assert best is not None
     _, cand, unknown, missing = best
     problems = "; ".join(
-        f"{label} names: {_listing(found)}"
-        for label, found in (("unknown", unknown), ("missing", missing))
-        if found
+        f"{label} names: {_listing(found)}" for label, found in (("unknown", unknown), ("missing", missing)) if found
     )
     if layout is not None:
         raise LayoutError(f"names do not match layout {cand.name!r}: {problems}")
@@ -190,10 +188,7 @@ def layout_from_names(names: Sequence[str], layout: str | Layout | None = None) 
 
 def _sided(arkit_stem: str, *drivers: tuple[str, float]) -> dict[str, tuple[tuple[str, float], ...]]:
     """ARKit `<stem>Left/Right` driven by OVR `<driver>_L/_R` of the same side."""
-    return {
-        f"{arkit_stem}{side}": tuple((f"{ovr}_{side[0]}", w) for ovr, w in drivers)
-        for side in ("Left", "Right")
-    }
+    return {f"{arkit_stem}{side}": tuple((f"{ovr}_{side[0]}", w) for ovr, w in drivers) for side in ("Left", "Right")}
 
 
 OVR_TO_ARKIT: dict[str, tuple[tuple[str, float], ...]] = {
@@ -311,6 +306,9 @@ def convert_reference(layout: str | Layout, w: np.ndarray, dst: str | Layout = "
     return np.array(out, dtype=np.float32)
 
 
+_ZERO, _ONE = np.float32(0.0), np.float32(1.0)
+
+
 class LayoutAdapter:
     """Hot-path converter from one layout to arkit51/arkit52 with a precomputed matrix.
 
@@ -330,8 +328,9 @@ class LayoutAdapter:
             raise ValueError(f"expected {self.layout.length} values for {self.layout.name!r}, got {w.shape}")
         if out is None:
             out = self.out
-        np.matmul(w, self._mt, out=out)
-        return np.clip(out, 0.0, 1.0, out=out)
+        np.dot(w, self._mt, out=out)
+        np.maximum(out, _ZERO, out=out)  # two ufuncs with float32 scalars: ~3x faster than np.clip here
+        return np.minimum(out, _ONE, out=out)
 
 
 _REGION_OF_PREFIX = {
@@ -345,9 +344,7 @@ _REGION_OF_PREFIX = {
 }
 
 ARKIT_REGIONS: dict[str, tuple[str, ...]] = {
-    region: tuple(
-        n for n in ARKIT52_NAMES if any(n.startswith(p) for p, r in _REGION_OF_PREFIX.items() if r == region)
-    )
+    region: tuple(n for n in ARKIT52_NAMES if any(n.startswith(p) for p, r in _REGION_OF_PREFIX.items() if r == region))
     for region in ("eyes", "brows", "mouth_jaw", "cheeks_nose")
 }
 """ARKit names by face region: eyes (14), brows (5), mouth_jaw (28, with tongueOut), cheeks_nose (5)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 from collections.abc import Sequence
+from operator import itemgetter
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from ofera.sources.facelog import SourceFormatError
 
 
 class Table:
-    """A CSV file read as strings: header, cells (T, C) str array, file line of each row.
+    """A CSV file read as strings: header, rows (lists of str), and the file line of each row.
 
     Blank lines are skipped; lines starting with `#` are comments, and `# key: value` comments are
     collected into `metadata` (keys lowercased).
@@ -45,25 +46,32 @@ class Table:
                 raise SourceFormatError(
                     f"expected {len(self.header)} fields as in the header, got {len(record)}", path, number
                 )
-        self.cells = np.array(records[1:], dtype=str).reshape(len(self.lines), len(self.header))
+        self.rows = records[1:]
 
     def find(self, *names: str) -> int | None:
         """Index of the first header column whose lowercased name is in `names`, else None."""
         lowered = [h.lower() for h in self.header]
         return next((lowered.index(n) for n in names if n in lowered), None)
 
+    def texts(self, column: int) -> list[str]:
+        """The cells of one column, as written."""
+        return [row[column] for row in self.rows]
+
     def floats(self, columns: Sequence[int]) -> np.ndarray:
         """(T, len(columns)) float64 of those columns; errors name the line and column."""
-        cells = self.cells[:, list(columns)]
+        pick = itemgetter(*columns)
+        cells = [pick(row) for row in self.rows]
         try:
-            values = cells.astype(np.float64)
+            values = np.array(cells, dtype=np.float64).reshape(len(self.rows), len(columns))
         except ValueError:
             values = None
         if values is not None and np.isfinite(values).all():
             return values
-        row, col = next((r, c) for r, c in np.ndindex(cells.shape) if not _finite(str(cells[r, c])))
+        row, col = next(
+            (r, c) for r, c in np.ndindex(len(self.rows), len(columns)) if not _finite(self.rows[r][columns[c]])
+        )
         raise SourceFormatError(
-            f"column {self.header[columns[col]]!r}: {str(cells[row, col])!r} is not a finite number",
+            f"column {self.header[columns[col]]!r}: {self.rows[row][columns[col]]!r} is not a finite number",
             self.path,
             self.lines[row],
         )

@@ -76,17 +76,13 @@ def _times(table: Table, fps: float | None) -> np.ndarray:
     return table.relative_times(table.floats([frame_col])[:, 0] / rate)
 
 
-def _data_source(table: Table, col: int) -> np.ndarray:
-    texts = np.char.lower(np.char.strip(table.cells[:, col]))
-    codes = np.empty(len(texts), dtype=np.uint8)
-    for value in np.unique(texts):
-        rows = texts == value
-        if str(value) not in _DATA_SOURCE_CODES:
-            line = table.lines[int(np.argmax(rows))]
-            raise SourceFormatError(
-                f"data_source {str(value)!r} is not one of {DATA_SOURCES}", table.path, line
-            )
-        codes[rows] = _DATA_SOURCE_CODES[str(value)]
+def _data_source(table: Table, column: int) -> np.ndarray:
+    codes = np.empty(len(table.rows), dtype=np.uint8)
+    for row, text in enumerate(table.texts(column)):
+        code = _DATA_SOURCE_CODES.get(text.strip().lower())
+        if code is None:
+            raise SourceFormatError(f"data_source {text!r} is not one of {DATA_SOURCES}", table.path, table.lines[row])
+        codes[row] = code
     return codes
 
 
@@ -96,9 +92,7 @@ def write_facelog(path: str | Path, log: FaceLog) -> None:
     blocks = [log.times[:, None], log.weights]
     if log.confidence is not None:
         if log.confidence.shape[1] != len(CONFIDENCE_COLUMNS):
-            raise ValueError(
-                f"face-log CSV confidence must be (T, 2) lower/upper, got {log.confidence.shape}"
-            )
+            raise ValueError(f"face-log CSV confidence must be (T, 2) lower/upper, got {log.confidence.shape}")
         header += CONFIDENCE_COLUMNS
         blocks.append(log.confidence)
     numbers = np.hstack([b.astype(np.float64) for b in blocks])

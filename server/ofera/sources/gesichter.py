@@ -37,9 +37,7 @@ def read_gesichter(path: str | Path) -> FaceLog:
             raise SourceFormatError(f"truncated: {count} frames announced, file ends", path, frame=frame)
         (size,) = struct.unpack_from(">I", data, pos)
         if size > len(data) - pos - 4:
-            raise SourceFormatError(
-                f"truncated: packet of {size} bytes, {len(data) - pos - 4} left", path, frame=frame
-            )
+            raise SourceFormatError(f"truncated: packet of {size} bytes, {len(data) - pos - 4} left", path, frame=frame)
         try:
             packets.append(parse_livelink_packet(data[pos + 4 : pos + 4 + size]))
         except LiveLinkPacketError as exc:

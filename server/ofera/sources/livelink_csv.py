@@ -46,9 +46,9 @@ def read_livelink_csv(path: str | Path, fps: float = 60.0) -> FaceLog:
         raise SourceFormatError(str(exc), path, table.header_line) from None
     times = np.empty(len(table.lines), dtype=np.float64)
     day = 0.0
-    for row, text in enumerate(table.cells[:, tc_col]):
+    for row, text in enumerate(table.texts(tc_col)):
         try:
-            t = parse_timecode(str(text), fps) + day
+            t = parse_timecode(text, fps) + day
         except ValueError as exc:
             raise SourceFormatError(str(exc), path, table.lines[row]) from None
         if row and t < times[row - 1] - _DAY / 2:

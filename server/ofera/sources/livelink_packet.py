@@ -70,9 +70,7 @@ def parse_livelink_packet(data: bytes) -> LiveLinkPacket:
     reader = _Reader(data)
     (version,) = reader.take(1, "version")
     if version != PACKET_VERSION:
-        raise LiveLinkPacketError(
-            f"Live Link packet version {version} is not supported (expected {PACKET_VERSION})"
-        )
+        raise LiveLinkPacketError(f"Live Link packet version {version} is not supported (expected {PACKET_VERSION})")
     device_id = reader.text("device id")
     subject = reader.text("subject name")
     frame, subframe, fps_num, fps_den = _FRAME_TIME.unpack(reader.take(_FRAME_TIME.size, "frame time"))

@@ -1,0 +1,38 @@
+"""Gaussian head avatars bound to the head mesh: bindings, deformation, formats, importers, preview renderer.
+
+Public API::
+
+    load_avatar("default" | path) -> GaussianAvatar     # .count .sh_degree .opacity .sh .head .movable
+    avatar.deformer().deform(vertices (V, 3)) -> GaussianState(position, rotation xyzw, scale)
+    avatar.neutral() -> GaussianState
+    save_avatar(avatar, path)                            # the project's .npz (FORMAT.md)
+    import_gaussianavatars([folder] | [ply, npz], head)  # GaussianAvatars point_cloud.ply + flame_param.npz
+    import_fate(checkpoint, head)                        # FATE torch checkpoint
+    export_state_ply(path, state, opacity, sh)           # standard world-space 3DGS PLY
+    ofera.avatar.render: Camera, project_gaussians, composite, render_state, face_camera
+"""
+
+from .binding import AvatarError, BarycentricBinding, TriangleBinding
+from .deform import BarycentricDeformer, Deformer, TriangleDeformer
+from .fate import import_fate
+from .gaussianavatars import import_gaussianavatars
+from .io import load_avatar, save_avatar
+from .model import GaussianAvatar
+from .ply import export_state_ply
+from .state import GaussianState
+
+__all__ = [
+    "AvatarError",
+    "BarycentricBinding",
+    "BarycentricDeformer",
+    "Deformer",
+    "GaussianAvatar",
+    "GaussianState",
+    "TriangleBinding",
+    "TriangleDeformer",
+    "export_state_ply",
+    "import_fate",
+    "import_gaussianavatars",
+    "load_avatar",
+    "save_avatar",
+]

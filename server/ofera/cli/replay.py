@@ -1,0 +1,266 @@
+"""`ofera replay LOG --url URL` and `ofera ingest livelink|vmc --url URL`: drive a running server from a
+recorded face log or from live UDP face tracking, and report what came back."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .errors import CliError, user_errors
+
+UrlOpt = Annotated[str, typer.Option("--url", help="Server: ws://HOST:PORT (the /v1/stream path is added).")]
+AvatarOpt = Annotated[str, typer.Option("--avatar", help="Avatar id to ask for ('default': the server's).")]
+EncodingOpt = Annotated[str, typer.Option("--encoding", help="Frame encoding: f32, f16 or q13.")]
+TokenOpt = Annotated[str | None, typer.Option("--token", help="Access token, if the server requires one.")]
+JsonOpt = Annotated[Path | None, typer.Option("--json", help="Write the run's summary as JSON here ('-': stdout).")]
+
+ingest_app = typer.Typer(
+    help="Live face tracking over UDP into an avatar session (no Unity needed).", no_args_is_help=True)
+
+
+def _err_console():
+    from rich.console import Console
+
+    return Console(stderr=True, soft_wrap=True, highlight=False)
+
+
+def _write_json(target: Path | None, summary: dict) -> None:
+    if target is None:
+        return
+    text = json.dumps(summary, indent=2)
+    if str(target) == "-":
+        print(text)
+    else:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(text + "\n")
+
+
+def _run_with_sigint(coro_factory: Callable[[], object], on_sigint: Callable[[], None]):
+    """asyncio.run, with the first Ctrl-C calling `on_sigint` (a graceful stop) instead of raising."""
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        installed = False
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+
+            def first_sigint() -> None:
+                loop.remove_signal_handler(signal.SIGINT)  # a second Ctrl-C interrupts for real
+                on_sigint()
+
+            loop.add_signal_handler(signal.SIGINT, first_sigint)
+            installed = True
+        try:
+            return await coro_factory()
+        finally:
+            if installed:
+                with contextlib.suppress(Exception):
+                    loop.remove_signal_handler(signal.SIGINT)
+
+    return asyncio.run(main())
+
+
+def _explain_failure(stats, what: str) -> None:
+    """Exit non-zero, saying what went wrong, when the server refused or reported errors."""
+    if stats.fatal_error is not None:
+        message = stats.fatal_error
+    elif stats.errors:
+        first = stats.error_messages[0] if stats.error_messages else "?"
+        message = f"the server reported {stats.errors} error(s) during the {what}; first: {first}"
+    else:
+        return
+    print(f"error: {message}", file=sys.stderr)
+    raise typer.Exit(1)
+
+
+def replay(
+    log: Annotated[Path, typer.Argument(help="Face log: face-log/MediaPipe/ARKit CSV, Live Link Face CSV or "
+                                       ".gesichter capture.", show_default=False)],
+    url: UrlOpt = "ws://127.0.0.1:8000",
+    speed: Annotated[float, typer.Option("--speed", help="Playback speed (2: twice as fast).")] = 1.0,
+    loop: Annotated[bool, typer.Option("--loop", help="Repeat the log until Ctrl-C.")] = False,
+    passes: Annotated[int | None, typer.Option("--passes", help="With --loop: stop after N passes.")] = None,
+    layout: Annotated[str, typer.Option("--layout", help="'auto' (detect from the column names) or a layout "
+                                        "the log must hold: arkit52, arkit51, mediapipe52, ovr63, ovr70, "
+                                        "livelink61.")] = "auto",
+    fps: Annotated[float | None, typer.Option("--fps", help="Frame rate of a Live Link timecode (default 60) "
+                                              "or of a CSV frame column.")] = None,
+    record: Annotated[Path | None, typer.Option("--record", help="Save the received frames to this .npz "
+                                                "(seq, t_us, recv_us, latency, timing, answered weights).")] = None,
+    record_positions: Annotated[bool, typer.Option("--record-positions", help="With --record: also save every "
+                                                   "frame's Gaussian positions (F x N x 3).")] = False,
+    json_out: JsonOpt = None,
+    avatar: AvatarOpt = "default",
+    encoding: EncodingOpt = "f32",
+    token: TokenOpt = None,
+    max_lag: Annotated[float, typer.Option("--max-lag", help="Skip frames found more than this many seconds "
+                                           "overdue (a stalled sender catches up).")] = 0.25,
+    drain: Annotated[float, typer.Option("--drain", help="Seconds to wait for the last frames after "
+                                         "sending.")] = 2.0,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """Send a recorded face log to a server at its recorded pace and measure the frames that come back.
+
+    Exits 1 when the server refuses the session or reports errors, 2 on a bad argument or log.
+    """
+    _replay(log, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar, encoding,
+            token, max_lag, drain, quiet)
+
+
+@user_errors()
+def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar,
+            encoding, token, max_lag, drain, quiet) -> None:
+    from ofera.replay import FrameRecorder, LinkOptions, Replayer, replay_through, stream_url
+    from ofera.sources import read_facelog
+
+    if passes is not None and passes < 1:
+        raise CliError(f"--passes must be at least 1, got {passes}")
+    target = stream_url(url)
+    log = read_facelog(log_path, layout, fps)
+    replayer = Replayer(log, speed=speed, loop=loop, max_lag=max_lag,
+                        max_passes=passes if loop else 1)
+    recorder = FrameRecorder(log.layout.name, log.weights, replayer.times, record_positions) if record else None
+    options = LinkOptions(layout=log.layout.name, avatar=avatar, encoding=encoding, token=token)
+    console = _err_console()
+    console.print(f"replaying {log_path} ({len(log)} frames, {log.duration:.2f} s, layout {log.layout.name}) "
+                  f"to {target} at x{speed:g}{' in a loop' if loop else ''}")
+    progress, on_tick = _progress(console, replayer, quiet)
+    with progress or contextlib.nullcontext():
+        stats = _run_with_sigint(
+            lambda: replay_through(replayer, target, options, recorder, drain_s=drain, on_tick=on_tick),
+            replayer.stop)
+    # sending spans (passes - 1) whole periods plus one log duration
+    expected = (max(stats.passes - 1, 0) * replayer.period + replayer.log_duration) / speed
+    summary = stats.summary(
+        log=str(log_path), layout=log.layout.name, url=target, speed=speed, loop=loop, passes=stats.passes,
+        frames_in_log=len(log), log_duration_s=round(replayer.log_duration, 4),
+        expected_duration_s=round(expected, 4),
+    )
+    _write_json(json_out, summary)
+    if recorder is not None:
+        saved = recorder.save(record)
+        console.print(f"recorded {len(recorder)} frames to {saved}")
+    lat = summary["latency_ms"]
+    console.print(
+        f"sent {stats.sent}, received {stats.received}, skipped {stats.skipped}, errors {stats.errors}; "
+        f"sending took {stats.duration:.3f} s (expected {summary['expected_duration_s']:.3f} s), "
+        f"wall {stats.wall:.3f} s; latency p50 {lat['p50']} ms, p99 {lat['p99']} ms")
+    _explain_failure(stats, "replay")
+
+
+def _progress(console, replayer, quiet: bool):
+    if quiet or not console.is_terminal:
+        return None, None
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    progress = Progress(TextColumn("replay"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        TextColumn("{task.fields[info]}"), console=console, transient=False)
+    task = progress.add_task("replay", total=replayer.total_frames, info="")
+
+    def on_tick(r) -> None:
+        s = r.stats
+        recent = s.latencies[-100:]
+        p50 = f"{sorted(recent)[len(recent) // 2] * 1e3:.1f} ms" if recent else "-"
+        progress.update(task, completed=r.position,
+                        info=f"received {s.received}  errors {s.errors}  latency {p50}")
+
+    return progress, on_tick
+
+
+def _ingest(kind: str, listen: str, url: str, avatar: str, encoding: str, token: str | None,
+            seconds: float | None, status_every: float, json_out: Path | None, quiet: bool) -> None:
+    from ofera.ingest import LiveLinkDecoder, VmcDecoder, parse_listen, run_ingest
+    from ofera.ingest.run import IngestResult
+    from ofera.replay import LinkOptions, stream_url
+
+    if seconds is not None and seconds <= 0:
+        raise CliError(f"--seconds must be positive, got {seconds}")
+    if status_every <= 0:
+        raise CliError(f"--status-every must be positive, got {status_every}")
+    default_port = 11111 if kind == "livelink" else 39539
+    host, port = parse_listen(listen, default_port)
+    decoder = LiveLinkDecoder() if kind == "livelink" else VmcDecoder()
+    layout = decoder.layout.name
+    target = stream_url(url)
+    console = _err_console()
+    stop = asyncio.Event()
+    result = IngestResult()
+
+    def on_listening(addr) -> None:
+        console.print(f"{decoder.name} on udp {addr[0]}:{addr[1]} -> {target} (layout {layout}); "
+                      + (f"for {seconds:g} s" if seconds else "Ctrl-C to stop"))
+
+    def on_status(r) -> None:
+        if not quiet:
+            console.print(r.status_line(), highlight=False)
+
+    try:
+        _run_with_sigint(
+            lambda: run_ingest(decoder, layout, host, port, target,
+                               LinkOptions(layout=layout, avatar=avatar, encoding=encoding, token=token),
+                               seconds=seconds, status_every=status_every, on_status=on_status,
+                               on_listening=on_listening, stop=stop, result=result),
+            stop.set)
+    except OSError as e:
+        raise CliError(f"cannot listen on udp {host}:{port}: {e.strerror or e} (port in use? try --listen "
+                       f"{host}:0 or another port)") from None
+    summary = result.summary(kind=kind, layout=layout, url=target)
+    _write_json(json_out, summary)
+    console.print(result.status_line(window=10**9), highlight=False)
+    if result.packets.last_problem and result.packets.bad:
+        console.print(f"last bad packet: {result.packets.last_problem}", highlight=False)
+    _explain_failure(result.stats, "ingest")
+
+
+ListenHelp = "UDP address to listen on, HOST:PORT (port 0: any free port)."
+SecondsOpt = Annotated[float | None, typer.Option("--seconds", help="Stop after this many seconds "
+                                                  "(default: until Ctrl-C).")]
+StatusOpt = Annotated[float, typer.Option("--status-every", help="Seconds between status lines.")]
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No periodic status lines.")]
+
+
+@ingest_app.command("livelink")
+@user_errors()
+def ingest_livelink(
+    url: UrlOpt = "ws://127.0.0.1:8000",
+    listen: Annotated[str, typer.Option("--listen", help=ListenHelp)] = "0.0.0.0:11111",
+    avatar: AvatarOpt = "default",
+    encoding: EncodingOpt = "f32",
+    token: TokenOpt = None,
+    seconds: SecondsOpt = None,
+    status_every: StatusOpt = 1.0,
+    json_out: JsonOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Receive Epic Live Link Face packets (iPhone, UDP 11111) and drive an avatar with layout livelink61.
+
+    Point the Live Link Face app's target at this machine. The newest packet wins; malformed packets are
+    counted and skipped. Exits 1 when the server refuses the session or reports errors.
+    """
+    _ingest("livelink", listen, url, avatar, encoding, token, seconds, status_every, json_out, quiet)
+
+
+@ingest_app.command("vmc")
+@user_errors()
+def ingest_vmc(
+    url: UrlOpt = "ws://127.0.0.1:8000",
+    listen: Annotated[str, typer.Option("--listen", help=ListenHelp)] = "0.0.0.0:39539",
+    avatar: AvatarOpt = "default",
+    encoding: EncodingOpt = "f32",
+    token: TokenOpt = None,
+    seconds: SecondsOpt = None,
+    status_every: StatusOpt = 1.0,
+    json_out: JsonOpt = None,
+    quiet: QuietOpt = False,
+) -> None:
+    """Receive VMC protocol blendshapes (OSC over UDP 39539: VSeeFace, VMagicMirror perfect sync, ...) and
+    drive an avatar with layout arkit52: `/VMC/Ext/Blend/Val` sets a shape, `/VMC/Ext/Blend/Apply` sends
+    the frame. Malformed datagrams are counted and skipped."""
+    _ingest("vmc", listen, url, avatar, encoding, token, seconds, status_every, json_out, quiet)

@@ -1,0 +1,49 @@
+"""`ofera serve`: run the streaming server (built-in default avatar when given no argument)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from .errors import CliError, user_errors
+
+
+@user_errors()
+def serve(
+    host: Annotated[str | None, typer.Option(help="Interface [env OFERA_HOST; default 127.0.0.1].")] = None,
+    port: Annotated[int | None, typer.Option(help="TCP port, 0 = any free [env OFERA_PORT; default 8000].")] = None,
+    avatars: Annotated[Path | None, typer.Option(help="Directory of avatars (each may have a sibling <id>.onnx EPM "
+                                                  "and <id>.bda.npz BDA) [env OFERA_AVATARS].")] = None,
+    devices: Annotated[Path | None, typer.Option(help="Directory of device BDA profiles <device>.npz "
+                                                  "[env OFERA_DEVICES].")] = None,
+    default_avatar: Annotated[str | None, typer.Option(help="Avatar id that 'default' means "
+                                                        "[env OFERA_DEFAULT_AVATAR].")] = None,
+    token: Annotated[str | None, typer.Option(help="Require this token in hello [env OFERA_TOKEN].")] = None,
+    max_sessions: Annotated[int | None, typer.Option(help="Most concurrent sessions [env OFERA_MAX_SESSIONS].")] = None,
+    max_message_bytes: Annotated[int | None, typer.Option(help="Largest client message "
+                                                           "[env OFERA_MAX_MESSAGE_BYTES].")] = None,
+    bs_rate: Annotated[float | None, typer.Option(help="Most bs per second per session [env OFERA_BS_RATE].")] = None,
+    compute_threads: Annotated[int | None, typer.Option(help="Pipeline threads, 0 = one per core "
+                                                         "[env OFERA_COMPUTE_THREADS].")] = None,
+    log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
+) -> None:
+    """Stream Gaussian avatars over WebSocket: warms up the default avatar, prints where to connect."""
+    from pydantic import ValidationError
+
+    from ..streaming.config import Settings
+    from ..streaming.server import serve as run
+
+    given = {k: v for k, v in dict(host=host, port=port, avatars=avatars, devices=devices,
+                                   default_avatar=default_avatar, token=token, max_sessions=max_sessions,
+                                   max_message_bytes=max_message_bytes, bs_rate=bs_rate,
+                                   compute_threads=compute_threads, log_level=log_level).items() if v is not None}
+    try:
+        settings = Settings(**given)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise CliError(f"bad settings: {problems}") from None
+    print(f"OFERA server: warming up avatar {settings.default_avatar!r} on {settings.host}:{settings.port} ...",
+          flush=True)
+    run(settings)

@@ -1,0 +1,213 @@
+"""asyncio client of the OFERA stream, on the protocol codec and the `websockets` library.
+
+    client = await connect("ws://127.0.0.1:8000/v1/stream", layout="arkit52")
+    await client.send_bs(weights)            # seq and t (microseconds, monotonic clock) filled in
+    frame = await client.recv_frame()        # decoded float32 arrays, stage timings, seq, t
+    print(client.latency.summary())          # p50/p99 of now - frame.t (ms)
+    await client.close()
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator
+
+import numpy as np
+from ofera_protocol import (
+    ENDPOINT,
+    MAX_SERVER_MESSAGE,
+    Avatar,
+    ClientConnection,
+    ErrorMessage,
+    Frame,
+    Pong,
+    ProtocolError,
+    ServerMessage,
+    Welcome,
+)
+from websockets.asyncio.client import ClientConnection as WsConnection
+from websockets.asyncio.client import connect as ws_connect
+from websockets.exceptions import ConnectionClosed
+
+from .stats import LatencyStats
+
+
+def now_us() -> int:
+    """The client clock put in `bs.t`: monotonic, microseconds."""
+    return time.monotonic_ns() // 1000
+
+
+def stream_url(url: str) -> str:
+    """`host:port`, `ws://host:port`, `http://host:port[/]` -> `ws://host:port/v1/stream` (paths kept)."""
+    url = url.strip()
+    for http, ws in (("http://", "ws://"), ("https://", "wss://")):
+        if url.startswith(http):
+            url = ws + url[len(http):]
+    if "://" not in url:
+        url = "ws://" + url
+    scheme, rest = url.split("://", 1)
+    if "/" not in rest.rstrip("/"):
+        rest = rest.rstrip("/") + ENDPOINT
+    return f"{scheme}://{rest}"
+
+
+class ServerError(Exception):
+    """The server refused or ended the session: `code` (protocol error code), `fatal`, `close_code`."""
+
+    def __init__(self, code: str, message: str, fatal: bool = True, close_code: int | None = None) -> None:
+        super().__init__(f"{code}: {message}" + (f" (close {close_code})" if close_code else ""))
+        self.code, self.message, self.fatal, self.close_code = code, message, fatal, close_code
+
+
+class Client:
+    """One open session (use `connect`). Not safe for concurrent receivers: one task reads."""
+
+    def __init__(self, ws: WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar) -> None:
+        self.ws = ws
+        self.conn = conn
+        self.welcome = welcome
+        self.avatar = avatar
+        self.latency = LatencyStats()
+        self.errors: list[ErrorMessage] = []  # non-fatal errors seen while reading frames
+        self.pongs: list[int] = []  # ping round trips, microseconds
+        self.seq = -1
+        self.frames_received = 0
+
+    @property
+    def session(self) -> str:
+        return self.welcome.session
+
+    @property
+    def count(self) -> int:
+        return self.welcome.avatar.count
+
+    # ------------------------------------------------------------------ sending
+
+    async def send_bs(self, weights: np.ndarray, seq: int | None = None, t: int | None = None) -> int:
+        """Send one `bs` (weights in the session's layout). Returns the seq used (default: last + 1)."""
+        self.seq = self.seq + 1 if seq is None else seq
+        await self.ws.send(self.conn.bs(self.seq, now_us() if t is None else t, weights))
+        return self.seq
+
+    async def send_raw(self, data: bytes | str) -> None:
+        """Send any bytes (tests of the server's error handling)."""
+        await self.ws.send(data)
+
+    async def ping(self) -> None:
+        await self.ws.send(self.conn.ping(now_us()))
+
+    # ------------------------------------------------------------------ receiving
+
+    async def recv(self, timeout: float | None = None) -> ServerMessage:
+        """The next server message (Frame, ErrorMessage or Pong), decoded. Frames update `latency`.
+        Raises ServerError when the connection closes, TimeoutError on timeout."""
+        try:
+            data = await asyncio.wait_for(self.ws.recv(), timeout)
+        except ConnectionClosed as e:
+            rcvd = e.rcvd
+            raise ServerError("closed", rcvd.reason if rcvd else "connection closed without a close frame",
+                              True, rcvd.code if rcvd else None) from None
+        if isinstance(data, str):
+            raise ServerError("text_frame", "the server sent a text message", True)
+        msg = self.conn.receive(data)
+        if isinstance(msg, Frame):
+            self.frames_received += 1
+            self.latency.add(now_us() - msg.t)
+        elif isinstance(msg, Pong):
+            self.pongs.append(now_us() - msg.t)
+        return msg
+
+    async def recv_frame(self, timeout: float | None = None) -> Frame:
+        """The next frame. Non-fatal errors are kept in `errors`; a fatal one raises ServerError."""
+        while True:
+            msg = await self.recv(timeout)
+            if isinstance(msg, Frame):
+                return msg
+            if isinstance(msg, ErrorMessage):
+                if msg.fatal:
+                    raise ServerError(msg.code, msg.message, True, await self._close_code())
+                self.errors.append(msg)
+
+    async def frames(self, timeout: float | None = None) -> AsyncIterator[Frame]:
+        """Frames until the server closes the connection (ends quietly on a normal close)."""
+        while True:
+            try:
+                yield await self.recv_frame(timeout)
+            except ServerError as e:
+                if e.code == "closed" and e.close_code in (1000, 1001):
+                    return
+                raise
+
+    async def _close_code(self) -> int | None:
+        try:
+            await asyncio.wait_for(self.ws.wait_closed(), 5)
+        except asyncio.TimeoutError:
+            return None
+        return self.ws.close_code
+
+    # ------------------------------------------------------------------ closing
+
+    async def close(self) -> None:
+        """Say bye and close (idempotent)."""
+        try:
+            if self.conn.state.value != "closed":
+                await self.ws.send(self.conn.bye())
+        except ConnectionClosed:
+            pass
+        await self.ws.close()
+
+    async def __aenter__(self) -> Client:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
+
+
+async def connect(url: str, layout: str = "arkit52", avatar: str = "default", encoding: str = "f32",
+                  coords: str = "flame", token: str | None = None, *, device: str | None = None,
+                  sparse: bool = False, max_gaussians: int | None = None, open_timeout: float = 60.0,
+                  max_size: int = MAX_SERVER_MESSAGE) -> Client:
+    """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused."""
+    ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
+                          ping_interval=None)
+    conn = ClientConnection(max_message_size=max_size, track_gaussians=False)
+    try:
+        await ws.send(conn.hello(layout, avatar, encoding=encoding, coords=coords, sparse=sparse, device=device,
+                                 token=token, max_gaussians=max_gaussians))
+        welcome = await asyncio.wait_for(_handshake(ws, conn), open_timeout)
+    except BaseException:
+        await ws.close()
+        raise
+    assert conn.avatar is not None
+    return Client(ws, conn, welcome, conn.avatar)
+
+
+async def _handshake(ws: WsConnection, conn: ClientConnection) -> Welcome:
+    welcome: Welcome | None = None
+    while conn.avatar is None:
+        try:
+            data = await ws.recv()
+        except ConnectionClosed as e:
+            rcvd = e.rcvd
+            raise ServerError("closed", rcvd.reason if rcvd else "closed during the handshake", True,
+                              rcvd.code if rcvd else None) from None
+        if isinstance(data, str):
+            raise ServerError("text_frame", "the server sent a text message", True)
+        try:
+            msg = conn.receive(data)
+        except ProtocolError as e:
+            raise ServerError(e.code, f"bad server message: {e.message}", True) from None
+        if isinstance(msg, ErrorMessage):
+            code = None
+            if msg.fatal:
+                try:
+                    await asyncio.wait_for(ws.wait_closed(), 5)
+                    code = ws.close_code
+                except asyncio.TimeoutError:
+                    pass
+            raise ServerError(msg.code, msg.message, msg.fatal, code)
+        if isinstance(msg, Welcome):
+            welcome = msg
+    assert welcome is not None
+    return welcome

@@ -1,0 +1,434 @@
+"""An ARKit-style face rig of the 51 arkit51 shapes, built on the procedural head: the "real face".
+
+The rig plays the part of a captured person: weights w (T, 51) -> a mesh (T, n, 3). It is placed by
+the meaning of each shape (REFERENCE.md section 1) and is deliberately NOT the head model:
+
+- its displacement fields are its own local fields (centres, radii and directions of its own), so the
+  head's 50-component expression basis can represent them only approximately, like FLAME and a face;
+- it is nonlinear in w: per-subject response curves (gain * w^gamma), quadratic "arc" terms (a corner
+  that moves up, then back along the cheek), corrective shapes on products of weights (jawOpen x
+  mouthClose, mouthSmile x jawOpen, eyeBlink x eyeSquint, ...), and rotations: the jaw joint rotates
+  about the rig's own pivot (jawOpen, jawLeft/Right), the upper and lower lids rotate about the eyeball
+  centre through a saturating curve (eyeBlink, eyeSquint, eyeWide, and the lids follow the gaze), the
+  lips roll about an axis behind them (mouthRoll*), and the eyeballs rotate (eyeLook*);
+- every subject has a style (:class:`RigStyle`): gains, left/right asymmetry, response exponents,
+  arc strengths, jaw range and pivot, gaze range, lid travel, and identity shape coefficients.
+
+Fields are defined on the template (like FLAME's bases) and added to the subject's identity shape.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ofera.head.lbs import HeadSubject
+from ofera.head.model import HeadModel
+from ofera.head.rotations import axis_angle_to_matrix, euler_xy_to_matrix
+from ofera.mapping.layouts import ARKIT51_NAMES
+
+N_SHAPES = len(ARKIT51_NAMES)
+IDX = {name: i for i, name in enumerate(ARKIT51_NAMES)}
+SIDES = (("Left", 1.0), ("Right", -1.0))  # ARKit side name, sign of x (the subject's left is +x)
+
+# (a, b): corrective fields driven by the product of the effective weights of shapes a and b.
+CORRECTIVES: tuple[tuple[str, str], ...] = (
+    ("jawOpen", "mouthClose"),
+    ("mouthSmileLeft", "jawOpen"),
+    ("mouthSmileRight", "jawOpen"),
+    ("eyeBlinkLeft", "eyeSquintLeft"),
+    ("eyeBlinkRight", "eyeSquintRight"),
+    ("mouthPucker", "mouthFunnel"),
+    ("jawOpen", "mouthFunnel"),
+    ("browDownLeft", "browInnerUp"),
+    ("browDownRight", "browInnerUp"),
+    ("mouthSmileLeft", "cheekSquintLeft"),
+    ("mouthSmileRight", "cheekSquintRight"),
+)
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    t = np.clip(x, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _unit(d) -> np.ndarray:
+    d = np.asarray(d, np.float64)
+    return d / np.linalg.norm(d)
+
+
+def saturate(x: np.ndarray, k: float = 1.6) -> np.ndarray:
+    """Saturating response: 0 -> 0, 1 -> 1, concave, flat beyond 1 (tanh(k x) / tanh(k))."""
+    return np.tanh(k * np.clip(x, 0.0, None)) / np.tanh(k)
+
+
+def _rotate_x(p: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotate points p (T, m, 3) about the x axis through centre (3,) by angle (T, m) radians."""
+    c, s = np.cos(angle), np.sin(angle)
+    d = p - centre
+    out = p.copy()
+    out[..., 1] = centre[1] + c * d[..., 1] - s * d[..., 2]
+    out[..., 2] = centre[2] + s * d[..., 1] + c * d[..., 2]
+    return out
+
+
+@dataclass(frozen=True)
+class RigBasis:
+    """Everything about the rig that is the same for all subjects (template-attached, per vertex)."""
+
+    linear: np.ndarray  # (51, V, 3) metres at unit effective weight
+    quadratic: np.ndarray  # (51, V, 3) metres per unit of effective weight squared
+    corrective: np.ndarray  # (C, V, 3) metres per unit of the product of two effective weights
+    upper_lid: np.ndarray  # (2, V) rotation share of each vertex in the left/right upper lid
+    lower_lid: np.ndarray  # (2, V)
+    roll: np.ndarray  # (2, V) lower / upper lip roll share
+    roll_axis: np.ndarray  # (2, 3) points on the lower / upper roll axes (x axis direction)
+    jaw: np.ndarray  # (V,) jaw share of each vertex (the rig's own, not the head's skinning weights)
+    eyeball: np.ndarray  # (2, V) bool
+    close_lift: float  # lower-lip rise (m) that closes the lips at full jaw opening
+
+    @classmethod
+    def build(cls, head: HeadModel) -> RigBasis:
+        if not head.landmarks or not head.vertex_labels:
+            raise ValueError("the paired-data rig needs a procedural head (landmarks and vertex labels)")
+        return _build_basis(head)
+
+    def take(self, ids: np.ndarray) -> RigBasis:
+        """The basis restricted to vertices ``ids`` (evaluate only what is needed)."""
+        return RigBasis(
+            self.linear[:, ids], self.quadratic[:, ids], self.corrective[:, ids], self.upper_lid[:, ids],
+            self.lower_lid[:, ids], self.roll[:, ids], self.roll_axis, self.jaw[ids], self.eyeball[:, ids],
+            self.close_lift,
+        )
+
+
+def _lip_sides(head: HeadModel) -> np.ndarray:
+    """(V,) True on the lower-lip side of the mouth seam (below the lip line, or the seam's twins)."""
+    v = head.v_template
+    y_line = head.landmarks["mouth_centre"][1]
+    skin = np.nonzero(head.vertex_labels["skin"])[0]
+    keys = np.round(v[skin] * 1e7).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    twin = np.zeros(len(v), bool)
+    twin[skin] = first[inverse.reshape(-1)] != np.arange(len(skin))  # later copy of a position
+    return (v[:, 1] < y_line - 1e-6) | twin
+
+
+def _build_basis(head: HeadModel) -> RigBasis:  # noqa: PLR0915 - one shape after the other, by meaning
+    v = head.v_template.astype(np.float64)
+    nv = len(v)
+    x, y, z = v.T
+    lm = {k: np.asarray(p, np.float64) for k, p in head.landmarks.items()}
+    labels = head.vertex_labels
+    skin = labels["skin"].astype(float)
+    face = skin * _smoothstep((z - 0.0) / 0.03)  # fields act on the front of the skin only
+    lower = _lip_sides(head).astype(float)
+    upper = 1.0 - lower
+
+    lin = np.zeros((N_SHAPES, nv, 3))
+    quad = np.zeros((N_SHAPES, nv, 3))
+    corr = np.zeros((len(CORRECTIVES), nv, 3))
+
+    def bump(centre, radius, squash=(1.0, 1.0, 1.0)) -> np.ndarray:
+        c = np.asarray(centre, np.float64)
+        d2 = ((x - c[0]) / squash[0]) ** 2 + ((y - c[1]) / squash[1]) ** 2 + ((z - c[2]) / squash[2]) ** 2
+        return np.exp(-d2 / (2.0 * radius**2)) * face
+
+    def field(weight: np.ndarray, direction, amp: float) -> np.ndarray:
+        return weight[:, None] * _unit(direction)[None] * amp
+
+    def add(name: str, weight, direction, amp, target=lin) -> None:
+        target[IDX[name]] += field(weight, direction, amp)
+
+    mouth, ul, ll, chin, nose = lm["mouth_centre"], lm["upper_lip"], lm["lower_lip"], lm["chin"], lm["nose_tip"]
+    width = lm["mouth_corner_left"][0]
+    lip_zone = bump(mouth, 0.011, (1.7, 1.0, 1.0))
+    upper_lid = np.zeros((2, nv))
+    lower_lid = np.zeros((2, nv))
+    for k, (side, s) in enumerate(SIDES):
+        eye = lm[f"eye_{side.lower()}"]
+        corner = lm[f"mouth_corner_{side.lower()}"]
+        cheek = lm[f"cheek_{side.lower()}"]
+        b_in, b_out = lm[f"brow_inner_{side.lower()}"], lm[f"brow_outer_{side.lower()}"]
+        # --- lids: rotation shares about the eye centre (upper lid falls over the eyeball) ---------
+        ax = np.abs(x - eye[0]) / 0.0150
+        hx = 1.0 - _smoothstep((ax - 0.35) / 0.6)
+        front_of_eye = skin * (z > eye[2])
+        upper_lid[k] = hx * (1.0 - _smoothstep((y - eye[1] - 0.0055) / 0.0085)) * (y > eye[1] - 0.0005) * front_of_eye
+        lower_lid[k] = hx * (1.0 - _smoothstep((eye[1] - 0.0055 - y) / 0.007)) * (y <= eye[1] - 0.0005) * front_of_eye
+        below_eye = bump(eye + [0, -0.0075, 0.004], 0.0045, (1.9, 1.0, 1.0))
+        add(f"eyeBlink{side}", below_eye, (0, 1, 0.2), 0.0010)
+        add(f"eyeLookDown{side}", below_eye, (0, -1, 0), 0.0008)
+        add(f"eyeLookUp{side}", below_eye, (0, 1, 0.1), 0.0006)
+        ring = bump(eye + [0, 0, 0.006], 0.011, (1.4, 1.0, 1.0)) * (1.0 - upper_lid[k]) * (1.0 - lower_lid[k])
+        add(f"eyeLookIn{side}", ring, (-s, 0, 0), 0.0005)
+        add(f"eyeLookOut{side}", ring, (s, 0, 0), 0.0005)
+        add(f"eyeSquint{side}", below_eye, (0, 1, 0.3), 0.0022)
+        towards_eye = np.stack([eye[0] - x, eye[1] - y, np.zeros(nv)], 1)
+        towards_eye /= np.maximum(np.linalg.norm(towards_eye, axis=1, keepdims=True), 1e-6)
+        orbit = bump(eye + [0, 0, 0.004], 0.013, (1.3, 1.0, 1.0)) * (1.0 - _smoothstep(1.2 - np.hypot(
+            x - eye[0], y - eye[1]) / 0.010))
+        lin[IDX[f"eyeSquint{side}"]] += towards_eye * (orbit * 0.0012)[:, None]
+        add(f"eyeWide{side}", bump((b_in + b_out) / 2, 0.012, (1.6, 1.0, 1.0)), (0, 1, 0), 0.0012)
+        # --- brows ---------------------------------------------------------------------------------
+        mid = (b_in + b_out) / 2 - [s * 0.006, 0.0, 0.0]
+        add(f"browDown{side}", bump(mid, 0.011, (1.8, 1.0, 1.0)), (-s * 0.4, -1, 0.15), 0.0050)
+        add(f"browDown{side}", bump((lm["brow_inner_left"] + lm["brow_inner_right"]) / 2, 0.006), (0, -1, 0.2),
+            0.0012)
+        add("browInnerUp", bump(b_in, 0.009, (1.2, 1.0, 1.0)), (s * 0.1, 1, 0.1), 0.0065)
+        quad[IDX["browInnerUp"]] += field(bump(b_in + [0, 0.012, 0], 0.010), (0, 1, 0), 0.0015)
+        add(f"browOuterUp{side}", bump(b_out, 0.011, (1.3, 1.0, 1.0)), (s * 0.1, 1, -0.05), 0.0060)
+        # --- cheeks and nose ---------------------------------------------------------------------
+        puff = bump(cheek + [0, -0.028, -0.004], 0.013, (1.0, 1.2, 1.0))
+        add("cheekPuff", puff, (s * 0.85, 0, 0.5), 0.0085)
+        quad[IDX["cheekPuff"]] += field(puff**2, (s * 0.7, -0.2, 0.7), 0.0030)
+        add(f"cheekSquint{side}", bump(cheek + [0, -0.004, 0], 0.011), (0, 0.8, 0.45), 0.0040)
+        add(f"cheekSquint{side}", below_eye, (0, 1, 0.2), 0.0010)
+        ala = nose + [s * 0.012, 0.004, -0.014]
+        add(f"noseSneer{side}", bump(nose + [s * 0.011, 0.013, -0.013], 0.007), (0, 1, 0.25), 0.0040)
+        add(f"noseSneer{side}", bump(ala, 0.006), (0, 0.6, 0.2), 0.0020)
+        add(f"noseSneer{side}", bump(b_in - [s * 0.004, 0, 0], 0.006), (0, -1, 0), 0.0010)
+        # --- mouth corner shapes -------------------------------------------------------------------
+        at_corner = bump(corner, 0.0085)
+        add(f"mouthSmile{side}", at_corner, (s * 0.55, 1, -0.35), 0.0080)
+        add(f"mouthSmile{side}", bump(cheek + [0, -0.02, -0.002], 0.010), (s * 0.3, 0.5, 0.5), 0.0020)
+        quad[IDX[f"mouthSmile{side}"]] += field(at_corner, (s * 0.2, 0.3, -0.6), 0.0030)
+        add(f"mouthFrown{side}", at_corner, (s * 0.15, -1, -0.1), 0.0060)
+        add(f"mouthFrown{side}", bump(corner + [0, -0.012, -0.004], 0.008), (0, -1, 0), 0.0020)
+        quad[IDX[f"mouthFrown{side}"]] += field(at_corner, (0, -0.3, -0.4), 0.0020)
+        add(f"mouthDimple{side}", bump(corner, 0.007), (s * 0.3, 0.1, -1), 0.0050)
+        add(f"mouthStretch{side}", bump(corner, 0.010), (s, -0.35, -0.25), 0.0060)
+        add(f"mouthStretch{side}", bump(ll + [s * 0.012, 0, 0], 0.007) * lower, (s, -0.3, 0), 0.0015)
+        quad[IDX[f"mouthStretch{side}"]] += field(at_corner, (s * 0.3, -0.2, -0.5), 0.0020)
+        # --- one-sided lip shapes -----------------------------------------------------------------
+        add(f"mouthPress{side}", bump(ll + [s * 0.010, 0.001, 0], 0.007, (1.4, 1, 1)) * lower, (0, 0.8, -0.3), 0.0030)
+        add(f"mouthPress{side}", bump(ul + [s * 0.010, -0.001, 0], 0.007, (1.4, 1, 1)) * upper, (0, -0.5, -0.3),
+            0.0015)
+        add(f"mouthLowerDown{side}", bump(ll + [s * 0.011, -0.002, 0], 0.008) * lower, (0, -1, 0.25), 0.0060)
+        add(f"mouthUpperUp{side}", bump(ul + [s * 0.010, 0.001, 0], 0.007) * upper, (0, 1, 0.3), 0.0050)
+        add(f"mouthUpperUp{side}", bump(ala + [0, -0.006, 0.004], 0.006), (0, 1, 0.3), 0.0015)
+        # --- correctives that have a side ----------------------------------------------------------
+        ci = CORRECTIVES.index((f"mouthSmile{side}", "jawOpen"))
+        corr[ci] = field(at_corner, (s * 0.45, -0.6, -0.3), 0.0040)  # the open jaw pulls the corner down/out
+        ci = CORRECTIVES.index((f"eyeBlink{side}", f"eyeSquint{side}"))
+        corr[ci] = field(bump(eye + [0, -0.011, 0.002], 0.005, (1.8, 1, 1)), (0, -0.6, 0.8), 0.0015)
+        ci = CORRECTIVES.index((f"browDown{side}", "browInnerUp"))
+        corr[ci] = field(bump(b_in, 0.007), (-s, 0.8, 0.2), 0.0030)  # grief brows: inner ends up and in
+        ci = CORRECTIVES.index((f"mouthSmile{side}", f"cheekSquint{side}"))
+        corr[ci] = field(bump(cheek + [0, -0.012, 0.002], 0.009), (s * 0.2, 0.6, 0.8), 0.0020)
+
+    # --- symmetric mouth shapes ---------------------------------------------------------------------
+    towards_mid = np.stack([-np.sign(x) * np.clip(np.abs(x) / width, 0, 1.2), np.zeros(nv), np.zeros(nv)], 1)
+    lips = bump(mouth, 0.009, (1.5, 1.0, 1.0))
+    lin[IDX["mouthPucker"]] = lips[:, None] * ([0, 0, 0.0060] + towards_mid * 0.0050)
+    lin[IDX["mouthPucker"]] += field(lips * upper, (0, -1, 0), 0.0010) + field(lips * lower, (0, 1, 0), 0.0010)
+    quad[IDX["mouthPucker"]] = field(lips, (0, 0, 1), 0.0020)
+    lin[IDX["mouthFunnel"]] = field(lip_zone * upper, (0, 0.7, 1), 0.0040) + field(lip_zone * lower, (0, -0.7, 1), 0.0040)
+    lin[IDX["mouthFunnel"]] += lip_zone[:, None] * towards_mid * 0.0030
+    quad[IDX["mouthFunnel"]] = field(lips, (0, 0, 1), 0.0020)
+    add("mouthLeft", bump(mouth, 0.012, (1.8, 1.0, 1.0)), (1, 0, 0.05), 0.0050)
+    add("mouthRight", bump(mouth, 0.012, (1.8, 1.0, 1.0)), (-1, 0, 0.05), 0.0050)
+    add("mouthShrugLower", bump(ll, 0.008, (2.0, 1.0, 1.0)) * lower, (0, 0.6, 0.8), 0.0040)
+    add("mouthShrugLower", bump(chin + [0, 0.006, 0], 0.012), (0, 0.5, 0.6), 0.0040)
+    add("mouthShrugUpper", bump(ul, 0.008, (2.0, 1.0, 1.0)) * upper, (0, 0.4, 0.9), 0.0030)
+    add("mouthRollLower", bump(ll, 0.007, (2.0, 1.0, 1.0)) * lower, (0, 0.3, -1), 0.0010)
+    add("mouthRollUpper", bump(ul, 0.007, (2.0, 1.0, 1.0)) * upper, (0, -0.3, -1), 0.0010)
+    add("jawOpen", bump(ll, 0.009, (2.0, 1.0, 1.0)) * lower, (0, -1, 0.1), 0.0015)
+    for _, s in SIDES:
+        add("jawOpen", bump(lm["mouth_corner_left"] * [s, 1, 1] + [s * 0.012, 0.004, -0.01], 0.010), (-s, 0, -0.3),
+            0.0020)
+    # Lips together while the jaw is open: in the rest pose the lower lip rises by the gap that the jaw
+    # opens at the lips (the rotation then carries it), the upper lip comes down a little.
+    pivot = lm["jaw_pivot"]
+    close_lift = float(np.linalg.norm((ll - pivot)[1:]))  # times the opening angle = gap at the lips
+    ci = CORRECTIVES.index(("jawOpen", "mouthClose"))
+    corr[ci] = field(bump(ll, 0.010, (2.2, 1.4, 1.0)) * lower, (0, 1, -0.15), 0.75 * close_lift)
+    corr[ci] += field(bump(ul, 0.009, (2.2, 1.2, 1.0)) * upper, (0, -1, 0), 0.20 * close_lift)
+    ci = CORRECTIVES.index(("mouthPucker", "mouthFunnel"))
+    corr[ci] = field(lips, (0, 0, 1), 0.0020)
+    ci = CORRECTIVES.index(("jawOpen", "mouthFunnel"))
+    corr[ci] = lip_zone[:, None] * towards_mid * 0.0030 + field(lip_zone * upper, (0, 1, 0.5), 0.0020)
+
+    # --- lip roll rotation shares and axes ------------------------------------------------------------
+    roll = np.stack([bump(ll, 0.006, (2.4, 1.0, 1.0)) * lower, bump(ul, 0.006, (2.4, 1.0, 1.0)) * upper])
+    roll_axis = np.stack([ll + [0, 0.001, -0.007], ul + [0, -0.001, -0.007]])
+    # --- the rig's own jaw share: the head's jaw skinning, broadened -------------------------------
+    jaw = np.clip(head.weights[:, 2], 0.0, 1.0) ** 0.8 * skin + head.weights[:, 2] * (1 - skin)
+    eyeball = np.stack([labels["eyeball_left"], labels["eyeball_right"]])
+    no_eye = ~eyeball.any(axis=0)
+    return RigBasis(
+        linear=lin * no_eye[None, :, None],
+        quadratic=quad * no_eye[None, :, None],
+        corrective=corr * no_eye[None, :, None],
+        upper_lid=upper_lid * no_eye,
+        lower_lid=lower_lid * no_eye,
+        roll=roll * no_eye,
+        roll_axis=roll_axis,
+        jaw=jaw * no_eye,
+        eyeball=eyeball,
+        close_lift=close_lift,
+    )
+
+
+@dataclass(frozen=True)
+class RigStyle:
+    """One subject's way of making the shapes (drawn by :meth:`random`)."""
+
+    gain: np.ndarray  # (51,) response gain per shape (left/right asymmetry included)
+    gamma: np.ndarray  # (51,) response exponent: effective = gain * w ** gamma
+    arc: np.ndarray  # (51,) strength of the quadratic arc term
+    corrective: np.ndarray  # (C,) strength of each corrective
+    jaw_open: float  # radians at full jawOpen
+    jaw_side: float  # radians at full jawLeft / jawRight
+    jaw_forward: float  # metres at full jawForward
+    pivot_offset: np.ndarray  # (3,) metres, rig jaw pivot relative to the landmark
+    gaze_yaw: float  # radians at full eyeLookIn/Out
+    gaze_pitch: float  # radians at full eyeLookUp/Down
+    lid_close: float  # upper-lid rotation (radians) of a full blink
+    shape: np.ndarray  # (S,) identity coefficients of the head model
+
+    @classmethod
+    def random(cls, rng: np.random.Generator, n_shape: int, expressiveness: float = 1.0) -> RigStyle:
+        gain = np.exp(rng.normal(0.0, 0.18, N_SHAPES)) * expressiveness
+        for name in ARKIT51_NAMES:  # left/right asymmetry
+            if name.endswith("Left"):
+                a = rng.normal(0.0, 0.10)
+                gain[IDX[name]] *= 1.0 + a
+                gain[IDX[name[:-4] + "Right"]] *= 1.0 - a
+        return cls(
+            gain=gain,
+            gamma=np.exp(rng.normal(0.0, 0.15, N_SHAPES)),
+            arc=rng.uniform(0.5, 1.5, N_SHAPES),
+            corrective=rng.uniform(0.7, 1.3, len(CORRECTIVES)),
+            jaw_open=float(rng.uniform(0.30, 0.42)),
+            jaw_side=float(rng.uniform(0.08, 0.13)),
+            jaw_forward=float(rng.uniform(0.003, 0.006)),
+            pivot_offset=np.array([0.0, *rng.normal(0.0, 0.002, 2)]),
+            gaze_yaw=float(rng.uniform(0.50, 0.62)),
+            gaze_pitch=float(rng.uniform(0.38, 0.48)),
+            lid_close=float(rng.uniform(0.58, 0.68)),
+            shape=rng.normal(0.0, 1.0, n_shape),
+        )
+
+    @classmethod
+    def neutral(cls, n_shape: int) -> RigStyle:
+        """Unit gains and exponents, mean identity: the rig as designed."""
+        return cls(np.ones(N_SHAPES), np.ones(N_SHAPES), np.ones(N_SHAPES), np.ones(len(CORRECTIVES)), 0.36, 0.10,
+                   0.0045, np.zeros(3), 0.55, 0.42, 0.62, np.zeros(n_shape))
+
+
+class Rig:
+    """One subject's rig on (a subset of) the head's vertices: ``rig.mesh(w (T, 51)) -> (T, n, 3)``."""
+
+    def __init__(self, head: HeadModel, style: RigStyle, vertex_ids: np.ndarray | None = None,
+                 basis: RigBasis | None = None) -> None:
+        basis = RigBasis.build(head) if basis is None else basis
+        ids = np.arange(head.num_vertices) if vertex_ids is None else np.asarray(vertex_ids, np.int64)
+        self.head, self.style, self.vertex_ids = head, style, ids
+        subject = HeadSubject.create(head, style.shape)
+        self.subject = subject
+        self.rest = subject.v_id[ids]  # (n, 3) identity-shaped template
+        b = basis.take(ids)
+        n = len(ids)
+        self._lin = b.linear.reshape(N_SHAPES, 3 * n)
+        self._quad = (b.quadratic * style.arc[:, None, None]).reshape(N_SHAPES, 3 * n)
+        self._corr = (b.corrective * style.corrective[:, None, None]).reshape(len(CORRECTIVES), 3 * n)
+        self._corr_pairs = np.array([[IDX[a], IDX[c]] for a, c in CORRECTIVES])
+        self._close_gain = style.jaw_open / 0.36  # the mouthClose corrective closes this subject's gap
+        shift = subject.v_id - head.v_template  # identity moves the rotation centres with the face
+        self._eye_centre = subject.j_id[3:5]
+        # Sparse subsets: only vertices that a rotation moves are touched.
+        self._lids = [(np.nonzero(b.upper_lid[k] > 1e-4)[0], np.nonzero(b.lower_lid[k] > 1e-4)[0]) for k in range(2)]
+        self._upper_share = [b.upper_lid[k, i] for k, (i, _) in enumerate(self._lids)]
+        self._lower_share = [b.lower_lid[k, j] for k, (_, j) in enumerate(self._lids)]
+        self._roll = [np.nonzero(b.roll[k] > 1e-4)[0] for k in range(2)]
+        self._roll_share = [b.roll[k, i] for k, i in enumerate(self._roll)]
+        lip_shift = [shift[int(np.argmin(np.sum((head.v_template - a) ** 2, axis=1)))] for a in b.roll_axis]
+        self._roll_axis = b.roll_axis + np.array(lip_shift)
+        self._jaw_ids = np.nonzero(b.jaw > 1e-6)[0]
+        self._jaw_share = b.jaw[self._jaw_ids]
+        landmark = head.landmarks["jaw_pivot"]
+        near = int(np.argmin(np.sum((head.v_template - landmark) ** 2, axis=1)))
+        self._pivot = landmark + shift[near] + style.pivot_offset
+        self._eyeballs = [np.nonzero(b.eyeball[k])[0] for k in range(2)]
+
+    # --- the parts of the rig --------------------------------------------------------------------
+
+    def effective(self, w: np.ndarray) -> np.ndarray:
+        """Subject response (T, 51): gain * w ** gamma, limited to [0, 1.3]."""
+        w = np.clip(np.asarray(w, np.float64), 0.0, 1.0)
+        return np.clip(self.style.gain * w**self.style.gamma, 0.0, 1.3)
+
+    def jaw_rotation(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rig jaw rotation (T, 3, 3) about its pivot and jaw translation (T, 3) from effective weights."""
+        st = self.style
+        o = np.clip(e[:, IDX["jawOpen"]], 0.0, 1.3)
+        pitch = st.jaw_open * (1.15 * o - 0.15 * o**2)  # the jaw slows near its limit
+        yaw = st.jaw_side * (e[:, IDX["jawLeft"]] - e[:, IDX["jawRight"]])
+        aa = np.stack([pitch, yaw, 0.15 * yaw], axis=1)
+        trans = np.stack([0.002 * yaw / st.jaw_side, np.zeros_like(o), st.jaw_forward * e[:, IDX["jawForward"]]], 1)
+        return axis_angle_to_matrix(aa), trans
+
+    def eye_rotations(self, e: np.ndarray) -> np.ndarray:
+        """(T, 2, 3, 3) left and right eyeball rotations (about their centres) from effective weights."""
+        st = self.style
+        out = []
+        for side, s in SIDES:
+            look_out, look_in = e[:, IDX[f"eyeLookOut{side}"]], e[:, IDX[f"eyeLookIn{side}"]]
+            yaw = st.gaze_yaw * s * (np.minimum(look_out, 1.0) - np.minimum(look_in, 1.0))
+            pitch = st.gaze_pitch * (np.minimum(e[:, IDX[f"eyeLookDown{side}"]], 1.0)
+                                     - np.minimum(e[:, IDX[f"eyeLookUp{side}"]], 1.0))
+            out.append(euler_xy_to_matrix(yaw, pitch))
+        return np.stack(out, axis=1)
+
+    def lid_angles(self, e: np.ndarray) -> np.ndarray:
+        """(T, 2, 2) upper / lower lid rotation (radians, + = down) per side through a saturating curve."""
+        st = self.style
+        out = np.zeros((len(e), 2, 2))
+        for k, (side, _) in enumerate(SIDES):
+            blink, squint = e[:, IDX[f"eyeBlink{side}"]], e[:, IDX[f"eyeSquint{side}"]]
+            wide = e[:, IDX[f"eyeWide{side}"]]
+            down, up = e[:, IDX[f"eyeLookDown{side}"]], e[:, IDX[f"eyeLookUp{side}"]]
+            closure = saturate(blink + 0.25 * squint)
+            out[:, k, 0] = np.minimum(st.lid_close * closure + 0.30 * down - 0.15 * up - 0.22 * wide * (1 - closure),
+                                      st.lid_close * 1.05)
+            out[:, k, 1] = -(0.10 * closure + 0.22 * saturate(squint) + 0.08 * e[:, IDX[f"cheekSquint{side}"]]) \
+                + 0.10 * down
+        return out
+
+    # --- the mesh -----------------------------------------------------------------------------------
+
+    def mesh(self, w: np.ndarray) -> np.ndarray:
+        """Rig mesh (T, n, 3) float64 for weights w (T, 51) (or (51,)) in arkit51 order."""
+        w = np.atleast_2d(w)
+        if w.shape[-1] != N_SHAPES:
+            raise ValueError(f"rig weights must be (T, {N_SHAPES}) arkit51, got {w.shape}")
+        e = self.effective(w)
+        t, n = len(e), len(self.vertex_ids)
+        products = e[:, self._corr_pairs[:, 0]] * e[:, self._corr_pairs[:, 1]]
+        ci = CORRECTIVES.index(("jawOpen", "mouthClose"))
+        # mouthClose acts only while the jaw is open (lips together), at most as far as the jaw opened.
+        products[:, ci] = np.minimum(e[:, IDX["mouthClose"]], e[:, IDX["jawOpen"]]) \
+            * _smoothstep(e[:, IDX["jawOpen"]] / 0.15) * self._close_gain
+        disp = e @ self._lin + (e**2) @ self._quad + products @ self._corr
+        p = self.rest[None] + disp.reshape(t, n, 3)
+        lids = self.lid_angles(e)
+        for k in range(2):
+            centre = self._eye_centre[k]
+            up_ids, low_ids = self._lids[k]
+            p[:, up_ids] = _rotate_x(p[:, up_ids], centre, lids[:, k, 0:1] * self._upper_share[k])
+            p[:, low_ids] = _rotate_x(p[:, low_ids], centre, lids[:, k, 1:2] * self._lower_share[k])
+        for k, (name, sign) in enumerate((("mouthRollLower", -1.0), ("mouthRollUpper", 1.0))):
+            angle = sign * 0.9 * saturate(e[:, IDX[name]], 1.2)
+            ids = self._roll[k]
+            p[:, ids] = _rotate_x(p[:, ids], self._roll_axis[k], angle[:, None] * self._roll_share[k])
+        rot, trans = self.jaw_rotation(e)
+        ids, share = self._jaw_ids, self._jaw_share
+        moved = np.einsum("tij,tvj->tvi", rot - np.eye(3), p[:, ids] - self._pivot) + trans[:, None, :]
+        p[:, ids] += share[None, :, None] * moved
+        eyes = self.eye_rotations(e)
+        for k in range(2):
+            ids, c = self._eyeballs[k], self._eye_centre[k]
+            p[:, ids] = c + np.einsum("tij,tvj->tvi", eyes[:, k], p[:, ids] - c)
+        return p

@@ -1,0 +1,110 @@
+"""A session with an OFERA server as the replay and ingest tools use it, on `ofera.client`.
+
+`open_link(url, options)` performs the handshake (hello -> welcome -> avatar) and returns a `Link`:
+`send(seq, t_us, w)` sends one `bs`, `events()` yields every `Frame` and `ErrorMessage` the server
+sends (a frame the codec cannot decode is yielded as a non-fatal error), `close()` says bye. Anything
+that prevents the session (refused hello, nothing listening, timeout) raises `LinkError` with a
+message that says what to do.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+
+import numpy as np
+from ofera_protocol import ErrorMessage, Frame, LocalProtocolError, ProtocolError
+
+from ofera.client import Client, ServerError, connect, stream_url
+
+__all__ = ["Link", "LinkError", "LinkOptions", "open_link", "stream_url"]
+
+
+class LinkError(Exception):
+    """The session could not be opened: `code` is the protocol error code when the server sent one."""
+
+    def __init__(self, message: str, code: str | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+@dataclass
+class LinkOptions:
+    layout: str
+    avatar: str = "default"
+    encoding: str = "f32"
+    token: str | None = None
+    device: str | None = None
+    open_timeout: float = 60.0
+
+
+class Link:
+    """An open session (see `open_link`)."""
+
+    def __init__(self, client: Client) -> None:
+        self.client = client
+        self.closed_reason: str | None = None
+        self.closing = False
+
+    @property
+    def layout(self) -> str:
+        return self.client.welcome.layout
+
+    @property
+    def count(self) -> int:
+        return self.client.count
+
+    async def send(self, seq: int, t_us: int, w: np.ndarray) -> None:
+        await self.client.send_bs(w, seq=seq, t=t_us)
+
+    async def events(self) -> AsyncIterator[Frame | ErrorMessage]:
+        """Frames and errors until the connection closes; a fatal error is yielded last."""
+        while True:
+            try:
+                msg = await self.client.recv()
+            except ProtocolError as e:
+                yield ErrorMessage(e.code, f"undecodable server message: {e.message}", e.fatal)
+                if e.fatal:
+                    return
+                continue
+            except ServerError as e:  # the connection closed
+                if e.code == "closed":
+                    code = f"{e.close_code}" if e.close_code is not None else "no close code"
+                    why = f": {e.message}" if e.message else ""
+                    self.closed_reason = f"the server closed the connection ({code}{why})"
+                else:
+                    yield ErrorMessage(e.code, e.message, True)
+                return
+            if isinstance(msg, (Frame, ErrorMessage)):
+                yield msg
+                if isinstance(msg, ErrorMessage) and msg.fatal:
+                    return
+
+    async def close(self) -> None:
+        self.closing = True
+        try:
+            await self.client.close()
+        except Exception:  # already gone: nothing left to close
+            pass
+
+
+async def open_link(url: str, options: LinkOptions) -> Link:
+    """Connect and complete the handshake. Raises `LinkError`, e.g. `server rejected hello: unknown_layout: ...`."""
+    target = stream_url(url)
+    try:
+        client = await connect(target, layout=options.layout, avatar=options.avatar, encoding=options.encoding,
+                               token=options.token, device=options.device, open_timeout=options.open_timeout)
+    except ServerError as e:
+        if e.code == "closed":
+            raise LinkError(f"the server closed the connection during the handshake: {e}") from None
+        raise LinkError(f"server rejected hello: {e.code}: {e.message}", e.code) from None
+    except LocalProtocolError as e:
+        raise LinkError(f"cannot ask for that session: {e}") from None
+    except (asyncio.TimeoutError, TimeoutError):
+        raise LinkError(f"{target} did not complete the handshake within {options.open_timeout:g} s") from None
+    except OSError as e:
+        raise LinkError(f"cannot connect to {target}: {e.strerror or e} (is `ofera serve` running there?)") from None
+    except Exception as e:  # websockets: invalid URI, HTTP status instead of a WebSocket upgrade, ...
+        raise LinkError(f"cannot open a WebSocket session at {target}: {e}") from None
+    return Link(client)

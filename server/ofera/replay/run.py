@@ -1,0 +1,123 @@
+"""Replay a face log through a running server: the `Replayer` schedule over a `Link`, frames received
+concurrently, then a short drain so the answer to the last `bs` is counted."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from collections.abc import Callable
+
+from ofera_protocol import ErrorMessage, Frame
+
+from ofera.replay.core import Replayer, ReplayStats
+from ofera.replay.link import Link, LinkError, LinkOptions, open_link
+from ofera.replay.record import FrameRecorder
+
+
+def now_us() -> int:
+    return round(time.monotonic() * 1e6)
+
+
+async def receive_loop(
+    link: Link,
+    stats: ReplayStats,
+    on_frame: Callable[[Frame, int], None] | None = None,
+    on_fatal: Callable[[], None] | None = None,
+) -> None:
+    """Count every frame and error the server sends until the session ends. A fatal error, or the
+    server closing the connection, calls `on_fatal` (the sender stops)."""
+    async for msg in link.events():
+        if isinstance(msg, Frame):
+            t = now_us()
+            stats.on_frame(t, msg.t)
+            if on_frame is not None:
+                on_frame(msg, t)
+        elif isinstance(msg, ErrorMessage):
+            seq = f" (bs {msg.seq})" if msg.seq is not None else ""
+            stats.on_error(f"{msg.code}: {msg.message}{seq}", fatal=msg.fatal)
+            if msg.fatal and on_fatal is not None:
+                on_fatal()
+    if stats.fatal_error is None and link.closed_reason is not None and not link.closing:
+        stats.on_error(link.closed_reason, fatal=True)
+    if on_fatal is not None:
+        on_fatal()
+
+
+async def replay_through(
+    replayer: Replayer,
+    url: str,
+    options: LinkOptions,
+    recorder: FrameRecorder | None = None,
+    drain_s: float = 2.0,
+    on_tick: Callable[[Replayer], None] | None = None,
+    tick_s: float = 0.1,
+) -> ReplayStats:
+    """Open a session, replay, drain, close. Returns the stats; `stats.fatal_error` is set when the
+    server refused or broke the session (a refused handshake is reported the same way)."""
+    stats = replayer.stats
+    stats.started = time.monotonic()
+    try:
+        link = await open_link(url, options)
+    except LinkError as e:
+        stats.on_error(str(e), fatal=True)
+        stats.finished = time.monotonic()
+        return stats
+
+    last_seq = -1
+    max_answered = -1
+    answered = asyncio.Event()
+
+    def on_frame(frame: Frame, t: int) -> None:
+        if recorder is not None:
+            recorder.add(frame, t)
+        nonlocal max_answered
+        max_answered = max(max_answered, frame.seq)
+        answered.set()
+
+    def on_fatal() -> None:
+        replayer.stop()
+        answered.set()
+
+    async def send(seq: int, t_us: int, w) -> None:
+        nonlocal last_seq
+        await link.send(seq, t_us, w)
+        last_seq = seq
+
+    async def ticker() -> None:
+        while True:
+            on_tick(replayer)  # type: ignore[misc]
+            await asyncio.sleep(tick_s)
+
+    receiver = asyncio.create_task(receive_loop(link, stats, on_frame, on_fatal))
+    tick = asyncio.create_task(ticker()) if on_tick is not None else None
+    try:
+        try:
+            await replayer.run(send)
+        except Exception as e:  # the connection broke while sending
+            if stats.fatal_error is None:
+                stats.on_error(f"sending failed: {link.closed_reason or e}", fatal=True)
+        await _drain(lambda: max_answered >= last_seq or stats.fatal_error is not None, answered, drain_s)
+    finally:
+        if tick is not None:
+            tick.cancel()
+        await link.close()
+        receiver.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await receiver
+        stats.finished = time.monotonic()
+        if on_tick is not None:
+            on_tick(replayer)
+    return stats
+
+
+async def _drain(done: Callable[[], bool], event: asyncio.Event, timeout: float) -> None:
+    """Wait until `done()` (re-checked whenever `event` fires) or `timeout` seconds pass."""
+    deadline = time.monotonic() + timeout
+    while not done():
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return
+        event.clear()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(event.wait(), left)

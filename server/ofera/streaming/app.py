@@ -1,0 +1,110 @@
+"""The FastAPI application: WebSocket `/v1/stream`, `GET /healthz`, `GET /metrics`, `GET /v1/avatars`."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, WebSocket
+from fastapi.responses import JSONResponse, Response
+from ofera_protocol import COORDS, ENCODINGS, ENDPOINT, LAYOUTS, PROTOCOL_VERSION
+from starlette.websockets import WebSocketDisconnect
+
+from .. import __version__
+from .config import Settings
+from .metrics import CONTENT_TYPE, Metrics
+from .registry import registry_for
+from .session import ConnectionGone, Hub, Session, Transport
+
+log = logging.getLogger("ofera.streaming")
+
+
+class WebSocketTransport(Transport):
+    """Transport over Starlette's WebSocket (binary messages; text is reported to the session)."""
+
+    def __init__(self, ws: WebSocket) -> None:
+        self.ws = ws
+        self.gone = False
+
+    async def receive(self) -> bytes | str | None:
+        if self.gone:
+            return None
+        msg = await self.ws.receive()
+        if msg["type"] == "websocket.disconnect":
+            self.gone = True
+            return None
+        data = msg.get("bytes")
+        if data is not None:
+            return data
+        text = msg.get("text")
+        return text if text is not None else b""
+
+    async def send(self, data: bytes) -> None:
+        if self.gone:
+            raise ConnectionGone()
+        try:
+            await self.ws.send_bytes(data)
+        except (WebSocketDisconnect, OSError, RuntimeError) as exc:
+            self.gone = True
+            raise ConnectionGone() from exc
+
+    async def close(self, code: int, reason: str = "") -> None:
+        if self.gone:
+            return
+        self.gone = True
+        try:
+            await self.ws.close(code, reason)
+        except Exception:  # noqa: BLE001 - already closing or gone: nothing left to do
+            pass
+
+
+def warm_up(hub: Hub) -> None:
+    """Load the default avatar and run its pipeline a few times (blocking; before accepting clients)."""
+    assets = hub.registry.get(hub.settings.default_avatar)
+    assets.pipeline("arkit52").warm_up()
+    assets.wire_avatar("flame")
+    assets.selection(sparse=True, max_gaussians=None)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    registry = registry_for(settings)
+    threads = settings.compute_threads or os.cpu_count() or 2
+    hub = Hub(settings, registry, ThreadPoolExecutor(threads, thread_name_prefix="ofera-compute"), Metrics())
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if settings.warmup:
+            await asyncio.get_running_loop().run_in_executor(hub.executor, warm_up, hub)
+        yield
+        hub.executor.shutdown(wait=False, cancel_futures=True)
+
+    app = FastAPI(title="OFERA server", version=__version__, lifespan=lifespan)
+    app.state.hub = hub
+
+    @app.websocket(ENDPOINT)
+    async def stream(ws: WebSocket) -> None:
+        await ws.accept()
+        await Session(WebSocketTransport(ws), hub).run()
+
+    @app.get("/healthz")
+    async def healthz() -> JSONResponse:
+        return JSONResponse({"status": "ok", "version": __version__, "protocol": PROTOCOL_VERSION,
+                             "sessions": hub.active, "max_sessions": settings.max_sessions})
+
+    @app.get("/metrics")
+    async def metrics() -> Response:
+        return Response(hub.metrics.render(), media_type=CONTENT_TYPE)
+
+    @app.get("/v1/avatars")
+    async def avatars() -> JSONResponse:
+        return JSONResponse({"default": settings.default_avatar, "avatars": registry.describe(),
+                             "devices": sorted(registry.devices), "layouts": list(LAYOUTS),
+                             "encodings": list(ENCODINGS), "coords": list(COORDS),
+                             "auth": settings.token is not None})
+
+    return app

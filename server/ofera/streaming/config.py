@@ -1,0 +1,44 @@
+"""Server settings: `OFERA_*` environment variables, overridden by `ofera serve` flags."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ofera_protocol.constants import MAX_CLIENT_MESSAGE
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Everything the streaming server can be told. Environment: ``OFERA_<NAME>`` (e.g. ``OFERA_PORT``)."""
+
+    model_config = SettingsConfigDict(env_prefix="OFERA_", extra="ignore")
+
+    host: str = Field("127.0.0.1", description="Interface to listen on (0.0.0.0 for every interface).")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port).")
+    avatars: Path | None = Field(
+        None, description="Directory of avatar files; each may have a sibling EPM <stem>.onnx and BDA "
+        "<stem>.bda.npz. 'default' (the built-in avatar) is always available unless the directory has its own.")
+    devices: Path | None = Field(
+        None, description="Directory of device BDA profiles <device>.npz; hello.device selects one.")
+    default_avatar: str = Field("default", description="Avatar id that hello.avatar 'default' resolves to.")
+    token: str | None = Field(None, description="If set, every hello must carry this token.")
+    max_message_bytes: int = Field(MAX_CLIENT_MESSAGE, ge=256, description="Largest client message accepted.")
+    max_sessions: int = Field(64, ge=1, description="Most concurrent WebSocket sessions.")
+    bs_rate: float = Field(240.0, gt=0, description="Most bs (and ping) messages per second per session.")
+    bs_burst: float | None = Field(None, gt=0, description="Token-bucket depth for bs_rate (default: one "
+                                   "second's worth).")
+    compute_threads: int = Field(0, ge=0, description="Threads running pipelines (0: one per CPU core).")
+    avatar_chunk_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest avatar message payload.")
+    hello_timeout: float = Field(10.0, gt=0, description="Seconds a new connection may take to send hello.")
+    warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
+    log_level: str = Field("info", description="uvicorn log level.")
+
+    @field_validator("token", "avatars", "devices", mode="before")
+    @classmethod
+    def _empty_is_none(cls, v: object) -> object:
+        return None if v == "" else v
+
+    @property
+    def burst(self) -> float:
+        return self.bs_burst if self.bs_burst is not None else max(1.0, self.bs_rate)

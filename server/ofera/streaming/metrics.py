@@ -1,0 +1,45 @@
+"""Prometheus metrics of one server instance (its own registry, so several apps can share a process)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+
+# Microsecond-scale stages and whole-frame latencies, in seconds.
+_STAGE_BUCKETS = (2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2, 5e-2, 0.1, 0.25, 1.0)
+
+CONTENT_TYPE = CONTENT_TYPE_LATEST
+
+
+class Metrics:
+    """Sessions, message counts, skipped work, errors by code, per-stage latency histograms."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.sessions = Gauge("ofera_sessions", "Open WebSocket sessions by role.", ["role"], registry=r)
+        self.bs_in = Counter("ofera_bs_received", "bs messages received (valid or not).", registry=r)
+        self.frames_computed = Counter("ofera_frames_computed", "Pipeline runs (one per computed bs).",
+                                       registry=r)
+        self.frames_out = Counter("ofera_frames_sent", "frame messages sent to viewers.", registry=r)
+        self.skipped = Counter("ofera_frames_skipped", "Work dropped by newest-wins backpressure: 'bs' "
+                               "(a bs replaced before it was computed), 'frame' (a computed frame replaced "
+                               "before it was sent).", ["stage"], registry=r)
+        self.errors = Counter("ofera_errors", "error messages sent, by code.", ["code"], registry=r)
+        self.stage = Histogram("ofera_stage_seconds", "Duration of each server stage.", ["stage"],
+                               buckets=_STAGE_BUCKETS, registry=r)
+        self.server_latency = Histogram("ofera_server_latency_seconds", "From a bs arriving to its frame "
+                                        "being handed to the socket.", buckets=_STAGE_BUCKETS, registry=r)
+        self.bytes_out = Counter("ofera_bytes_sent", "Bytes of frame and avatar messages sent.", registry=r)
+        for role in ("source", "viewer"):
+            self.sessions.labels(role)
+        for stage in ("bs", "frame"):
+            self.skipped.labels(stage)
+
+    def observe_timings(self, timings: dict[str, int]) -> None:
+        """Record a frame's stage durations (microseconds)."""
+        for name, us in timings.items():
+            self.stage.labels(name).observe(us * 1e-6)
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

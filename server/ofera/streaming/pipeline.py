@@ -1,0 +1,175 @@
+"""The per-frame pipeline: layout adapter -> BDA -> EPM -> FLAME values -> LBS -> Gaussian deformation.
+
+`Pipeline.run(weights) -> (GaussianState, timings)` is the whole computation of one frame, in FLAME
+space; the server and `offline_pipeline` call the same code, so a streamed f32 frame equals the
+offline result bit for bit. One Pipeline per session (the layout adapter, the mapper's bound buffers
+and the deformer hold per-call state); the heavy parts (avatar, head subject, ONNX session) are shared
+through `AvatarAssets`, which `registry.AvatarRegistry` loads once per avatar.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from ofera_protocol import Avatar as WireAvatar
+from ofera_protocol import Quant, make_quant, mirror_x_position, mirror_x_rotation, mirror_x_sh
+
+from ..head import HeadSubject, lbs
+from ..mapping.bda import BDA
+from ..mapping.flame_values import split_flame_values
+from ..mapping.layouts import LayoutAdapter
+from ..mapping.runtime import Mapper
+
+STAGES: tuple[str, ...] = ("layout", "bda", "epm", "head", "deform")
+"""Stage names of `Pipeline.run` timings, in order (microseconds): layout adapter, BDA, EPM (with the
+split into expression and rotations), head model (LBS), Gaussian deformation."""
+
+
+@dataclass
+class AvatarAssets:
+    """Everything shared by the sessions of one avatar: loaded once, read-only afterwards."""
+
+    id: str
+    avatar: Any  # ofera.avatar.GaussianAvatar
+    subject: HeadSubject
+    mapper: Mapper  # the avatar's EPM (its ONNX session is shared; each Pipeline binds its own buffers)
+    bda: BDA  # the avatar's own BDA (sibling <id>.bda.npz) or identity; a device profile overrides it
+    _cache: dict[tuple, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def create(cls, avatar_id: str, avatar: Any, mapper: Mapper, bda: BDA | None = None) -> AvatarAssets:
+        shape = getattr(avatar, "shape", None)
+        subject = HeadSubject.create(avatar.head, shape)
+        return cls(avatar_id, avatar, subject, mapper, bda if bda is not None else BDA.identity())
+
+    @property
+    def count(self) -> int:
+        return int(self.avatar.count)
+
+    @property
+    def sh_degree(self) -> int:
+        return int(self.avatar.sh_degree)
+
+    def subset(self, max_gaussians: int | None) -> np.ndarray | None:
+        """For a client that renders at most `max_gaussians`: the ids (ascending, int64) of the most opaque
+        ones, or None when the whole avatar fits."""
+        if max_gaussians is None or max_gaussians >= self.count:
+            return None
+        key = ("subset", max_gaussians)
+        if key not in self._cache:
+            order = np.argsort(-np.asarray(self.avatar.opacity, np.float32), kind="stable")
+            self._cache[key] = np.sort(order[:max_gaussians])
+        return self._cache[key]
+
+    def wire_avatar(self, coords: str, max_gaussians: int | None = None) -> WireAvatar:
+        """The static avatar message content (neutral pose, opacity, SH) in `coords`, cached; reduced to
+        `subset(max_gaussians)` if given."""
+        key = ("wire", coords, max_gaussians)
+        cached = self._cache.get(key)
+        if cached is not None:
+            return cached
+        n = self.avatar.neutral()
+        pos, rot, scale, sh, opacity = n.position, n.rotation, n.scale, self.avatar.sh, self.avatar.opacity
+        if coords == "unity":
+            pos, rot, sh = mirror_x_position(pos), mirror_x_rotation(rot), mirror_x_sh(sh)
+        elif coords != "flame":
+            raise ValueError(f"unknown coords {coords!r}")
+        sub = self.subset(max_gaussians)
+        if sub is not None:
+            pos, rot, scale, sh, opacity = pos[sub], rot[sub], scale[sub], sh[sub], opacity[sub]
+        wire = WireAvatar(*(np.ascontiguousarray(a, np.float32) for a in (opacity, sh, pos, rot, scale)))
+        self._cache[key] = wire
+        return wire
+
+    def quant(self, coords: str, max_gaussians: int | None = None) -> Quant:
+        """q13 parameters of a session (from its neutral avatar), cached so sessions share encodings."""
+        key = ("quant", coords, max_gaussians)
+        if key not in self._cache:
+            wire = self.wire_avatar(coords, max_gaussians)
+            self._cache[key] = make_quant(wire.position, wire.scale)
+        return self._cache[key]
+
+    def movable(self) -> np.ndarray:
+        """(N,) bool: the Gaussians an expression can move (all, if the avatar does not say)."""
+        movable = getattr(self.avatar, "movable", None)
+        return np.ones(self.count, bool) if movable is None else np.asarray(movable, bool)
+
+    def selection(self, sparse: bool, max_gaussians: int | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(gather, index) of a session's frames: `gather` picks from the full state the Gaussians a frame
+        carries (None: all, in order); `index` is the frame's wire `index` in the session's numbering
+        (None: dense). Sparse frames carry the movable Gaussians, every frame (right whatever is dropped)."""
+        key = ("selection", sparse, max_gaussians)
+        if key not in self._cache:
+            sub = self.subset(max_gaussians)
+            if not sparse:
+                sel = (sub, None)
+            else:
+                moving = self.movable() if sub is None else self.movable()[sub]
+                index = np.flatnonzero(moving)
+                gather = index if sub is None else sub[index]
+                sel = (gather, index.astype(np.uint32))
+            self._cache[key] = sel
+        return self._cache[key]
+
+    def pipeline(self, layout: str, bda: BDA | None = None) -> Pipeline:
+        return Pipeline(self, layout, bda)
+
+
+class Pipeline:
+    """One session's pipeline for one avatar and one blendshape layout. Not thread-safe: run one frame
+    at a time (the session does)."""
+
+    def __init__(self, assets: AvatarAssets, layout: str, bda: BDA | None = None) -> None:
+        self.assets = assets
+        self.layout = layout
+        self.adapter = LayoutAdapter(layout)
+        self.bda = bda if bda is not None else assets.bda
+        base = assets.mapper
+        # The BDA runs as its own stage; the mapper gets an identity BDA (a clamp, a no-op on [0, 1]).
+        self.mapper = Mapper(base.session, None, source=base.source)
+        self.deformer = assets.avatar.deformer()
+        self._x51 = np.zeros(51, np.float32)
+        self._y = np.zeros(68, np.float32)
+
+    def run(self, weights: np.ndarray) -> tuple[Any, dict[str, int]]:
+        """Blendshape weights (L,) in the session's layout -> (GaussianState in FLAME space, stage
+        durations in microseconds). The returned arrays belong to the caller (fresh per call)."""
+        clock = time.perf_counter_ns
+        t0 = clock()
+        x = self.adapter(weights)
+        t1 = clock()
+        a = self.bda.apply(x, out=self._x51)
+        t2 = clock()
+        y = self.mapper.map(a, out=self._y)
+        expr, rotations = split_flame_values(y)
+        t3 = clock()
+        verts, _ = lbs(self.assets.subject, expr[None], rotations[None])
+        t4 = clock()
+        state = self.deformer.deform(verts[0])
+        t5 = clock()
+        ts = (t0, t1, t2, t3, t4, t5)
+        return state, {name: (ts[i + 1] - ts[i]) // 1000 for i, name in enumerate(STAGES)}
+
+    def warm_up(self, frames: int = 3) -> None:
+        """Run a few frames so that first-use costs (allocation, ONNX graph set-up) are paid now."""
+        w = np.zeros(self.adapter.layout.length, np.float32)
+        for _ in range(frames):
+            self.run(w)
+
+
+def offline_pipeline(avatar_id: str, layout: str, weights: np.ndarray, *, settings: Any = None,
+                     device: str | None = None) -> tuple[Any, dict[str, int]]:
+    """The server's computation for one frame, without a server: same registry, same Pipeline.
+
+    `settings` (streaming.config.Settings) selects the avatars / devices directories like the
+    server's; None uses the defaults (environment included).
+    """
+    from .registry import registry_for
+
+    reg = registry_for(settings)
+    assets = reg.get(avatar_id)
+    bda = reg.device_bda(device) if device else None
+    return Pipeline(assets, layout, bda).run(np.asarray(weights, np.float32))

@@ -1,0 +1,182 @@
+"""Running the app under uvicorn: per-message deflate off, TCP_NODELAY on every accepted WebSocket,
+`send` that waits for the socket to drain (so newest-wins backpressure works), clean Ctrl-C.
+
+`serve(settings)` blocks (the CLI); `ServerThread(settings)` runs a server in a background thread
+(tests, benchmarks) and tells its port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import sys
+import threading
+from typing import Any
+
+import uvicorn
+from ofera_protocol import ENDPOINT
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+
+from .config import Settings
+
+
+def set_nodelay(transport: Any) -> None:
+    """Turn Nagle's algorithm off on a TCP transport's socket (asyncio usually has already)."""
+    sock = transport.get_extra_info("socket")
+    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        except OSError:  # the peer may already be gone
+            pass
+
+
+class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
+    """uvicorn's websockets (sans-I/O) protocol with TCP_NODELAY, and a send that returns only once the
+    transport's buffer is back under its low-water mark: an awaited send means "handed to the kernel",
+    so a session's newest-wins slot, not an ever-growing buffer, absorbs a slow client."""
+
+    def connection_made(self, transport: Any) -> None:
+        set_nodelay(transport)
+        super().connection_made(transport)
+
+    async def send(self, message: Any) -> None:
+        await super().send(message)
+        if message["type"] == "websocket.send":
+            await self.writable.wait()  # set again by resume_writing() or connection_lost()
+
+    def shutdown(self) -> None:
+        """Server shutdown: close open sessions with 1001 "going away" (PROTOCOL.md section 10;
+        uvicorn's own choice is 1012)."""
+        if self.handshake_complete and not self.close_sent and not self.transport.is_closing():
+            self.stop_keepalive()
+            self.queue.put_nowait({"type": "websocket.disconnect", "code": 1001})
+            self.conn.send_close(1001, "server shutting down")
+            self.transport.write(b"".join(self.conn.data_to_send()))
+            self.close_sent = True
+            self.transport.close()
+            return
+        super().shutdown()
+
+    def nodelay(self) -> bool:
+        """TCP_NODELAY as the kernel reports it for this connection (for tests and diagnostics)."""
+        sock = self.transport.get_extra_info("socket")
+        return bool(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+
+
+def uvicorn_config(settings: Settings, app: Any = None) -> uvicorn.Config:
+    from .app import create_app
+
+    return uvicorn.Config(
+        app if app is not None else create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        ws=StreamingWebSocketProtocol,
+        ws_per_message_deflate=False,
+        # Larger than our own limit so that the codec answers `message_too_large` with a message;
+        # beyond this uvicorn closes with 1009 on its own.
+        ws_max_size=max(2 * settings.max_message_bytes, 1 << 20),
+        lifespan="on",
+        log_level=settings.log_level,
+        timeout_graceful_shutdown=5,
+    )
+
+
+class StreamingServer(uvicorn.Server):
+    """uvicorn.Server that knows its bound port and prints where to connect once it listens."""
+
+    def __init__(self, config: uvicorn.Config, banner: bool = True) -> None:
+        super().__init__(config)
+        self.banner = banner
+        self.port: int | None = None
+
+    async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+        await super().startup(sockets)
+        if self.servers:
+            self.port = self.servers[0].sockets[0].getsockname()[1]
+        if self.banner and self.started:
+            for line in connect_lines(self.config.host, self.port or self.config.port):
+                print(line, flush=True)
+
+    def connections(self) -> list[Any]:
+        return list(self.server_state.connections)
+
+
+def connect_lines(host: str, port: int) -> list[str]:
+    shown = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+    if ":" in shown:
+        shown = f"[{shown}]"
+    return [
+        "OFERA server ready:",
+        f"  stream   ws://{shown}:{port}{ENDPOINT}",
+        f"  health   http://{shown}:{port}/healthz",
+        f"  metrics  http://{shown}:{port}/metrics",
+        f"  avatars  http://{shown}:{port}/v1/avatars",
+        "  Ctrl-C to stop",
+    ]
+
+
+def serve(settings: Settings) -> None:
+    """Run until Ctrl-C (uvicorn closes sessions with 1012 and stops the compute pool)."""
+    server = StreamingServer(uvicorn_config(settings))
+    try:
+        server.run()
+    except KeyboardInterrupt:  # a second Ctrl-C during shutdown
+        pass
+    print("OFERA server stopped.", file=sys.stderr, flush=True)
+    if not server.started:
+        raise SystemExit(1)
+
+
+class ServerThread:
+    """A server on a background thread: `with ServerThread(settings) as s: s.url ...`."""
+
+    def __init__(self, settings: Settings, app: Any = None, banner: bool = False) -> None:
+        self.settings = settings
+        self.server = StreamingServer(uvicorn_config(settings, app), banner=banner)
+        self.thread = threading.Thread(target=self._run, name="ofera-server", daemon=True)
+        self.error: BaseException | None = None
+
+    def _run(self) -> None:
+        try:
+            asyncio.run(self.server.serve())
+        except BaseException as exc:  # noqa: BLE001 - reported by start()
+            self.error = exc
+
+    def start(self, timeout: float = 120.0) -> ServerThread:
+        self.thread.start()
+        deadline = threading.Event()
+        for _ in range(int(timeout * 20)):
+            if self.server.started or not self.thread.is_alive():
+                break
+            deadline.wait(0.05)
+        if not self.server.started:
+            self.stop()
+            raise RuntimeError(f"server did not start: {self.error!r}")
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout)
+
+    @property
+    def port(self) -> int:
+        assert self.server.port is not None
+        return self.server.port
+
+    @property
+    def http_url(self) -> str:
+        return f"http://{self.settings.host}:{self.port}"
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.settings.host}:{self.port}{ENDPOINT}"
+
+    @property
+    def app(self) -> Any:
+        return self.server.config.app
+
+    def __enter__(self) -> ServerThread:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

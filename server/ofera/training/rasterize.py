@@ -1,0 +1,287 @@
+"""A differentiable 3D Gaussian rasteriser in plain PyTorch (CPU or any device), for training.
+
+The maths is 3D Gaussian splatting's (Kerbl et al. 2023):
+
+    p_cam  = R p + t                                  world -> camera (OpenCV axes: x right, y down, z forward)
+    (u, v) = (fx x / z + cx, fy y / z + cy)           pixel coordinates; pixel (i, j) has its centre at (i+.5, j+.5)
+    J      = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]   (x/z, y/z clamped to 1.3 x the half field of view)
+    Sigma  = R_q S S^T R_q^T                          3D covariance from the unit quaternion q and the scales s
+    Sigma' = J R Sigma R^T J^T + 0.3 I                EWA splatting, plus 3DGS's 0.3 px^2 low-pass
+    alpha  = min(0.99, o exp(-1/2 d^T Sigma'^-1 d))   d = pixel centre - (u, v); alpha < alpha_min counts as 0
+    C      = sum_i c_i alpha_i T_i + T_end bg,   T_i = prod_{j<i} (1 - alpha_j), sorted near to far
+
+Unlike the CUDA rasteriser it has no early stop at T < 1e-4 (what lies behind contributes under 1e-4).
+Evaluation is per pixel: every Gaussian contributes (pixel, Gaussian) pairs for the pixel centres inside the
+bounding box of the ellipse where its alpha can reach ``alpha_min`` (so the threshold, not a box, decides
+what is drawn, as in 3DGS); pairs are sorted by pixel and, within a pixel, by depth; transmittance is a
+segmented cumulative sum of log(1 - alpha). Pairs are processed in chunks of whole pixels (``max_elements``
+pairs at most), which bounds memory. Everything that carries gradients is ordinary autograd; only the pair
+lists and the sort are built without gradients (they are piecewise constant), so gradients reach positions,
+rotations, scales, opacities and colours.
+
+Quaternions are (w, x, y, z) and need not be normalised; scales are linear (metres); opacities linear in
+[0, 1]; colours are any number of channels (RGB usually).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+LOW_PASS = 0.3  # px^2 added to every 2D covariance (3DGS)
+ALPHA_MAX = 0.99
+ALPHA_MIN = 1.0 / 255.0
+SUPPORT_ALPHA = 1e-5  # with alpha_min = 0: splats are cut where their alpha falls below this
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera, OpenCV convention.
+
+    K (3, 3) intrinsics in pixels; R (3, 3), t (3,) world -> camera: ``p_cam = R @ p + t`` (camera axes:
+    x right, y down, z forward, so a visible point has z > 0); ``width``, ``height`` in pixels.
+    """
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+    name: str = "cam"
+
+    @classmethod
+    def look_at(cls, eye, target, up=(0.0, 1.0, 0.0), fov_deg: float = 30.0, width: int = 64, height: int = 64,
+                name: str = "cam") -> Camera:
+        """A camera at ``eye`` looking at ``target`` with world ``up`` pointing up in the image."""
+        eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
+        fwd = target - eye
+        fwd /= np.linalg.norm(fwd)
+        right = np.cross(fwd, up)
+        right /= np.linalg.norm(right)
+        down = np.cross(fwd, right)
+        rot = np.stack([right, down, fwd])  # rows: camera axes in world coordinates
+        f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+        k = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+        return cls(k, rot, -rot @ eye, int(width), int(height), name)
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Camera centre in world coordinates."""
+        return -self.R.T @ self.t
+
+    def scaled(self, factor: float) -> Camera:
+        """The same camera at ``factor`` times the resolution."""
+        k = self.K.copy()
+        k[:2] *= factor
+        return Camera(k, self.R, self.t, round(self.width * factor), round(self.height * factor), self.name)
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "width": self.width, "height": self.height, "K": np.asarray(self.K).tolist(),
+                "R": np.asarray(self.R).tolist(), "t": np.asarray(self.t).tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> Camera:
+        k, r, t = (np.asarray(d[key], np.float64) for key in ("K", "R", "t"))
+        if k.shape != (3, 3) or r.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"camera {d.get('name', '?')}: K and R must be 3x3 and t 3 values")
+        if not np.allclose(r @ r.T, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
+            raise ValueError(f"camera {d.get('name', '?')}: R is not a rotation matrix")
+        return cls(k, r, t, int(d["width"]), int(d["height"]), str(d.get("name", "cam")))
+
+
+def save_cameras(cameras: list[Camera], path: str | Path) -> None:
+    Path(path).write_text(json.dumps({"convention": "opencv", "cameras": [c.to_json() for c in cameras]}, indent=1))
+
+
+def load_cameras(path: str | Path) -> list[Camera]:
+    d = json.loads(Path(path).read_text())
+    if d.get("convention", "opencv") != "opencv":
+        raise ValueError(f"{path}: convention {d['convention']!r} unsupported (write OpenCV: x right, y down, z fwd)")
+    return [Camera.from_json(c) for c in d["cameras"]]
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """(..., 4) (w, x, y, z), any norm -> (..., 3, 3)."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)
+
+
+@dataclass
+class Projected:
+    """Per-Gaussian screen-space quantities (N rows)."""
+
+    means2d: torch.Tensor  # (N, 2) pixels
+    conics: torch.Tensor  # (N, 3) inverse 2D covariance (a, b, c): d^T [[a, b], [b, c]] d
+    depths: torch.Tensor  # (N,) camera z
+    radii: torch.Tensor  # (N,) int, 3-sigma radius in pixels; 0 = culled
+    cov2d: torch.Tensor  # (N, 2, 2)
+
+
+def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, camera: Camera,
+            near: float = 0.01, low_pass: float = LOW_PASS) -> Projected:
+    """Project 3D Gaussians (means (N,3), quats (N,4) wxyz, scales (N,3)) to 2D through ``camera``."""
+    dt, dev = means.dtype, means.device
+    rot = torch.as_tensor(camera.R, dtype=dt, device=dev)
+    k = torch.as_tensor(camera.K, dtype=dt, device=dev)
+    p = means @ rot.T + torch.as_tensor(camera.t, dtype=dt, device=dev)
+    x, y, z = p.unbind(-1)
+    zs = z.clamp_min(near)
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    # 3DGS clamps the Jacobian's x/z, y/z to 1.3 x the half field of view (off-screen splats stay sane).
+    lim_x, lim_y = 1.3 * 0.5 * camera.width / fx, 1.3 * 0.5 * camera.height / fy
+    tx = torch.maximum(torch.minimum(x / zs, lim_x), -lim_x)
+    ty = torch.maximum(torch.minimum(y / zs, lim_y), -lim_y)
+    zero = torch.zeros_like(zs)
+    jac = torch.stack([fx / zs, zero, -fx * tx / zs, zero, fy / zs, -fy * ty / zs], -1).reshape(-1, 2, 3)
+    m = quat_to_matrix(quats) * scales[:, None, :]  # R_q S
+    t_mat = jac @ rot @ m  # (N, 2, 3)
+    cov = t_mat @ t_mat.transpose(1, 2) + low_pass * torch.eye(2, dtype=dt, device=dev)
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    det = a * c - b * b
+    conics = torch.stack([c / det, -b / det, a / det], -1)
+    means2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy], -1)
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        lam = mid + torch.sqrt((mid * mid - det).clamp_min(0.1))
+        radii = torch.ceil(3.0 * torch.sqrt(lam)).to(torch.int64)
+        ok = (z > near) & (det > 0)
+        ok &= (means2d[:, 0] + radii > 0) & (means2d[:, 0] - radii < camera.width)
+        ok &= (means2d[:, 1] + radii > 0) & (means2d[:, 1] - radii < camera.height)
+        radii = torch.where(ok, radii, torch.zeros_like(radii))
+    return Projected(means2d, conics, z, radii, cov)
+
+
+@dataclass
+class Render:
+    image: torch.Tensor  # (H, W, C)
+    alpha: torch.Tensor  # (H, W) accumulated opacity, 1 - T_end
+    depth: torch.Tensor  # (H, W) alpha-weighted depth (not normalised by alpha)
+
+
+def _pairs(proj: Projected, opacities: torch.Tensor, width: int, height: int,
+           support_alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(pixel id, Gaussian id) for every pixel centre where a Gaussian's alpha can reach ``support_alpha``
+    (the bounding box of the ellipse o exp(-d^T Sigma^-1 d / 2) >= support_alpha), sorted by pixel, then by
+    depth (near first) within a pixel. No gradients (integer bookkeeping)."""
+    dev = proj.means2d.device
+    with torch.no_grad():
+        order = torch.argsort(proj.depths)
+        g = order[proj.radii[order] > 0]  # visible, near to far
+        c2 = proj.means2d[g]
+        k2 = 2.0 * torch.log((opacities[g].clamp(0, ALPHA_MAX) / support_alpha).clamp_min(1.0))  # Mahalanobis^2
+        ext = torch.sqrt(k2[:, None] * torch.stack([proj.cov2d[g, 0, 0], proj.cov2d[g, 1, 1]], -1))
+        lo = torch.ceil(c2 - ext - 0.5).clamp_min(0).long()  # first pixel whose centre (i + .5) is inside
+        hi = torch.floor(c2 + ext - 0.5).long()
+        hi = torch.minimum(hi, torch.tensor([width - 1, height - 1], device=dev))
+        size = (hi - lo + 1).clamp_min(0)
+        count = size[:, 0] * size[:, 1]
+        keep = count > 0
+        g, lo, size, count = g[keep], lo[keep], size[keep], count[keep]
+        gid = torch.repeat_interleave(g, count)
+        first = torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+        k = torch.arange(len(gid), device=dev) - first  # index inside the box
+        row = torch.repeat_interleave(size[:, 0], count)
+        px = torch.repeat_interleave(lo[:, 0], count) + k % row
+        py = torch.repeat_interleave(lo[:, 1], count) + k // row
+        pid = py * width + px
+        pid, perm = torch.sort(pid, stable=True)  # stable: keeps near-to-far inside each pixel
+        return pid, gid[perm]
+
+
+def rasterize(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colours: torch.Tensor,
+    camera: Camera,
+    background: torch.Tensor | float | None = None,
+    alpha_min: float = ALPHA_MIN,
+    max_elements: int = 4_000_000,
+    near: float = 0.01,
+) -> Render:
+    """Render Gaussians (N rows; see the module docstring for conventions) into ``camera``'s image.
+
+    Work is one (pixel, Gaussian) pair per pixel centre in the box where the Gaussian's alpha can reach
+    ``alpha_min`` (so nothing is cut that 3DGS would draw); pairs are processed
+    in chunks of whole pixels of at most ``max_elements`` pairs (bounds memory). Transmittance is a segmented
+    cumulative sum of log(1 - alpha) per pixel, done in float64 so long pixel lists lose no precision.
+    """
+    dt, dev = means.dtype, means.device
+    ch = colours.shape[1]
+    w, h = camera.width, camera.height
+    proj = project(means, quats, scales, camera, near=near)
+    bg = torch.zeros(ch, dtype=dt, device=dev) if background is None else torch.as_tensor(
+        background, dtype=dt, device=dev).expand(ch)
+    opac = opacities.reshape(-1)
+    pid_all, gid_all = _pairs(proj, opac.detach(), w, h, alpha_min if alpha_min > 0 else SUPPORT_ALPHA)
+    image = torch.zeros(h * w, ch, dtype=dt, device=dev)
+    log_t_end = torch.zeros(h * w, dtype=torch.float64, device=dev)
+    depth = torch.zeros(h * w, dtype=dt, device=dev)
+    # Chunk boundaries at pixel changes so that no pixel's list is split.
+    bounds = [0]
+    while bounds[-1] < len(pid_all):
+        stop = min(bounds[-1] + max_elements, len(pid_all))
+        if stop < len(pid_all):
+            last = pid_all[stop - 1]
+            stop = int(torch.searchsorted(pid_all, last, right=False))
+            if stop <= bounds[-1]:  # one pixel longer than max_elements: take it whole
+                stop = int(torch.searchsorted(pid_all, last, right=True))
+        bounds.append(stop)
+    for s0, s1 in zip(bounds[:-1], bounds[1:]):
+        pid, gid = pid_all[s0:s1], gid_all[s0:s1]
+        px = (pid % w).to(dt) + 0.5
+        py = torch.div(pid, w, rounding_mode="floor").to(dt) + 0.5
+        dx = px - proj.means2d[gid, 0]
+        dy = py - proj.means2d[gid, 1]
+        con = proj.conics[gid]
+        power = -0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) - con[:, 1] * dx * dy
+        alpha = (opac[gid] * torch.exp(power.clamp_max(0.0))).clamp_max(ALPHA_MAX)
+        if alpha_min > 0:
+            alpha = torch.where(alpha < alpha_min, torch.zeros_like(alpha), alpha)
+        log1m = torch.log1p(-alpha.double())
+        csum = torch.cumsum(log1m, 0)
+        excl = csum - log1m  # exclusive, global
+        with torch.no_grad():
+            new_px = torch.ones_like(pid, dtype=torch.bool)
+            new_px[1:] = pid[1:] != pid[:-1]
+            seg_first = torch.cummax(torch.where(new_px, torch.arange(len(pid), device=dev), 0), 0).values
+        t_before = torch.exp(excl - excl[seg_first]).to(dt)
+        weight = alpha * t_before
+        image = image.index_add(0, pid, weight[:, None] * colours[gid])
+        depth = depth.index_add(0, pid, weight * proj.depths[gid])
+        log_t_end = log_t_end.index_add(0, pid, log1m)
+    t_end = torch.exp(log_t_end).to(dt)
+    image = image + t_end[:, None] * bg
+    return Render(image.reshape(h, w, ch), (1.0 - t_end).reshape(h, w), depth.reshape(h, w))
+
+
+def rasterize_gsplat(means, quats, scales, opacities, colours, camera: Camera, background=None) -> Render:
+    """The same render through gsplat's CUDA kernels (optional; needs ``pip install gsplat`` and a GPU)."""
+    try:
+        from gsplat import rasterization
+    except ImportError as exc:  # pragma: no cover - optional dependency
+        raise RuntimeError("gsplat is not installed: pip install gsplat (needs CUDA), or use rasterize()") from exc
+    dt, dev = means.dtype, means.device
+    view = torch.eye(4, dtype=dt, device=dev)
+    view[:3, :3] = torch.as_tensor(camera.R, dtype=dt, device=dev)
+    view[:3, 3] = torch.as_tensor(camera.t, dtype=dt, device=dev)
+    k = torch.as_tensor(camera.K, dtype=dt, device=dev)
+    bg = None if background is None else torch.as_tensor(background, dtype=dt, device=dev).expand(1, colours.shape[1])
+    img, alpha, _ = rasterization(means, quats / quats.norm(dim=-1, keepdim=True), scales, opacities.reshape(-1),
+                                  colours, view[None], k[None], camera.width, camera.height,
+                                  render_mode="RGB+ED", backgrounds=bg)
+    return Render(img[0, ..., :-1], alpha[0, ..., 0], img[0, ..., -1] * alpha[0, ..., 0])

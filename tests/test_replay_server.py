@@ -1,0 +1,266 @@
+"""`ofera replay` against a real server: every log format, layout detection, errors, recording, the real
+Live Link capture, and a Live Link Face CSV through `ofera serve` at --speed 4."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ofera.cli.main import app
+from ofera.mapping.layouts import LIVELINK61_NAMES, MEDIAPIPE52_NAMES, get_layout
+from ofera.sources import FaceLog, build_livelink_packet, read_facelog, write_facelog, write_gesichter
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+CAPTURE = SHARED_DATA / "livelink_dao.gesichter"
+
+pytestmark = pytest.mark.timeout(120)
+
+
+# ----------------------------------------------------------------------------- logs in every format
+
+
+def _weights(n: int, k: int, seed: int = 0) -> np.ndarray:
+    t = np.arange(n)[:, None] / 30.0
+    phase = np.random.default_rng(seed).uniform(0, 6.28, k)[None, :]
+    return (0.5 + 0.45 * np.sin(2.0 * t + phase)).astype(np.float32)
+
+
+def write_livelink_csv(path: Path, seconds: float, fps: int = 60, seed: int = 0, start: str = "13:59:58") -> np.ndarray:
+    """A Live Link Face CSV as the app writes it: Timecode HH:MM:SS:FF.fff at `fps`, BlendshapeCount, the 61
+    PascalCase names in a shuffled order. Returns the (T, 61) values in livelink61 order."""
+    n = int(round(seconds * fps)) + 1
+    values = _weights(n, 61, seed)
+    values[:, 52:] = (values[:, 52:] - 0.5) * 0.4  # head and eye angles, radians
+    order = list(range(61))
+    random.Random(seed).shuffle(order)
+    h, m, s = (int(x) for x in start.split(":"))
+    base = (h * 3600 + m * 60 + s) * fps
+    lines = ["Timecode,BlendshapeCount," + ",".join(LIVELINK61_NAMES[i] for i in order)]
+    for row in range(n):
+        frames = base + row
+        sec, ff = divmod(frames, fps)
+        hh, rest = divmod(sec, 3600)
+        mm, ss = divmod(rest, 60)
+        tc = f"{hh % 24:02d}:{mm:02d}:{ss:02d}:{ff:02d}.{(row * 37) % 1000:03d}"
+        lines.append(f"{tc},61," + ",".join(f"{values[row, i]:.6f}" for i in order))
+    path.write_text("\n".join(lines) + "\n")
+    return values
+
+
+def write_all_formats(d: Path) -> dict[str, tuple[Path, str, int]]:
+    """name -> (path, expected layout, frames) for every format read_facelog reads."""
+    out: dict[str, tuple[Path, str, int]] = {}
+    n = 31  # 0.5 s at 60 fps
+    t = np.arange(n) / 60.0
+    # 1. OFERA face-log CSV (ovr70 with Meta v2 confidences), layout in a comment
+    lay = get_layout("ovr70")
+    write_facelog(d / "quest.csv", FaceLog(times=t + 1234.5, weights=_weights(n, lay.length, 1), layout=lay,
+                                           confidence=np.full((n, 2), 0.9), data_source=np.zeros(n, np.uint8),
+                                           source="test"))
+    out["facelog_ovr70"] = (d / "quest.csv", "ovr70", n)
+    # 2. ovr63 face log written by Unity (PascalCase names, no layout comment): detected from the names
+    names = [x.title().replace("_", "") for x in get_layout("ovr63").names]
+    w = _weights(n, 63, 2)
+    rows = [",".join(["time", *names])] + [",".join([f"{t[i]:.6f}", *(f"{v:.5f}" for v in w[i])]) for i in range(n)]
+    (d / "unity_ovr63.csv").write_text("\n".join(rows) + "\n")
+    out["unity_ovr63"] = (d / "unity_ovr63.csv", "ovr63", n)
+    # 3. MediaPipe FaceLandmarker CSV: timestamp_ms, _neutral + 51 names
+    w = _weights(n, 52, 3)
+    rows = [",".join(["timestamp_ms", *MEDIAPIPE52_NAMES])]
+    rows += [",".join([f"{t[i] * 1000:.3f}", *(f"{v:.5f}" for v in w[i])]) for i in range(n)]
+    (d / "mediapipe.csv").write_text("\n".join(rows) + "\n")
+    out["mediapipe52"] = (d / "mediapipe.csv", "mediapipe52", n)
+    # 4. ARKit CSV without _neutral, frame column + fps comment (arkit51)
+    lay = get_layout("arkit51")
+    w = _weights(n, 51, 4)
+    rows = ["# fps: 60", ",".join(["frame", *reversed(lay.names)])]
+    rows += [",".join([str(i), *(f"{v:.5f}" for v in w[i][::-1])]) for i in range(n)]
+    (d / "arkit.csv").write_text("\n".join(rows) + "\n")
+    out["arkit51"] = (d / "arkit.csv", "arkit51", n)
+    # 5. ARKit 52 (with tongueOut), time column
+    lay = get_layout("arkit52")
+    write_facelog(d / "arkit52.csv", FaceLog(times=t, weights=_weights(n, 52, 5), layout=lay))
+    out["arkit52"] = (d / "arkit52.csv", "arkit52", n)
+    # 6. Live Link Face CSV (shuffled columns, timecode crossing a minute)
+    write_livelink_csv(d / "livelink.csv", 0.5, seed=6)
+    out["livelink_csv"] = (d / "livelink.csv", "livelink61", n)
+    # 7. .gesichter capture of raw Live Link packets
+    v = _weights(n, 61, 7)
+    write_gesichter(d / "take.gesichter", [build_livelink_packet(v[i], frame_number=1000 + i) for i in range(n)])
+    out["gesichter"] = (d / "take.gesichter", "livelink61", n)
+    return out
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory) -> dict[str, tuple[Path, str, int]]:
+    return write_all_formats(tmp_path_factory.mktemp("logs"))
+
+
+# ----------------------------------------------------------------------------- a real server
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """The streaming server on a free 127.0.0.1 port, in a thread (the server package's ServerThread)."""
+    from small_server import server_thread
+
+    with server_thread(tmp_path_factory.mktemp("avatars")) as s:
+        yield s
+
+
+runner = CliRunner()
+
+
+def run_replay(*args: str) -> tuple[int, str, dict | None, Path]:
+    out = Path(os.environ.get("PYTEST_TMP", "/tmp")) / f"replay-{time.monotonic_ns()}.json"
+    result = runner.invoke(app, ["replay", *args, "--json", str(out), "--quiet"])
+    summary = json.loads(out.read_text()) if out.exists() else None
+    text = result.output + (result.stderr if hasattr(result, "stderr") else "")
+    return result.exit_code, text, summary, out
+
+
+# ----------------------------------------------------------------------------- tests
+
+
+@pytest.mark.parametrize("name", ["facelog_ovr70", "unity_ovr63", "mediapipe52", "arkit51", "arkit52",
+                                  "livelink_csv", "gesichter"])
+def test_layout_detection(logs, name):
+    path, layout, n = logs[name]
+    log = read_facelog(path)
+    assert log.layout.name == layout and len(log) == n
+    assert log.duration == pytest.approx(0.5, abs=0.02)  # Live Link sub-frame fractions jitter
+
+
+@pytest.mark.parametrize("name", ["facelog_ovr70", "unity_ovr63", "mediapipe52", "arkit51", "arkit52",
+                                  "livelink_csv", "gesichter"])
+def test_every_format_replays(server, logs, name):
+    path, layout, n = logs[name]
+    code, text, summary, _ = run_replay(str(path), "--url", server.url, "--speed", "4")
+    assert code == 0, text
+    assert summary["layout"] == layout
+    assert summary["sent"] == n and summary["errors"] == 0 and summary["skipped"] == 0
+    assert summary["received"] >= 1
+    assert summary["log_duration_s"] == pytest.approx(0.5, abs=0.02)
+
+
+def test_forced_layout_mismatch_is_a_clear_error(server, logs):
+    path, _, _ = logs["facelog_ovr70"]
+    result = runner.invoke(app, ["replay", str(path), "--url", server.url, "--layout", "ovr63"])
+    assert result.exit_code == 2
+    assert "error:" in result.output and "ovr63" in result.output
+
+
+def test_rejected_hello_is_explained(server, logs):
+    path, _, _ = logs["arkit52"]
+    code, text, summary, _ = run_replay(str(path), "--url", server.url, "--avatar", "no-such-avatar")
+    assert code == 1
+    assert "error: server rejected hello: unknown_avatar" in text
+    assert summary["sent"] == 0 and summary["errors"] == 1
+    assert summary["fatal_error"].startswith("server rejected hello: unknown_avatar")
+
+
+def test_nothing_listening_is_explained(logs):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code, text, summary, _ = run_replay(logs["arkit52"][0].as_posix(), "--url", f"ws://127.0.0.1:{port}")
+    assert code == 1 and "cannot connect" in text and "ofera serve" in text
+
+
+def test_record_received_frames(server, logs, tmp_path):
+    path, layout, n = logs["mediapipe52"]
+    rec = tmp_path / "frames.npz"
+    code, text, summary, _ = run_replay(str(path), "--url", server.url, "--speed", "2", "--record", str(rec),
+                                        "--record-positions")
+    assert code == 0, text
+    z = np.load(rec)
+    f = summary["received"]
+    assert len(z["seq"]) == f and np.all(np.diff(z["seq"]) > 0) and z["seq"][-1] == n - 1
+    assert np.all(z["recv_us"] >= z["t_us"]) and z["timing_us"].shape == (f, len(z["timing_stages"]))
+    assert str(z["layout"]) == layout and z["weights"].shape == (f, 52)
+    np.testing.assert_array_equal(z["weights"], read_facelog(path).weights[z["seq"]])
+    assert z["position"].shape == (f, int(z["count"][0]), 3) and np.all(np.isfinite(z["position"]))
+
+
+def test_loop_passes(server, logs):
+    path, _, n = logs["arkit52"]
+    code, text, summary, _ = run_replay(str(path), "--url", server.url, "--speed", "4", "--loop", "--passes", "3")
+    assert code == 0, text
+    assert summary["sent"] == 3 * n and summary["passes"] == 3 and summary["errors"] == 0
+
+
+@pytest.mark.skipif(not CAPTURE.is_file(), reason=f"real capture not available ({CAPTURE} is absent: the "
+                    "shared data folder is not part of the repository)")
+def test_real_capture_replays(server):
+    code, text, summary, _ = run_replay(str(CAPTURE), "--url", server.url, "--speed", "2")
+    assert code == 0, text
+    assert summary["layout"] == "livelink61" and summary["frames_in_log"] == 180
+    assert summary["sent"] == 180 and summary["errors"] == 0
+    assert summary["received"] >= 0.9 * 180
+
+
+# ----------------------------------------------------------------------------- through `ofera serve`
+
+
+def _ofera(*args: str) -> list[str]:
+    return [sys.executable, "-c", "from ofera.cli.main import main; main()", *args]
+
+
+def test_livelink_csv_at_speed_4_through_ofera_serve(tmp_path):
+    """8 s of Live Link Face CSV at --speed 4: every frame sent, >= 90 % answered, no errors, sending
+    within 10 % of 2 s."""
+    from small_server import serve_args
+
+    csv = tmp_path / "face.csv"
+    write_livelink_csv(csv, 8.0, seed=11)
+    log = read_facelog(csv)
+    assert log.layout.name == "livelink61" and len(log) == 481
+    serve = subprocess.Popen(_ofera("serve", "--host", "127.0.0.1", "--port", "0", "--log-level", "warning",
+                                    *serve_args(tmp_path / "avatars")),
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = None
+        deadline = time.monotonic() + 90
+        lines = []
+        while time.monotonic() < deadline:
+            line = serve.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.strip().startswith("stream"):
+                url = line.split()[-1]
+                break
+        assert url, "ofera serve did not start:\n" + "".join(lines)
+        out = tmp_path / "summary.json"
+        done = subprocess.run(_ofera("replay", str(csv), "--url", url, "--speed", "4", "--json", str(out), "-q"),
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+    finally:
+        serve.terminate()
+        try:
+            serve.wait(15)
+        except subprocess.TimeoutExpired:
+            serve.kill()
+    s = json.loads(out.read_text())
+    expected = log.duration / 4
+    print(f"--speed 4: sent {s['sent']}, received {s['received']}, errors {s['errors']}, sending "
+          f"{s['duration_s']:.3f} s, wall {s['wall_s']:.3f} s, expected {expected:.3f} s, "
+          f"latency p50 {s['latency_ms']['p50']} ms p99 {s['latency_ms']['p99']} ms")
+    assert s["sent"] == len(log) and s["skipped"] == 0
+    assert s["received"] >= 0.9 * s["sent"]
+    assert s["errors"] == 0
+    assert s["log_duration_s"] == pytest.approx(8.0, abs=0.02)
+    assert abs(s["duration_s"] - expected) <= 0.1 * expected
+    assert abs(s["wall_s"] - expected) <= 0.1 * expected + 0.5  # plus the handshake and the last answer
+    assert s["latency_ms"]["p50"] is not None and s["latency_ms"]["p99"] is not None

@@ -1,0 +1,59 @@
+"""`ofera serve` as a user runs it: a subprocess that prints where to connect and stops on Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+from ofera.cli.main import app
+from test_server_support import SMALL, avatars_dir
+from typer.testing import CliRunner
+
+
+def test_serve_help_lists_the_options() -> None:
+    out = CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"})
+    assert out.exit_code == 0
+    for opt in ("--host", "--port", "--avatars", "--token", "--devices", "--max-sessions", "--bs-rate"):
+        assert opt in out.output
+
+
+def test_serve_refuses_a_missing_avatars_dir() -> None:
+    out = CliRunner().invoke(app, ["serve", "--avatars", "/no/such/dir", "--port", "0"])
+    assert out.exit_code == 2
+    assert "error:" in out.output and "/no/such/dir" in out.output and "Traceback" not in out.output
+
+
+def test_serve_starts_prints_urls_and_stops_on_ctrl_c() -> None:
+    env = dict(os.environ, OFERA_LOG_LEVEL="warning", PYTHONUNBUFFERED="1", OPENBLAS_NUM_THREADS="1")
+    cmd = [sys.executable, "-c", "from ofera.cli.main import main; main()", "serve", "--port", "0",
+           "--avatars", str(avatars_dir()), "--default-avatar", SMALL]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        lines: list[str] = []
+        deadline = time.monotonic() + 120
+        url = None
+        while url is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            m = re.search(r"health\s+(http://\S+/healthz)", line)
+            if m:
+                url = m.group(1)
+        assert url, "".join(lines) + proc.stderr.read() if proc.poll() is not None else "".join(lines)
+        text = "".join(lines)
+        assert re.search(r"stream\s+ws://127\.0\.0\.1:\d+/v1/stream", text)
+        assert "/metrics" in text
+        assert httpx.get(url, timeout=10).json()["status"] == "ok"
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+        assert "stopped" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
