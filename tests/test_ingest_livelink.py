@@ -13,7 +13,6 @@ import time
 
 import numpy as np
 import pytest
-
 from ofera.ingest import LatestSlot, LiveLinkDecoder, parse_listen, run_ingest
 from ofera.sources import build_livelink_packet
 
@@ -79,9 +78,9 @@ def test_parse_listen():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from small_server import server_thread
+    from ofera.replay.testing import small_server
 
-    with server_thread(tmp_path_factory.mktemp("avatars")) as s:
+    with small_server(tmp_path_factory.getbasetemp() / "small-avatar") as s:
         yield s
 
 
@@ -116,7 +115,9 @@ def test_udp_ingest_over_loopback(server):
     assert result.stats.fatal_error is None and result.stats.errors == 0, result.stats.error_messages
     assert result.stats.sent + result.replaced == good + 1  # newest wins: every good frame sent or replaced
     assert result.stats.sent >= 0.5 * good
-    assert result.stats.received >= 0.9 * result.stats.sent
+    # frames come back; the server computes only the newest bs when it falls behind, so the last is answered
+    assert result.stats.received >= 1
+    assert result.stats.last_seq_answered == result.stats.last_seq_sent == result.stats.sent - 1
     assert statuses and "packets ok" in statuses[-1] and "latency p50" in statuses[-1]
     s = result.summary()
     assert s["packets_bad"] == n_bad and s["latency_ms"]["p50"] is not None
@@ -129,13 +130,13 @@ def test_cli_ingest_livelink(server, tmp_path):
     out = tmp_path / "ingest.json"
     proc = subprocess.Popen(
         [sys.executable, "-c", "from ofera.cli.main import main; main()", "ingest", "livelink", "--listen",
-         f"127.0.0.1:{port}", "--url", server.url, "--seconds", "3", "--status-every", "0.5", "--json", str(out)],
+         f"127.0.0.1:{port}", "--url", server.url, "--seconds", "2", "--status-every", "0.5", "--json", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         first = proc.stdout.readline()  # printed once the session is open and the port listens
         assert " on udp 127.0.0.1" in first, first + proc.stdout.read()
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            t_end = time.monotonic() + 2.0
+            t_end = time.monotonic() + 1.5
             i = 0
             while time.monotonic() < t_end and proc.poll() is None:
                 s.sendto(good_packet(i), ("127.0.0.1", port))
@@ -152,16 +153,16 @@ def test_cli_ingest_livelink(server, tmp_path):
     assert "Live Link Face on udp 127.0.0.1" in output and "packets ok" in output
     s = json.loads(out.read_text())
     assert s["packets_ok"] > 30 and s["packets_bad"] > 3
-    assert s["sent"] > 20 and s["received"] >= 0.9 * s["sent"] and s["errors"] == 0
+    assert s["sent"] > 20 and s["received"] >= 1 and s["errors"] == 0 and s["fatal_error"] is None
+    assert s["last_seq_answered"] == s["last_seq_sent"]
 
 
 def test_cli_ingest_port_in_use(server):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
         busy.bind(("127.0.0.1", 0))
         port = busy.getsockname()[1]
-        from typer.testing import CliRunner
-
         from ofera.cli.main import app
+        from typer.testing import CliRunner
 
         result = CliRunner().invoke(app, ["ingest", "livelink", "--listen", f"127.0.0.1:{port}", "--url", server.url,
                                           "--seconds", "1"])

@@ -257,6 +257,7 @@ def test_protocol_md_error_table_matches_code() -> None:
     b"\x82\xa4type\xa4ping\xa1t\xa3\xff\xfe\xfd",  # invalid UTF-8
     b"\x82\xa4type\xa2bs\xa1w\xc6\xff\xff\xff\xff",  # declares a 4 GiB bin
     b"\xdf\xff\xff\xff\xff",  # declares a map of 4 billion entries
+    b"\x82\xa4type\xa4ping\xa1x" + b"\x91" * 5000 + b"\xc0",  # 5000 nested arrays
 ])
 def test_malformed(data: bytes) -> None:
     raises("malformed", decode_client_message, data)
@@ -301,6 +302,7 @@ def test_bs_lengths_and_values() -> None:
     raises("bad_length", client, GOOD_BS | {"w": b"\x00" * 207}, "arkit52")
     raises("bad_length", client, GOOD_BS | {"w": b"\x00" * 207})
     raises("bad_length", client, GOOD_BS | {"w": b""})
+    raises("bad_length", client, GOOD_BS | {"w": np.zeros(10, "<f4").tobytes()})  # no layout has 10
     for layout, n in LAYOUTS.items():
         assert client(GOOD_BS | {"w": np.ones(n, "<f4").tobytes()}, layout).w.shape == (n,)
     for bad in (np.nan, np.inf, -np.inf):

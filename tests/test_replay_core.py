@@ -7,11 +7,10 @@ import time
 
 import numpy as np
 import pytest
-from ofera_protocol import Frame
-
 from ofera.mapping.layouts import get_layout
 from ofera.replay import FrameRecorder, Replayer, ReplayStats, percentiles_ms, stream_url
 from ofera.sources import FaceLog
+from ofera_protocol import Frame
 
 
 def synthetic_log(seconds: float = 3.0, fps: float = 60.0, layout: str = "arkit52") -> FaceLog:

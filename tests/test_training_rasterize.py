@@ -76,7 +76,8 @@ def test_matches_bruteforce_reference(alpha_min):
     sc = scene(12, seed=3)
     ours = rasterize(*sc, cam, background=0.5, alpha_min=alpha_min).image.numpy()
     ref = reference(*sc, cam, 0.5, alpha_min)
-    np.testing.assert_allclose(ours, ref, atol=1e-9)
+    # alpha_min > 0: the same maths exactly; alpha_min = 0: splats end at a box around alpha = SUPPORT_ALPHA
+    np.testing.assert_allclose(ours, ref, atol=1e-9 if alpha_min else 1e-4)
 
 
 def test_chunking_does_not_change_the_image():

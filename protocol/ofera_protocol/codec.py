@@ -286,11 +286,11 @@ def decode_bs(m: dict[str, Any], layout: str | None) -> Blendshapes:
     buf = F.get_bin(m, "w", w)
     if layout is not None:
         n = LAYOUTS[layout]
-    elif len(buf) % 4 == 0 and 4 <= len(buf) <= 4 * max(LAYOUTS.values()):
+    elif len(buf) % 4 == 0 and len(buf) // 4 in LAYOUTS.values():
         n = len(buf) // 4
     else:
-        raise ProtocolError(BAD_LENGTH, f"bs: field 'w' has {len(buf)} bytes, not a whole number of "
-                            "float32 weights of a known layout")
+        raise ProtocolError(BAD_LENGTH, f"bs: field 'w' has {len(buf)} bytes, which is not 4 x the length "
+                            f"of any layout ({', '.join(f'{k} {v}' for k, v in LAYOUTS.items())})")
     if len(buf) != 4 * n:
         raise ProtocolError(BAD_LENGTH, f"bs: field 'w' has {len(buf)} bytes; layout {layout} needs "
                             f"{n} float32 = {4 * n} bytes")

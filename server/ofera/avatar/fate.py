@@ -95,15 +95,19 @@ def personal_head(head: HeadModel, s: dict[str, np.ndarray], n_expr: int | None,
     )
 
 
-def import_fate(path: str | Path, head: HeadModel, n_expr: int | None = None, name: str | None = None) -> GaussianAvatar:
+def import_fate(
+    path: str | Path, head: HeadModel, n_expr: int | None = None, name: str | None = None
+) -> GaussianAvatar:
     """Read a FATE checkpoint bound to ``head`` (the FLAME 2020 model it was trained with)."""
     s = read_checkpoint(path)
     n = s["_offset"].shape[0]
     face = s["face_index"].reshape(-1)
     canonical = s["face_scaling_canonical"].reshape(-1)
-    if face.shape != (n,) or canonical.shape != (head.num_faces,):
-        raise AvatarError(f"{path}: face_index has {face.size} entries for {n} Gaussians, face_scaling_canonical "
-                          f"{canonical.size} faces; head {head.name!r} has {head.num_faces} faces")
+    if face.shape != (n,):
+        raise AvatarError(f"{path}: face_index has {face.size} entries for {n} Gaussians")
+    if canonical.shape != (head.num_faces,):
+        raise AvatarError(f"{path}: the avatar binds to a mesh of {canonical.size} faces, head {head.name!r} has "
+                          f"{head.num_faces}: give the FLAME file it was trained with")
     dc, rest = s["_features_dc"].reshape(n, -1, 3), s["_features_rest"].reshape(n, -1, 3)
     return GaussianAvatar(
         head=personal_head(head, s, n_expr, str(path)),

@@ -35,7 +35,8 @@ def resolve_sources(sources: Sequence[str | Path]) -> tuple[Path, Path]:
     ply = [p for p in paths if p.suffix == ".ply"]
     npz = [p for p in paths if p.suffix == ".npz"]
     if len(paths) != 2 or len(ply) != 1 or len(npz) != 1:
-        raise AvatarError(f"give a GaussianAvatars folder or its {PLY_NAME} and {PARAM_NAME}, got {[str(p) for p in paths]}")
+        got = [str(p) for p in paths]
+        raise AvatarError(f"give a GaussianAvatars folder or its {PLY_NAME} and {PARAM_NAME}, got {got}")
     for p in (ply[0], npz[0]):
         if not p.is_file():
             raise AvatarError(f"{p}: no such file")

@@ -99,6 +99,6 @@ class GaussianAvatar:
             "faces_used": int(np.unique(self.binding.face).size),
             "head": {"name": self.head.name, "vertices": self.head.num_vertices, "faces": self.head.num_faces,
                      "expr_dims": self.head.expr_dims},
-            "extent_m": (hi - lo).round(4).tolist(),
+            "extent_m": [round(float(e), 4) for e in hi - lo],
             "opacity_mean": round(float(self.opacity.mean()), 4) if self.count else 0.0,
         }

@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..head.model import HeadModel
-from ..head.procedural import EYE_HALF_OPENING, EYE_RADIUS, MOUTH_Y
+from ..head.procedural import EYE_HALF_OPENING, MOUTH_Y
 from ..head.rotations import matrix_to_quaternion
 from .binding import TriangleBinding
 from .frames import face_areas, face_frames, face_normals_unnormalised
@@ -44,8 +44,9 @@ LASH = np.array([0.10, 0.07, 0.06])
 SCLERA = np.array([0.95, 0.93, 0.91])
 IRIS = np.array([0.30, 0.45, 0.58])
 PUPIL = np.array([0.02, 0.02, 0.025])
-MOUTH = np.array([0.30, 0.08, 0.08])
-TONGUE = np.array([0.55, 0.22, 0.24])
+MOUTH = np.array([0.20, 0.055, 0.055])
+TONGUE = np.array([0.42, 0.17, 0.19])
+NOSTRIL = np.array([0.30, 0.15, 0.13])
 TEETH = np.array([0.93, 0.91, 0.84])
 LIGHT = np.array([0.35, 0.55, 1.0]) / np.linalg.norm([0.35, 0.55, 1.0])
 
@@ -101,7 +102,8 @@ class _Mesh:
         deg = np.maximum(np.asarray(adj.sum(axis=1)).ravel(), 1)
         lap = adj @ self.v / deg[:, None] - self.v
         length = np.linalg.norm(self.v[rows] - self.v[cols], axis=1)
-        edge = np.maximum(np.bincount(rows, length, len(self.v)) / np.maximum(np.bincount(rows, None, len(self.v)), 1), 1e-9)
+        count = np.maximum(np.bincount(rows, None, len(self.v)), 1)
+        edge = np.maximum(np.bincount(rows, length, len(self.v)) / count, 1e-9)  # mean edge length per vertex
         return np.maximum((lap * self.vertex_normal).sum(1) / edge, 0.0)
 
     def field(self, name: str, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -146,6 +148,36 @@ def _lambert(normal: np.ndarray, ambient: float = 0.42, key: float = 0.62) -> np
     return np.minimum(ambient + key * np.maximum(normal @ LIGHT, 0.0) + 0.06 * normal[:, 1], 1.08)
 
 
+def lip_masks(pos: np.ndarray, lm: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Lip colour weight (n,) in 0..1 and the dark line where the lips meet, from the canonical position.
+
+    Upper lip: from the mouth line up to a cupid's-bow curve; lower lip: down to a fuller curve; both taper
+    to the mouth corners (landmarks ``mouth_corner_left``; the mouth line is the head's ``MOUTH_Y``).
+    """
+    x, y, z = pos.T
+    hw = abs(lm["mouth_corner_left"][0]) + 0.0012
+    u = np.clip(np.abs(x) / hw, 0, 1)
+    top = MOUTH_Y + 0.0066 * np.sqrt(1 - u**2) - 0.0011 * np.exp(-((x / 0.0032) ** 2))
+    bottom = MOUTH_Y - 0.0088 * (1 - u**2) ** 0.6
+    soft = 0.0007
+    inside = _smoothstep((top - y) / soft + 0.5) * _smoothstep((y - bottom) / soft + 0.5)
+    front = _smoothstep((z - 0.05) / 0.01) * (np.abs(x) < hw)
+    seam = np.exp(-(((y - MOUTH_Y) / 0.0006) ** 2)) * front * (1 - u**4)
+    return inside * front, seam
+
+
+def brow_mask(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Brow weight (n,) in 0..1 and the position along the brow t (0 inner .. 1 tail), canonical space."""
+    x, y, z = pos.T
+    t = (np.abs(x) - 0.010) / 0.046
+    tc = np.clip(t, 0, 1)
+    centre = 0.0458 + 0.0034 * np.sin(np.pi * (0.15 + 0.7 * tc))
+    half = 0.0037 * (1 - 0.55 * tc)
+    mask = _smoothstep((half - np.abs(y - centre)) / 0.0009 + 0.5)
+    mask *= _smoothstep(t / 0.08) * _smoothstep((1 - t) / 0.12) * _smoothstep((z - 0.03) / 0.01)
+    return mask, tc
+
+
 def _eye_colours(m: _Mesh, pos: np.ndarray, side: str, rng: np.random.Generator) -> np.ndarray:
     """Sclera / iris / pupil by the angle between (p - eye centre) and the eye's forward axis (+z)."""
     centre = m.lm[f"eye_{side}"]
@@ -153,10 +185,10 @@ def _eye_colours(m: _Mesh, pos: np.ndarray, side: str, rng: np.random.Generator)
     ang = np.degrees(np.arccos(np.clip(d[:, 2], -1, 1)))
     streak = 0.8 + 0.4 * rng.random(len(pos))
     iris = IRIS[None] * streak[:, None] * (0.75 + 0.25 * _smoothstep((ang - 10) / 8))[:, None]
-    iris *= (1 - 0.55 * _smoothstep((ang - 23.5) / 3.0))[:, None]  # dark limbal ring
+    iris *= (1 - 0.55 * _smoothstep((ang - 27.0) / 3.0))[:, None]  # dark limbal ring
     sclera = SCLERA + (np.array([-0.02, -0.10, -0.10]) * _smoothstep((ang - 45) / 30)[:, None])
-    rgb = np.where((ang < 27)[:, None], iris, sclera)
-    rgb = np.where((ang < 10.5)[:, None], PUPIL, rgb)
+    rgb = np.where((ang < 31)[:, None], iris, sclera)
+    rgb = np.where((ang < 11.5)[:, None], PUPIL, rgb)
     # Lid shadow on the top of the eyeball, catch-light near the pupil.
     hh = EYE_HALF_OPENING[1]
     shade = 1 - 0.45 * _smoothstep((pos[:, 1] - centre[1] - 0.3 * hh) / (0.8 * hh))
@@ -196,10 +228,15 @@ def _surface(m: _Mesh, rng: np.random.Generator) -> _Parts:
         rgb += cheek[:, None] * np.array([0.02, -0.05, -0.04])
     nose = np.exp(-np.sum((pos - m.lm["nose_tip"]) ** 2, 1) / (2 * 0.008**2))
     rgb += nose[:, None] * np.array([0.01, -0.04, -0.03])
-    lips = _smoothstep((m.field("lips", face, bary) - 0.25) / 0.5)
-    brows = _smoothstep((m.field("brows", face, bary) - 0.2) / 0.5)
-    scalp = _smoothstep((m.field("scalp", face, bary) - 0.1) / 0.6)
+    lips, seam = lip_masks(pos, m.lm)
+    brows, brow_t = brow_mask(pos)
+    scalp = _smoothstep((m.field("scalp", face, bary) + 0.12 * rng.standard_normal(len(face)) - 0.3) / 0.4)
     rgb = rgb * (1 - lips[:, None]) + LIPS * lips[:, None]
+    rgb *= 1 - 0.45 * seam[:, None]
+    for sx in (1.0, -1.0):  # nostrils: dark ovals on the underside of the nose
+        d2 = ((px - sx * 0.0062) / 0.0024) ** 2 + ((py - m.lm["nose_tip"][1] + 0.0085) / 0.0016) ** 2
+        nostril = 0.8 * np.exp(-d2) * _smoothstep((-normal[:, 1] - 0.1) / 0.3)
+        rgb = rgb * (1 - nostril[:, None]) + NOSTRIL * nostril[:, None]
     rgb = rgb * (1 - brows[:, None]) + BROW * (0.85 + 0.3 * rng.random((len(face), 1))) * brows[:, None]
     rgb = rgb * (1 - scalp[:, None]) + HAIR * (0.8 + 0.4 * rng.random((len(face), 1))) * scalp[:, None]
     hw, hh = EYE_HALF_OPENING
@@ -208,7 +245,7 @@ def _surface(m: _Mesh, rng: np.random.Generator) -> _Parts:
         r = np.sqrt(((px - e[0]) / hw) ** 2 + ((py - e[1]) / hh) ** 2)
         lash = np.exp(-(((r - 1.05) / np.where(py > e[1], 0.10, 0.05)) ** 2)) * (pz > e[2]) * (np.abs(px - e[0]) < hw)
         rgb = rgb * (1 - 0.85 * lash[:, None]) + LASH * 0.85 * lash[:, None]
-    shade = _lambert(normal) * (1 - np.clip(2.0 * m.interp(m.concavity, face, bary), 0, 0.35))
+    shade = _lambert(normal) * (1 - np.clip(1.2 * m.interp(m.concavity, face, bary), 0, 0.2))
     rgb *= shade[:, None]
     opacity = rng.uniform(0.93, 0.99, len(face))
     sheen = 0.05 + 0.05 * lips
@@ -227,7 +264,7 @@ def _surface(m: _Mesh, rng: np.random.Generator) -> _Parts:
     sheen[in_cavity] = 0.0
 
     # Shape: discs in the face plane; brows as short hairs along the brow line.
-    brow_dir = np.stack([np.sign(px) + (px == 0), 0.25 * np.ones_like(px), np.zeros_like(px)], axis=1)
+    brow_dir = np.stack([np.sign(px) + (px == 0), 0.6 * (1 - 1.6 * brow_t), np.zeros_like(px)], axis=1)
     axes = _in_plane_axes(frames, None, rng)
     axes_brow = _in_plane_axes(frames, brow_dir, rng)
     is_brow = brows > 0.5

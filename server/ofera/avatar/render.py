@@ -128,17 +128,31 @@ def project_gaussians(
     return Projected(mean, cov, conic, z, radius, visible)
 
 
-def _pairs(mean: np.ndarray, radius: np.ndarray, width: int, height: int) -> tuple[np.ndarray, ...]:
-    """Every (splat, pixel) pair inside each splat's clipped bounding box: splat ids, pixel x, pixel y."""
-    x0 = np.clip(np.floor(mean[:, 0] - radius), 0, width - 1).astype(np.int64)
-    x1 = np.clip(np.ceil(mean[:, 0] + radius), 0, width - 1).astype(np.int64)
-    y0 = np.clip(np.floor(mean[:, 1] - radius), 0, height - 1).astype(np.int64)
-    y1 = np.clip(np.ceil(mean[:, 1] + radius), 0, height - 1).astype(np.int64)
-    w, h = x1 - x0 + 1, y1 - y0 + 1
-    counts = w * h
-    sid = np.repeat(np.arange(len(mean)), counts)
-    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    return sid, x0[sid] + local % w[sid], y0[sid] + local // w[sid]
+def _pairs(
+    mean: np.ndarray, cov: np.ndarray, conic: np.ndarray, k2: np.ndarray, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (splat, pixel) pair whose pixel centre lies inside the splat's ellipse ``d^T conic d <= k2``.
+
+    Rows first (the ellipse's vertical extent is ``sqrt(k2 * cov_yy)``), then the exact x-span on each row.
+    Returns splat ids (P,), pixel x (P,), pixel y (P,), clipped to the image.
+    """
+    mx, my = mean[:, 0], mean[:, 1]
+    ext_y = np.sqrt(k2 * cov[:, 1, 1])
+    y0 = np.clip(np.ceil(my - 0.5 - ext_y), 0, height).astype(np.int64)
+    y1 = np.clip(np.floor(my - 0.5 + ext_y), -1, height - 1).astype(np.int64)
+    rows = np.maximum(y1 - y0 + 1, 0)
+    rid = np.repeat(np.arange(len(mean)), rows)
+    py = y0[rid] + np.arange(rows.sum()) - np.repeat(np.cumsum(rows) - rows, rows)
+    a, b, c = conic[rid, 0], conic[rid, 1], conic[rid, 2]
+    dy = py + 0.5 - my[rid]
+    centre = mx[rid] - b * dy / a
+    half = np.sqrt(np.maximum(b * b * dy * dy - a * (c * dy * dy - k2[rid]), 0.0)) / a
+    x0 = np.clip(np.ceil(centre - half - 0.5), 0, width).astype(np.int64)
+    x1 = np.clip(np.floor(centre + half - 0.5), -1, width - 1).astype(np.int64)
+    cols = np.maximum(x1 - x0 + 1, 0)
+    pid = np.repeat(np.arange(len(rid)), cols)
+    px = x0[pid] + np.arange(cols.sum()) - np.repeat(np.cumsum(cols) - cols, cols)
+    return rid[pid], px, py[pid]
 
 
 def composite(
@@ -147,35 +161,37 @@ def composite(
     opacity: np.ndarray,
     background: np.ndarray = (1.0, 1.0, 1.0),
     size: tuple[int, int] = (512, 512),
-    chunk: int = 8192,
+    chunk: int = 16384,
 ) -> np.ndarray:
     """Front-to-back alpha compositing of projected Gaussians -> image (H, W, 3) float in 0..1.
 
-    colour (N, 3) and opacity (N,) linear; size = (width, height) px. Splats are taken in depth order in
-    chunks; inside a chunk the (splat, pixel) pairs are grouped by pixel with a stable sort (keeping depth
-    order), the transmittance before each pair is an exclusive cumulative product within its pixel times the
-    pixel's transmittance carried from earlier chunks, so the result equals sequential blending. Pixels whose
+    colour (N, 3) and opacity (N,) linear; size = (width, height) px. Each splat covers the pixels where its
+    alpha reaches 1/255 (an ellipse, :func:`_pairs`). Splats are taken in depth order in chunks; inside a
+    chunk the (splat, pixel) pairs are grouped by pixel with a stable sort (keeping depth order), and the
+    transmittance before each pair is an exclusive cumulative product within its pixel times the pixel's
+    transmittance carried from earlier chunks, so the result equals sequential blending. Pixels whose
     transmittance fell below 1e-4 stop accumulating (as in 3DGS).
     """
     width, height = size
-    idx = np.flatnonzero(proj.visible)
+    opacity = np.asarray(opacity, np.float64)
+    idx = np.flatnonzero(proj.visible & (opacity * ALPHA_MAX >= ALPHA_MIN))
     idx = idx[np.argsort(proj.depth[idx], kind="stable")]
     trans = np.ones(width * height)
     accum = np.zeros((width * height, 3))
     colour = np.asarray(colour, np.float64)
-    opacity = np.asarray(opacity, np.float64)
+    k2_all = 2.0 * np.log(np.maximum(opacity, ALPHA_MIN) / ALPHA_MIN)  # alpha >= 1/255 inside d^T Q d <= k2
     for start in range(0, len(idx), chunk):
         ids = idx[start : start + chunk]
-        sid, px, py = _pairs(proj.mean[ids], proj.radius[ids], width, height)
-        g = ids[sid]
-        dx = px + 0.5 - proj.mean[g, 0]
-        dy = py + 0.5 - proj.mean[g, 1]
-        power = -0.5 * (proj.conic[g, 0] * dx * dx + proj.conic[g, 2] * dy * dy) - proj.conic[g, 1] * dx * dy
-        alpha = np.minimum(ALPHA_MAX, opacity[g] * np.exp(np.minimum(power, 0.0)))
+        mean, conic, op, col = proj.mean[ids], proj.conic[ids], opacity[ids], colour[ids]
+        sid, px, py = _pairs(mean, proj.cov[ids], conic, k2_all[ids], width, height)
+        dx = px + 0.5 - mean[sid, 0]
+        dy = py + 0.5 - mean[sid, 1]
+        power = -0.5 * (conic[sid, 0] * dx * dx + conic[sid, 2] * dy * dy) - conic[sid, 1] * dx * dy
+        alpha = np.minimum(ALPHA_MAX, op[sid] * np.exp(np.minimum(power, 0.0)))
         keep = alpha >= ALPHA_MIN
-        pix, alpha, g = (py * width + px)[keep], alpha[keep], g[keep]
+        pix, alpha, sid = (py * width + px)[keep], alpha[keep], sid[keep]
         order = np.argsort(pix, kind="stable")
-        pix, alpha, g = pix[order], alpha[order], g[order]
+        pix, alpha, sid = pix[order], alpha[order], sid[order]
         log_keep = np.log1p(-alpha)
         csum = np.cumsum(log_keep)
         first = np.flatnonzero(np.r_[True, pix[1:] != pix[:-1]])
@@ -184,7 +200,7 @@ def composite(
         t_before = trans[pix] * np.exp(before)
         weight = np.where(t_before >= T_MIN, alpha * t_before, 0.0)
         for ch in range(3):
-            accum[:, ch] += np.bincount(pix, weight * colour[g, ch], width * height)
+            accum[:, ch] += np.bincount(pix, weight * col[sid, ch], width * height)
         trans *= np.exp(np.bincount(pix, log_keep, width * height))
     image = accum + trans[:, None] * np.asarray(background, np.float64)[None]
     return image.reshape(height, width, 3)

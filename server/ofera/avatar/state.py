@@ -21,7 +21,8 @@ class GaussianState:
 
     def __post_init__(self) -> None:
         n = self.position.shape[0]
-        for name, arr, width in (("position", self.position, 3), ("rotation", self.rotation, 4), ("scale", self.scale, 3)):
+        for name, arr, width in (("position", self.position, 3), ("rotation", self.rotation, 4),
+                                 ("scale", self.scale, 3)):
             if arr.shape != (n, width):
                 raise ValueError(f"GaussianState.{name} has shape {arr.shape}, expected ({n}, {width})")
 

@@ -13,14 +13,15 @@ the teeth middle line is the rings' midline set back by 1.5 u (at the rings' mea
 span 0.1 u .. 2.1 u above it, lower teeth the same below it and 0.4 u further back; thickness u.
 Upstream reads the lip rings from FLAME's vertex masks (not available here). This module finds the mouth
 opening as a boundary loop of the mesh instead: the loop nearest the ``mouth_centre`` landmark when the
-head has one, otherwise the lowest loop on the front of the head; each ring is 15 vertices of the loop's
-upper or lower half, evenly spaced by arc length from the +x corner to the -x corner. Since the inner rim
+head has one, otherwise the lowest loop on the front of the head; each ring is 15 points on the loop's
+upper or lower half, evenly spaced by arc length from the +x corner to the -x corner (interpolated
+between the loop's vertices, identity basis included). Since the inner rim
 of a closed mouth has nearly coincident rings, ``u`` is at least 10 % of the mouth's width.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -100,20 +101,35 @@ def find_mouth_loop(head: HeadModel) -> np.ndarray:
     return loops[min(front, key=lambda i: centres[i][1])]
 
 
-def _resample(chain: np.ndarray, v: np.ndarray, n: int = COLUMNS) -> np.ndarray:
-    """``n`` vertex ids of ``chain`` evenly spaced by arc length (ends included)."""
+@dataclass(frozen=True)
+class Ring:
+    """15 points along a lip chain, each between two chain vertices: p = (1 - w) v[i0] + w v[i1]."""
+
+    i0: np.ndarray
+    i1: np.ndarray
+    w: np.ndarray
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        """Interpolate per-vertex values (V, ...) at the ring's points -> (15, ...)."""
+        w = self.w.reshape(-1, *([1] * (values.ndim - 1)))
+        return (1 - w) * values[self.i0] + w * values[self.i1]
+
+
+def _resample(chain: np.ndarray, v: np.ndarray, n: int = COLUMNS) -> Ring:
+    """``n`` points evenly spaced by arc length along ``chain`` (ends included)."""
     p = v[chain]
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
     targets = np.linspace(0.0, s[-1], n)
-    return chain[np.abs(s[None, :] - targets[:, None]).argmin(axis=1)]
+    k = np.clip(np.searchsorted(s, targets, side="right") - 1, 0, len(chain) - 2)
+    w = np.clip((targets - s[k]) / np.maximum(s[k + 1] - s[k], 1e-12), 0.0, 1.0)
+    return Ring(chain[k], chain[k + 1], w)
 
 
-def lip_rings(head: HeadModel) -> tuple[np.ndarray, np.ndarray]:
-    """Upper and lower rings, each (15,) vertex ids from the +x corner to the -x corner."""
+def lip_rings(head: HeadModel) -> tuple[Ring, Ring]:
+    """Upper and lower rings, 15 points each from the +x corner to the -x corner."""
     loop = find_mouth_loop(head)
     v = head.v_template
-    x = v[loop, 0]
-    loop = np.roll(loop, -int(np.argmax(x)))  # start at the +x corner
+    loop = np.roll(loop, -int(np.argmax(v[loop, 0])))  # start at the +x corner
     k = int(np.argmin(v[loop, 0]))  # the -x corner
     # Faces lie left of their boundary edges, so seen from the front (+z) the hole is walked clockwise:
     # from the +x corner along the bottom to the -x corner, then back along the top.
@@ -145,13 +161,13 @@ def add_teeth(head: HeadModel) -> HeadModel:
     """The head with GaussianAvatars' teeth appended (V + 120 vertices, F + 168 faces)."""
     upper, lower = lip_rings(head)
     v = head.num_vertices
-    teeth = teeth_vertices(head.v_template[upper], head.v_template[lower])
+    teeth = teeth_vertices(upper(head.v_template), lower(head.v_template))
     is_upper = np.zeros(TEETH_VERTICES, bool)
     is_upper[np.concatenate([UPPER_ROOT, UPPER_EDGE, UPPER_ROOT_BACK, UPPER_EDGE_BACK])] = True
     weights = np.zeros((TEETH_VERTICES, head.num_joints))
     weights[is_upper, 1] = 1.0  # neck
     weights[~is_upper, 2] = 1.0  # jaw
-    shape_mean = (head.shapedirs[upper] + head.shapedirs[lower]) / 2  # (15, 3, S)
+    shape_mean = (upper(head.shapedirs) + lower(head.shapedirs)) / 2  # (15, 3, S)
     posedirs = head.posedirs.reshape(-1, v, 3)
     labels = {k: np.concatenate([m, np.zeros(TEETH_VERTICES, bool)]) for k, m in head.vertex_labels.items()}
     labels["teeth_upper"] = np.concatenate([np.zeros(v, bool), is_upper])

@@ -4,12 +4,18 @@ from __future__ import annotations
 
 import typer
 
+from . import avatar
 from . import head, replay
+from . import mapping as mapping_cmd
 from . import serve as serve_cmd
 
 app = typer.Typer(help="OFERA server: blendshape-driven Gaussian head avatars.", no_args_is_help=True,
                   pretty_exceptions_enable=False)
 app.add_typer(head.app, name="head")
+app.add_typer(avatar.app, name="avatar")
+app.add_typer(mapping_cmd.bda_app, name="bda")
+app.add_typer(mapping_cmd.epm_app, name="epm")
+app.add_typer(mapping_cmd.mapping_app, name="mapping")
 app.command("serve")(serve_cmd.serve)
 app.command("replay")(replay.replay)
 app.add_typer(replay.ingest_app, name="ingest")

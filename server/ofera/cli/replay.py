@@ -67,6 +67,13 @@ def _run_with_sigint(coro_factory: Callable[[], object], on_sigint: Callable[[],
     return asyncio.run(main())
 
 
+def _check_encoding(encoding: str) -> None:
+    from ofera_protocol import ENCODINGS
+
+    if encoding not in ENCODINGS:
+        raise CliError(f"--encoding {encoding!r} is not one of {', '.join(ENCODINGS)}")
+
+
 def _explain_failure(stats, what: str) -> None:
     """Exit non-zero, saying what went wrong, when the server refused or reported errors."""
     if stats.fatal_error is not None:
@@ -122,6 +129,7 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
 
     if passes is not None and passes < 1:
         raise CliError(f"--passes must be at least 1, got {passes}")
+    _check_encoding(encoding)
     target = stream_url(url)
     log = read_facelog(log_path, layout, fps)
     replayer = Replayer(log, speed=speed, loop=loop, max_lag=max_lag,
@@ -136,12 +144,9 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
         stats = _run_with_sigint(
             lambda: replay_through(replayer, target, options, recorder, drain_s=drain, on_tick=on_tick),
             replayer.stop)
-    # sending spans (passes - 1) whole periods plus one log duration
-    expected = (max(stats.passes - 1, 0) * replayer.period + replayer.log_duration) / speed
     summary = stats.summary(
         log=str(log_path), layout=log.layout.name, url=target, speed=speed, loop=loop, passes=stats.passes,
         frames_in_log=len(log), log_duration_s=round(replayer.log_duration, 4),
-        expected_duration_s=round(expected, 4),
     )
     _write_json(json_out, summary)
     if recorder is not None:
@@ -150,7 +155,7 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
     lat = summary["latency_ms"]
     console.print(
         f"sent {stats.sent}, received {stats.received}, skipped {stats.skipped}, errors {stats.errors}; "
-        f"sending took {stats.duration:.3f} s (expected {summary['expected_duration_s']:.3f} s), "
+        f"sending took {stats.duration:.3f} s (expected {stats.expected_duration or 0:.3f} s), "
         f"wall {stats.wall:.3f} s; latency p50 {lat['p50']} ms, p99 {lat['p99']} ms")
     _explain_failure(stats, "replay")
 
@@ -184,6 +189,7 @@ def _ingest(kind: str, listen: str, url: str, avatar: str, encoding: str, token:
         raise CliError(f"--seconds must be positive, got {seconds}")
     if status_every <= 0:
         raise CliError(f"--status-every must be positive, got {status_every}")
+    _check_encoding(encoding)
     default_port = 11111 if kind == "livelink" else 39539
     host, port = parse_listen(listen, default_port)
     decoder = LiveLinkDecoder() if kind == "livelink" else VmcDecoder()

@@ -90,7 +90,7 @@ async def run_ingest(
                 w = await slot.get()
                 t = now_us()
                 await link.send(seq, t, w)
-                stats.on_sent(t * 1e-6, 0.0)
+                stats.on_sent(t * 1e-6, 0.0, seq)
                 seq += 1
 
         async def status() -> None:
@@ -114,7 +114,7 @@ async def run_ingest(
             for task in tasks:
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-            await asyncio.sleep(0.05)  # let the answer to the last bs arrive
+            await _drain_last(stats, 2.0)  # let the answer to the last bs arrive
             await link.close()
             receiver.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -133,3 +133,11 @@ async def _wait_stop(stop: asyncio.Event, sender: asyncio.Task) -> None:
         await asyncio.wait({waiter, sender}, return_when=asyncio.FIRST_COMPLETED)
     finally:
         waiter.cancel()
+
+
+async def _drain_last(stats: ReplayStats, timeout: float) -> None:
+    """Wait (polling) until the last `bs` sent is answered, the session ended, or `timeout` passes."""
+    deadline = time.monotonic() + timeout
+    while (stats.last_seq_sent is not None and stats.fatal_error is None and time.monotonic() < deadline
+           and (stats.last_seq_answered is None or stats.last_seq_answered < stats.last_seq_sent)):
+        await asyncio.sleep(0.01)

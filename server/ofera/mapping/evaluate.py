@@ -24,46 +24,51 @@ import numpy as np
 
 from ..head import HeadModel, HeadSubject
 from ..head.lbs import pose_feature, rigid_transforms
-from .baselines import MatrixMapper, RidgeMapper, param_rmse
+from .baselines import MatrixMapper, RidgeMapper, correspondence_matrix, param_rmse
 from .bda import BDA
 from .flame_values import split_flame_values
 from .layouts import to_arkit51
+from .paired import REGIONS, PairedData, PairedDataError, make_benchmark, region_masks
 from .runtime import Mapper
 
 METHODS = ("matrix", "ridge", "epm")
-REGIONS = ("eyes", "brows", "mouth_jaw")
 
 
 # ----- fast vertices (the reference is ofera.head.lbs; tests compare them) -------------------------
 
 
 class FastVertices:
-    """Batched float32 LBS for one head model (root and neck as given; ~10x faster than the reference).
+    """Batched float32 LBS on some vertices of one head model (the reference is
+    ``paired.vertices_from_flame`` / ``ofera.head.lbs``; a test compares them).
 
-    Blends the joints' 3x4 transforms per vertex with one matrix product, ``T = W @ A`` (B, V, 12),
-    instead of the reference's (B, V, 4, 4) float64 einsum.
+    Blends the joints' 3x4 transforms per vertex with one matrix product, ``T = W @ A`` (B, n, 12),
+    instead of (B, n, 3, 3) float64 einsums: about 10x faster, which keeps evaluation in minutes.
     """
 
-    def __init__(self, model: HeadModel) -> None:
+    def __init__(self, model: HeadModel, vertex_ids: np.ndarray | None = None) -> None:
         self.model = model
-        v = model.num_vertices
-        self.exprdirs = np.ascontiguousarray(model.exprdirs.reshape(3 * v, -1).T, np.float32)  # (E, 3V)
-        self.posedirs = np.ascontiguousarray(model.posedirs, np.float32)  # (36, 3V)
-        self.weights = np.ascontiguousarray(model.weights, np.float32)  # (V, K)
+        ids = np.arange(model.num_vertices) if vertex_ids is None else np.asarray(vertex_ids, np.int64)
+        self.ids = ids
+        n = len(ids)
+        self.exprdirs = np.ascontiguousarray(model.exprdirs[ids].reshape(3 * n, -1).T, np.float32)  # (E, 3n)
+        posedirs = model.posedirs.reshape(-1, model.num_vertices, 3)[:, ids]
+        self.posedirs = np.ascontiguousarray(posedirs.reshape(len(posedirs), 3 * n), np.float32)  # (36, 3n)
+        self.weights = np.ascontiguousarray(model.weights[ids], np.float32)  # (n, K)
 
     def __call__(self, subject: HeadSubject, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-        """expr (B, n), rotations (B, K, 3, 3) -> vertices (B, V, 3) float32."""
+        """expr (B, e), rotations (B, K, 3, 3) -> vertices (B, n, 3) float32."""
         expr = np.atleast_2d(np.asarray(expr, np.float32))
-        b, n = expr.shape
-        v = self.model.num_vertices
-        flat = subject.v_id.reshape(-1).astype(np.float32) + expr @ self.exprdirs[:n]
-        flat += pose_feature(np.asarray(rotations, np.float64)).astype(np.float32) @ self.posedirs
-        v_po = flat.reshape(b, v, 3)
-        joints = subject.j_id[None] + np.einsum("kce,be->bkc", subject.j_expr[:, :, :n], expr.astype(np.float64))
-        a = rigid_transforms(np.asarray(rotations, np.float64), joints, self.model.parents)
+        b, e = expr.shape
+        n = len(self.ids)
+        rotations = np.asarray(rotations, np.float64)
+        flat = subject.v_id[self.ids].reshape(-1).astype(np.float32) + expr @ self.exprdirs[:e]
+        flat += pose_feature(rotations).astype(np.float32) @ self.posedirs
+        v_po = flat.reshape(b, n, 3)  # shaped and pose-corrected, before skinning
+        joints = subject.j_id[None] + np.einsum("kce,be->bkc", subject.j_expr[:, :, :e], expr.astype(np.float64))
+        a = rigid_transforms(rotations, joints, self.model.parents)
         k = a.shape[1]
-        blend = np.matmul(self.weights[None], a[:, :, :3, :].reshape(b, k, 12).astype(np.float32))  # (B, V, 12)
-        out = np.empty((b, v, 3), np.float32)
+        blend = np.matmul(self.weights[None], a[:, :, :3, :].reshape(b, k, 12).astype(np.float32))  # (B, n, 12)
+        out = np.empty((b, n, 3), np.float32)
         for r in range(3):
             acc = blend[..., 4 * r + 3].copy()
             for c in range(3):
@@ -109,22 +114,87 @@ class _VertexErrors:
 
 
 def face_regions(model: HeadModel) -> dict[str, np.ndarray]:
-    """Vertex masks (V,) bool: ``face`` (vertices some expression, jaw or eye motion moves) and REGIONS."""
-    from .paired import region_masks
-
+    """Vertex masks (V,) bool from ``paired.region_masks``: ``face`` and the REGIONS."""
     masks = {k: np.asarray(v, bool) for k, v in region_masks(model).items()}
-    if "face" not in masks:
-        moves = np.abs(model.exprdirs).max(axis=(1, 2)) > 1e-6
-        moves |= model.weights[:, 2:].sum(axis=1) > 1e-6  # jaw and eyes
-        masks["face"] = moves
-    missing = [r for r in REGIONS if r not in masks]
+    missing = [r for r in ("face", *REGIONS) if r not in masks]
     if missing:
         raise ValueError(f"region masks lack {missing}; have {sorted(masks)}")
     return masks
 
 
+# ----- inputs: paired data (cached benchmark), head, the correspondence matrix ----------------------
+
+
+def generator_version() -> str:
+    """Key of the synthetic benchmark's generator: a hash of the code that generates it.
+
+    Any change to the paired-data generator, the procedural head, the layouts or the FLAME values
+    makes a new key, so a stale cached benchmark is never used.
+    """
+    import hashlib
+
+    from .. import head as head_pkg
+    from . import flame_values, layouts, paired
+
+    files = sorted(Path(paired.__file__).parent.glob("*.py")) + sorted(Path(head_pkg.__file__).parent.glob("*.py"))
+    files += [Path(layouts.__file__), Path(flame_values.__file__)]
+    digest = hashlib.sha256()
+    for f in files:
+        digest.update(f.name.encode())
+        digest.update(f.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def load_paired_data(source: str | Path, progress: bool = True, cache: bool = True) -> PairedData:
+    """A paired-data ``.npz``, or ``synthetic``: the benchmark, generated once and cached under
+    ``~/.cache/ofera/paired/`` (``$OFERA_CACHE``) keyed by :func:`generator_version`."""
+    if str(source) != "synthetic":
+        return PairedData.load(source)
+    from ..assets import cache_dir
+
+    path = cache_dir("paired") / f"benchmark-{generator_version()}.npz"
+    if cache and path.is_file():
+        try:
+            return PairedData.load(path)
+        except PairedDataError:
+            path.unlink(missing_ok=True)  # a broken cache file: regenerate
+    data = make_benchmark(progress=progress or None)
+    if cache:
+        tmp = path.with_suffix(".tmp")
+        data.save(tmp)
+        tmp.replace(path)
+    return data
+
+
+def head_of(data: PairedData, head: str | Path = "default") -> HeadModel:
+    """The head model the paired data's FLAME values belong to (``default``: the procedural head)."""
+    from ..head import load_head
+
+    model = load_head(head)
+    made_on = (data.meta or {}).get("head")
+    if made_on and made_on != model.name:
+        raise ValueError(f"the paired data was made on head {made_on!r}, not {model.name!r}: pass --head")
+    return model
+
+
+def default_matrix(model: HeadModel) -> MatrixMapper:
+    """The project's own fixed matrix, from per-shape correspondences, without paired frames.
+
+    For each ARKit shape alone at weight 1, the synthetic rig (as designed: neutral style, mean
+    identity) makes a mesh and the tracker-style fitter finds the head's FLAME values for it; the
+    matrix rows are those values minus the neutral face's, in EMAGE's layout (see ``baselines``).
+    """
+    from .paired.fit import FlameFitter, fit_vertices
+    from .paired.rig import Rig, RigStyle
+
+    ids = fit_vertices(model)
+    rig = Rig(model, RigStyle.neutral(model.shape_dims), ids)
+    fitted = FlameFitter(model, None, ids).fit(rig.mesh(np.vstack([np.zeros(51), np.eye(51)]))).flame
+    return correspondence_matrix(fitted[1:], fitted[0])
+
+
 def evaluate(
-    data,
+    data: PairedData,
     mapper: Mapper,
     matrix: MatrixMapper,
     model: HeadModel,
@@ -133,20 +203,20 @@ def evaluate(
 ) -> Evaluation:
     """Evaluate matrix, ridge (fitted here, alpha on validation) and the EPM (``mapper``) on TEST subjects.
 
-    ``data`` is a ``PairedData``; ``mapper`` is used with its BDA replaced by identity / a fitted BDA
-    for the ablation; ``max_test_frames`` > 0 subsamples test frames evenly (for quick runs).
+    ``mapper``'s session is used with an identity BDA for the three mappers, then with identity and
+    with a BDA fitted on the training subjects for the ablation. ``max_test_frames`` > 0 subsamples the
+    test frames evenly (quick runs).
     """
     say = progress or (lambda _msg: None)
-    split = np.asarray(data.split).astype(str)
-    train, val, test = (split == "train"), (split == "val"), (split == "test")
+    train, val, test = (data.split_mask(k) for k in ("train", "val", "test"))
     if not test.any() or not train.any() or not val.any():
         raise ValueError("paired data needs train, val and test frames (split)")
+    if data.headset is None:
+        raise ValueError("paired data has no headset stream: the BDA ablation needs one")
     test_idx = np.flatnonzero(test)
     if max_test_frames and len(test_idx) > max_test_frames:
         test_idx = test_idx[np.linspace(0, len(test_idx) - 1, max_test_frames).astype(np.int64)]
-    bs = np.asarray(data.bs, np.float32)
-    flame = np.asarray(data.flame, np.float32)
-    subject = np.asarray(data.subject, np.int64)
+    bs, flame, subject = data.bs, data.flame, data.subject.astype(np.int64)
 
     say("fitting ridge (alpha on validation)")
     ridge = RidgeMapper.fit(bs[train], flame[train], bs[val], flame[val])
@@ -155,20 +225,21 @@ def evaluate(
     preds = {"matrix": matrix.predict(x_test), "ridge": ridge.predict(x_test), "epm": epm.map_batch(x_test)}
 
     say("fitting BDA on the training subjects' headset stream")
-    headset = to_arkit51("ovr63", np.asarray(data.headset, np.float32))
+    headset = to_arkit51("ovr63", data.headset)
     bda = BDA.fit(headset[train], bs[train], device="simulated-headset")
-    with_bda = Mapper(mapper.session, bda, mapper.source)
     preds["bda_without"] = epm.map_batch(headset[test_idx])
-    preds["bda_with"] = with_bda.map_batch(headset[test_idx])
+    preds["bda_with"] = Mapper(mapper.session, bda, mapper.source).map_batch(headset[test_idx])
 
     masks = face_regions(model)
-    errors = {k: _VertexErrors(model.num_vertices) for k in preds}
-    fast = FastVertices(model)
+    ids = np.flatnonzero(masks["face"])
+    local = {k: masks[k][ids] for k in ("face", *REGIONS)}
+    errors = {k: _VertexErrors(len(ids)) for k in preds}
+    fast = FastVertices(model, ids)
     subjects = sorted(int(s) for s in np.unique(subject[test_idx]))
     for s in subjects:
-        say(f"vertices of test subject {s}")
+        say(f"meshes of test subject {s}")
         rows = np.flatnonzero(subject[test_idx] == s)
-        subj = HeadSubject.create(model, data.subject_shape(s) if hasattr(data, "subject_shape") else None)
+        subj = HeadSubject.create(model, None if data.shape is None else data.shape[s])
         for i in range(0, len(rows), 256):
             chunk = rows[i:i + 256]
             true = fast(subj, *split_flame_values(flame[test_idx[chunk]]))
@@ -179,18 +250,20 @@ def evaluate(
     for k in METHODS:
         result.methods[k] = {
             "param_rmse": param_rmse(preds[k], flame[test_idx]),
-            "vertex_rmse_mm": errors[k].rmse_mm(masks["face"]),
-            "regions": {r: errors[k].rmse_mm(masks[r]) for r in REGIONS},
+            "vertex_rmse_mm": errors[k].rmse_mm(local["face"]),
+            "regions": {r: errors[k].rmse_mm(local[r]) for r in REGIONS},
         }
-        result.per_vertex_mm[k] = errors[k].per_vertex_mm()
+        per_vertex = np.zeros(model.num_vertices)
+        per_vertex[ids] = errors[k].per_vertex_mm()
+        result.per_vertex_mm[k] = per_vertex
     result.bda = {
-        "without": {"vertex_rmse_mm": errors["bda_without"].rmse_mm(masks["face"])},
-        "with": {"vertex_rmse_mm": errors["bda_with"].rmse_mm(masks["face"])},
+        "without": {"vertex_rmse_mm": errors["bda_without"].rmse_mm(local["face"])},
+        "with": {"vertex_rmse_mm": errors["bda_with"].rmse_mm(local["face"])},
     }
     result.extras = {
         "ridge_alpha": ridge.alpha,
         "test_frames": len(test_idx),
-        "face_vertices": int(masks["face"].sum()),
+        "face_vertices": len(ids),
         "bda_param_rmse": {"without": param_rmse(preds["bda_without"], flame[test_idx]),
                            "with": param_rmse(preds["bda_with"], flame[test_idx])},
     }

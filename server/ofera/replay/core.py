@@ -61,19 +61,27 @@ class ReplayStats:
     started: float | None = None
     finished: float | None = None
     passes: int = 0
+    last_seq_sent: int | None = None
+    last_seq_answered: int | None = None
+    scheduled: tuple[float, float] | None = None
+    """Due offsets (seconds after the start) of the first and last frame sent."""
 
     MAX_MESSAGES = 20
 
-    def on_sent(self, now: float, lateness: float) -> None:
+    def on_sent(self, now: float, lateness: float, seq: int | None = None) -> None:
         self.sent += 1
+        if seq is not None:
+            self.last_seq_sent = seq
         self.schedule_errors.append(lateness)
         if self.first_send is None:
             self.first_send = now
         self.last_send = now
 
-    def on_frame(self, now_us: int, t_us: int) -> None:
-        """A frame answering the `bs` sent at `t_us` arrived at `now_us` (same clock, microseconds)."""
+    def on_frame(self, now_us: int, t_us: int, seq: int | None = None) -> None:
+        """A frame answering `bs` number `seq`, sent at `t_us`, arrived at `now_us` (same clock, µs)."""
         self.received += 1
+        if seq is not None and (self.last_seq_answered is None or seq > self.last_seq_answered):
+            self.last_seq_answered = seq
         self.latencies.append(max(0, now_us - t_us) * 1e-6)
 
     def on_error(self, text: str, fatal: bool = False) -> None:
@@ -91,6 +99,11 @@ class ReplayStats:
         return self.last_send - self.first_send
 
     @property
+    def expected_duration(self) -> float | None:
+        """What `duration` would be on a perfect clock: from the first sent frame's due time to the last's."""
+        return None if self.scheduled is None else self.scheduled[1] - self.scheduled[0]
+
+    @property
     def wall(self) -> float:
         if self.started is None:
             return 0.0
@@ -106,9 +119,12 @@ class ReplayStats:
             "skipped": self.skipped,
             "answered": round(self.received / self.sent, 4) if self.sent else None,
             "duration_s": round(self.duration, 4),
+            "expected_duration_s": None if self.scheduled is None else round(self.expected_duration, 4),
             "wall_s": round(self.wall, 4),
             "latency_ms": percentiles_ms(self.latencies),
             "schedule_error_ms": percentiles_ms(self.schedule_errors),
+            "last_seq_sent": self.last_seq_sent,
+            "last_seq_answered": self.last_seq_answered,
         }
         out.update(extra)
         out["fatal_error"] = self.fatal_error
@@ -216,5 +232,6 @@ class Replayer:
                 continue
             t_us = round(now * 1e6)
             await send(p * n + i, t_us, self.log.weights[i])
-            stats.on_sent(now, lateness)
+            stats.on_sent(now, lateness, p * n + i)
+            stats.scheduled = (offset if stats.scheduled is None else stats.scheduled[0], offset)
         return stats

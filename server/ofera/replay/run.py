@@ -30,7 +30,7 @@ async def receive_loop(
     async for msg in link.events():
         if isinstance(msg, Frame):
             t = now_us()
-            stats.on_frame(t, msg.t)
+            stats.on_frame(t, msg.t, msg.seq)
             if on_frame is not None:
                 on_frame(msg, t)
         elif isinstance(msg, ErrorMessage):
@@ -64,25 +64,21 @@ async def replay_through(
         stats.finished = time.monotonic()
         return stats
 
-    last_seq = -1
-    max_answered = -1
     answered = asyncio.Event()
 
     def on_frame(frame: Frame, t: int) -> None:
         if recorder is not None:
             recorder.add(frame, t)
-        nonlocal max_answered
-        max_answered = max(max_answered, frame.seq)
         answered.set()
 
     def on_fatal() -> None:
         replayer.stop()
         answered.set()
 
-    async def send(seq: int, t_us: int, w) -> None:
-        nonlocal last_seq
-        await link.send(seq, t_us, w)
-        last_seq = seq
+    def last_answered() -> bool:
+        if stats.fatal_error is not None or stats.last_seq_sent is None:
+            return True
+        return stats.last_seq_answered is not None and stats.last_seq_answered >= stats.last_seq_sent
 
     async def ticker() -> None:
         while True:
@@ -93,11 +89,11 @@ async def replay_through(
     tick = asyncio.create_task(ticker()) if on_tick is not None else None
     try:
         try:
-            await replayer.run(send)
+            await replayer.run(link.send)
         except Exception as e:  # the connection broke while sending
             if stats.fatal_error is None:
                 stats.on_error(f"sending failed: {link.closed_reason or e}", fatal=True)
-        await _drain(lambda: max_answered >= last_seq or stats.fatal_error is not None, answered, drain_s)
+        await _drain(last_answered, answered, drain_s)
     finally:
         if tick is not None:
             tick.cancel()

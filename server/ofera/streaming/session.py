@@ -1,15 +1,6 @@
-"""One WebSocket session: handshake, then a *source* (its bs drive an avatar) and a *viewer* (it receives
-that avatar's frames). In v1 every client is both, for its own avatar; the roles are separate objects
-so that later one source can fan out to many viewers (rooms) without touching either.
-
-Backpressure, newest wins at both ends:
-- Source: at most one pending bs. A bs arriving while the previous one waits is replaced (counted as
-  skipped 'bs'); the pipeline runs in a thread pool, one frame at a time per source, so one session's
-  compute never blocks another's I/O.
-- Viewer: at most one unsent frame. A computed frame arriving while the previous one waits to be sent
-  replaces it (skipped 'frame'); sending awaits the socket draining (see server.py), so a slow client
-  only ever has its newest frame queued and never slows anyone else.
-"""
+"""One WebSocket session from hello to close: handshake (token, avatar, device profile, welcome, avatar
+chunks), then a Source and a Viewer (roles.py) for the client's own avatar, the receive loop (bs, ping,
+bye, errors), rate limiting, and fatal-error handling (error message, then close with its code)."""
 
 from __future__ import annotations
 
@@ -17,62 +8,22 @@ import asyncio
 import hmac
 import logging
 import secrets
-import threading
 import time
-from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Any
 
-import numpy as np
-from ofera_protocol import (
-    AvatarInfo,
-    Blendshapes,
-    Bye,
-    Frame,
-    FrameFormat,
-    Hello,
-    Ping,
-    ProtocolError,
-    ServerConnection,
-    encode_frame,
-    to_coords,
-)
+from ofera_protocol import AvatarInfo, Blendshapes, Bye, Hello, Ping, ProtocolError, ServerConnection
 from ofera_protocol import errors as E
 
 from .. import __version__
 from .config import Settings
 from .metrics import Metrics
-from .pipeline import AvatarAssets, Pipeline
+from .pipeline import AvatarAssets
 from .registry import AvatarRegistry
+from .roles import PendingBs, SessionFatal, Source, Viewer
 
 log = logging.getLogger("ofera.streaming")
-
-T = TypeVar("T")
-SendBytes = Callable[[bytes], Awaitable[None]]
-
-
-class LatestSlot(Generic[T]):
-    """Holds at most one item: `put` replaces what is there (returns True if it replaced something),
-    `get` waits for an item and takes it. Event-loop only."""
-
-    def __init__(self) -> None:
-        self._item: T | None = None
-        self._full = False
-        self._event = asyncio.Event()
-
-    def put(self, item: T) -> bool:
-        replaced = self._full
-        self._item, self._full = item, True
-        self._event.set()
-        return replaced
-
-    async def get(self) -> T:
-        while not self._full:
-            self._event.clear()
-            await self._event.wait()
-        item, self._item, self._full = self._item, None, False
-        return item  # type: ignore[return-value]
 
 
 class TokenBucket:
@@ -91,143 +42,6 @@ class TokenBucket:
             self.tokens -= 1.0
             return True
         return False
-
-
-@dataclass
-class PendingBs:
-    bs: Blendshapes
-    received_ns: int
-    decode_us: int
-
-
-@dataclass
-class ComputedFrame:
-    """One pipeline result, shared by every viewer of a source; encoded once per wire format."""
-
-    seq: int
-    t: int
-    state: Any  # GaussianState in FLAME space
-    timing: dict[str, int]
-    received_ns: int
-    _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
-    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
-
-    def encoded(self, key: tuple, make: Callable[[ComputedFrame], bytes]) -> tuple[bytes, bool]:
-        """Bytes for wire format `key` (made once, by whoever asks first); True if made by this call."""
-        with self._lock:
-            data = self._encoded.get(key)
-            if data is not None:
-                return data, False
-            data = self._encoded[key] = make(self)
-            return data, True
-
-
-class SessionFatal(Exception):
-    """Ends the session with a fatal protocol error."""
-
-    def __init__(self, err: ProtocolError) -> None:
-        super().__init__(str(err))
-        self.err = err
-
-
-class Source:
-    """Client role 1: its bs drive one avatar's pipeline (newest bs wins). Publishes ComputedFrames."""
-
-    def __init__(self, pipeline: Pipeline, executor: Executor, metrics: Metrics) -> None:
-        self.pipeline = pipeline
-        self.executor = executor
-        self.metrics = metrics
-        self.slot: LatestSlot[PendingBs] = LatestSlot()
-        self.subscribers: list[Callable[[ComputedFrame], None]] = []
-        self.skipped = 0
-        self.computed = 0
-
-    def offer(self, pending: PendingBs) -> None:
-        if self.slot.put(pending):
-            self.skipped += 1
-            self.metrics.skipped.labels("bs").inc()
-
-    def _compute(self, p: PendingBs) -> ComputedFrame:
-        start = time.monotonic_ns()
-        state, stages = self.pipeline.run(p.bs.w)
-        end = time.monotonic_ns()
-        # PROTOCOL.md section 9 names, plus the finer layout/bda split of `map`.
-        timing = {"decode": p.decode_us, "queue": (start - p.received_ns) // 1000, "layout": stages["layout"],
-                  "bda": stages["bda"], "map": stages["layout"] + stages["bda"], "epm": stages["epm"],
-                  "head": stages["head"], "deform": stages["deform"], "total": (end - p.received_ns) // 1000}
-        return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns)
-
-    async def run(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            pending = await self.slot.get()
-            try:
-                frame = await loop.run_in_executor(self.executor, self._compute, pending)
-            except Exception as exc:
-                log.exception("pipeline failed on bs %d", pending.bs.seq)
-                raise SessionFatal(ProtocolError(E.INTERNAL, f"the server failed computing bs {pending.bs.seq}: "
-                                                 f"{type(exc).__name__}; please report it", True)) from exc
-            self.computed += 1
-            self.metrics.frames_computed.inc()
-            self.metrics.observe_timings(frame.timing)
-            for deliver in self.subscribers:
-                deliver(frame)
-
-
-class Viewer:
-    """Client role 2: receives an avatar's frames in its own wire format (newest unsent frame wins)."""
-
-    def __init__(self, send: SendBytes, fmt: FrameFormat, coords: str, gather: np.ndarray | None,
-                 index: np.ndarray | None, key: tuple, executor: Executor, metrics: Metrics) -> None:
-        self.send = send
-        self.format = fmt
-        self.coords = coords
-        self.gather = gather  # ids (into the avatar) of the Gaussians a frame carries; None: all
-        self.index = index  # sparse: the frame's wire index; None: dense
-        self.key = key  # frames with equal keys have equal bytes (encoded once per key)
-        self.executor = executor
-        self.metrics = metrics
-        self.slot: LatestSlot[ComputedFrame] = LatestSlot()
-        self.sent = 0
-        self.skipped = 0
-
-    def offer(self, frame: ComputedFrame) -> None:
-        if self.slot.put(frame):
-            self.skipped += 1
-            self.metrics.skipped.labels("frame").inc()
-
-    def _make(self, frame: ComputedFrame) -> bytes:
-        s = frame.state
-        pos, rot, scale = s.position, s.rotation, s.scale
-        if self.gather is not None:
-            pos, rot, scale = pos[self.gather], rot[self.gather], scale[self.gather]
-        pos, rot = to_coords(pos, rot, self.coords)
-        msg = Frame(seq=frame.seq, t=frame.t, position=pos, rotation=rot, scale=scale, index=self.index,
-                    timing=frame.timing)
-        return encode_frame(msg, self.format)
-
-    def _encode(self, frame: ComputedFrame) -> bytes:
-        t0 = time.perf_counter_ns()
-        data, made = frame.encoded(self.key, self._make)
-        if made:
-            self.metrics.stage.labels("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
-        return data
-
-    async def run(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            frame = await self.slot.get()
-            try:
-                data = await loop.run_in_executor(self.executor, self._encode, frame)
-            except Exception as exc:
-                log.exception("encoding frame %d failed", frame.seq)
-                raise SessionFatal(ProtocolError(E.INTERNAL, f"the server failed encoding frame {frame.seq}: "
-                                                 f"{type(exc).__name__}", True)) from exc
-            await self.send(data)
-            self.sent += 1
-            self.metrics.frames_out.inc()
-            self.metrics.bytes_out.inc(len(data))
-            self.metrics.server_latency.observe((time.monotonic_ns() - frame.received_ns) * 1e-9)
 
 
 @dataclass

@@ -39,6 +39,7 @@ class ExperimentConfig:
     grid_frames: int = 4
 
 
+FULL = ExperimentConfig()
 QUICK = ExperimentConfig(size=64, cameras=3, train_frames=48, test_frames=16, iterations=500)
 
 

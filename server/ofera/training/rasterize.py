@@ -173,15 +173,16 @@ class Render:
 
 def _pairs(proj: Projected, opacities: torch.Tensor, width: int, height: int,
            support_alpha: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """(pixel id, Gaussian id) for every pixel centre where a Gaussian's alpha can reach ``support_alpha``
-    (the bounding box of the ellipse o exp(-d^T Sigma^-1 d / 2) >= support_alpha), sorted by pixel, then by
-    depth (near first) within a pixel. No gradients (integer bookkeeping)."""
+    """(pixel id, Gaussian id) for every pixel centre where a Gaussian's alpha reaches ``support_alpha``, sorted
+    by pixel, then by depth (near first) within a pixel. No gradients (integer bookkeeping): candidates are the
+    pixels in the bounding box of the ellipse o exp(-d^T Sigma^-1 d / 2) >= support_alpha, then tested."""
     dev = proj.means2d.device
     with torch.no_grad():
         order = torch.argsort(proj.depths)
         g = order[proj.radii[order] > 0]  # visible, near to far
         c2 = proj.means2d[g]
-        k2 = 2.0 * torch.log((opacities[g].clamp(0, ALPHA_MAX) / support_alpha).clamp_min(1.0))  # Mahalanobis^2
+        o = opacities[g].clamp(0, ALPHA_MAX)
+        k2 = 2.0 * torch.log((o / support_alpha).clamp_min(1.0))  # Mahalanobis^2 of the threshold
         ext = torch.sqrt(k2[:, None] * torch.stack([proj.cov2d[g, 0, 0], proj.cov2d[g, 1, 1]], -1))
         lo = torch.ceil(c2 - ext - 0.5).clamp_min(0).long()  # first pixel whose centre (i + .5) is inside
         hi = torch.floor(c2 + ext - 0.5).long()
@@ -189,16 +190,22 @@ def _pairs(proj: Projected, opacities: torch.Tensor, width: int, height: int,
         size = (hi - lo + 1).clamp_min(0)
         count = size[:, 0] * size[:, 1]
         keep = count > 0
-        g, lo, size, count = g[keep], lo[keep], size[keep], count[keep]
-        gid = torch.repeat_interleave(g, count)
-        first = torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
-        k = torch.arange(len(gid), device=dev) - first  # index inside the box
-        row = torch.repeat_interleave(size[:, 0], count)
-        px = torch.repeat_interleave(lo[:, 0], count) + k % row
-        py = torch.repeat_interleave(lo[:, 1], count) + k // row
-        pid = py * width + px
+        g, lo, size, count, c2, k2 = g[keep], lo[keep], size[keep], count[keep], c2[keep], k2[keep]
+        j = torch.repeat_interleave(torch.arange(len(g), device=dev), count)  # box of each candidate
+        box = torch.cat([lo.to(c2.dtype), size[:, :1].to(c2.dtype), (torch.cumsum(count, 0) - count)[:, None].to(
+            c2.dtype), c2, k2[:, None], proj.conics[g]], 1)[j]  # one gather: lo x y, row, first, centre, k2, conic
+        k = torch.arange(len(j), device=dev, dtype=c2.dtype) - box[:, 3]  # index inside the box
+        ky = torch.div(k, box[:, 2], rounding_mode="floor")
+        px = box[:, 0] + (k - ky * box[:, 2])
+        py = box[:, 1] + ky
+        dx = px + 0.5 - box[:, 4]
+        dy = py + 0.5 - box[:, 5]
+        maha = box[:, 7] * dx * dx + box[:, 9] * dy * dy + 2 * box[:, 8] * dx * dy
+        inside = maha <= box[:, 6] * (1 + 1e-6)  # alpha >= support_alpha (up to rounding)
+        pid = (py * width + px)[inside].to(torch.int32)
+        gid = g[j[inside]]
         pid, perm = torch.sort(pid, stable=True)  # stable: keeps near-to-far inside each pixel
-        return pid, gid[perm]
+        return pid.long(), gid[perm]
 
 
 def rasterize(
@@ -212,13 +219,14 @@ def rasterize(
     alpha_min: float = ALPHA_MIN,
     max_elements: int = 4_000_000,
     near: float = 0.01,
+    with_depth: bool = True,
 ) -> Render:
     """Render Gaussians (N rows; see the module docstring for conventions) into ``camera``'s image.
 
-    Work is one (pixel, Gaussian) pair per pixel centre in the box where the Gaussian's alpha can reach
-    ``alpha_min`` (so nothing is cut that 3DGS would draw); pairs are processed
-    in chunks of whole pixels of at most ``max_elements`` pairs (bounds memory). Transmittance is a segmented
-    cumulative sum of log(1 - alpha) per pixel, done in float64 so long pixel lists lose no precision.
+    Work is one (pixel, Gaussian) pair per pixel centre where the Gaussian's alpha reaches ``alpha_min`` (so
+    nothing is cut that 3DGS would draw); pairs are processed in chunks of whole pixels of at most
+    ``max_elements`` pairs (bounds memory). Transmittance is a segmented cumulative sum of log(1 - alpha) per
+    pixel, done in float64 so long pixel lists lose no precision. ``with_depth`` False skips the depth map.
     """
     dt, dev = means.dtype, means.device
     ch = colours.shape[1]
@@ -228,11 +236,14 @@ def rasterize(
         background, dtype=dt, device=dev).expand(ch)
     opac = opacities.reshape(-1)
     pid_all, gid_all = _pairs(proj, opac.detach(), w, h, alpha_min if alpha_min > 0 else SUPPORT_ALPHA)
-    image = torch.zeros(h * w, ch, dtype=dt, device=dev)
+    # One gather per pair for everything the pair needs (the backward pass is then one scatter).
+    feats = [proj.means2d, proj.conics, opac[:, None], colours]
+    if with_depth:
+        feats.append(proj.depths[:, None])
+    packed = torch.cat(feats, 1)  # (N, 6 + C [+ 1])
+    out = torch.zeros(h * w, packed.shape[1] - 6, dtype=dt, device=dev)  # colour [, depth] per pixel
     log_t_end = torch.zeros(h * w, dtype=torch.float64, device=dev)
-    depth = torch.zeros(h * w, dtype=dt, device=dev)
-    # Chunk boundaries at pixel changes so that no pixel's list is split.
-    bounds = [0]
+    bounds = [0]  # chunk boundaries at pixel changes: no pixel's list is split
     while bounds[-1] < len(pid_all):
         stop = min(bounds[-1] + max_elements, len(pid_all))
         if stop < len(pid_all):
@@ -243,29 +254,27 @@ def rasterize(
         bounds.append(stop)
     for s0, s1 in zip(bounds[:-1], bounds[1:]):
         pid, gid = pid_all[s0:s1], gid_all[s0:s1]
+        f = packed[gid]
+        mx, my, ca, cb, cc, o = f[:, :6].unbind(1)  # unbind: one backward op, not one per column
         px = (pid % w).to(dt) + 0.5
         py = torch.div(pid, w, rounding_mode="floor").to(dt) + 0.5
-        dx = px - proj.means2d[gid, 0]
-        dy = py - proj.means2d[gid, 1]
-        con = proj.conics[gid]
-        power = -0.5 * (con[:, 0] * dx * dx + con[:, 2] * dy * dy) - con[:, 1] * dx * dy
-        alpha = (opac[gid] * torch.exp(power.clamp_max(0.0))).clamp_max(ALPHA_MAX)
+        dx, dy = px - mx, py - my
+        power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+        alpha = (o * torch.exp(power.clamp_max(0.0))).clamp_max(ALPHA_MAX)
         if alpha_min > 0:
             alpha = torch.where(alpha < alpha_min, torch.zeros_like(alpha), alpha)
         log1m = torch.log1p(-alpha.double())
-        csum = torch.cumsum(log1m, 0)
-        excl = csum - log1m  # exclusive, global
+        excl = torch.cumsum(log1m, 0) - log1m  # exclusive, over the whole chunk
         with torch.no_grad():
             new_px = torch.ones_like(pid, dtype=torch.bool)
             new_px[1:] = pid[1:] != pid[:-1]
             seg_first = torch.cummax(torch.where(new_px, torch.arange(len(pid), device=dev), 0), 0).values
-        t_before = torch.exp(excl - excl[seg_first]).to(dt)
-        weight = alpha * t_before
-        image = image.index_add(0, pid, weight[:, None] * colours[gid])
-        depth = depth.index_add(0, pid, weight * proj.depths[gid])
+        weight = alpha * torch.exp(excl - excl[seg_first]).to(dt)  # alpha_i T_i
+        out = out.index_add(0, pid, weight[:, None] * f[:, 6:])
         log_t_end = log_t_end.index_add(0, pid, log1m)
     t_end = torch.exp(log_t_end).to(dt)
-    image = image + t_end[:, None] * bg
+    image = out[:, :ch] + t_end[:, None] * bg
+    depth = out[:, ch] if with_depth else torch.zeros(h * w, dtype=dt, device=dev)
     return Render(image.reshape(h, w, ch), (1.0 - t_end).reshape(h, w), depth.reshape(h, w))
 
 

@@ -118,7 +118,7 @@ class Trainer:
         for k in cams:
             cam = self.capture.cameras[k]
             r = rasterize(g["means"], g["quats"], g["scales"], g["opacities"], g["colours"], cam,
-                          background=c.background)
+                          background=c.background, with_depth=False)
             renders.append(r.image)
             targets.append(self.target(cam.name, frame))
         parts: dict[str, torch.Tensor] = {}

@@ -1,0 +1,31 @@
+"""Paired data: blendshapes paired with FLAME values (the EPM's training data).
+
+- :class:`PairedData` (``data``): the npz container, subject-disjoint train/val/test splits.
+- :func:`make_benchmark` (``benchmark``): the synthetic benchmark built on the procedural head: an
+  ARKit-style nonlinear rig per subject (``rig``), capture-like sequences (``sequences``), FLAME values
+  fitted to the rig's meshes as a tracker does (``fit``), camera-style estimates and a simulated
+  headset stream (``observe``).
+- :func:`vertices_from_flame`, :func:`region_masks` (``geometry``): meshes and face regions for evaluation.
+- importers (``importers``): a blendshape CSV aligned with metrical-tracker, VHAP/GaussianAvatars or
+  INSTA tracker outputs.
+"""
+
+from ofera.mapping.paired.benchmark import SOURCES, make_benchmark
+from ofera.mapping.paired.data import SPLITS, PairedData, PairedDataError, concat
+from ofera.mapping.paired.fit import FitResult, FlameFitter, fit_vertices
+from ofera.mapping.paired.geometry import REGIONS, region_masks, vertices_from_flame
+
+__all__ = [
+    "REGIONS",
+    "SOURCES",
+    "SPLITS",
+    "FitResult",
+    "FlameFitter",
+    "PairedData",
+    "PairedDataError",
+    "concat",
+    "fit_vertices",
+    "make_benchmark",
+    "region_masks",
+    "vertices_from_flame",
+]

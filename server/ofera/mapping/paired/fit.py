@@ -21,13 +21,14 @@ Everything is batched over frames with numpy: thousands of frames per second on 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
 
 from ofera.head.lbs import HeadSubject
 from ofera.head.model import HeadModel
-from ofera.head.rotations import axis_angle_to_matrix
+from ofera.head.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from ofera.mapping.flame_values import join_flame_values
 
 EYE_JOINTS = (3, 4)
@@ -109,6 +110,14 @@ def unpose_blend(y: np.ndarray, omega: np.ndarray, share: np.ndarray) -> np.ndar
     return pp * y + (1.0 - pp) * along * n - qq * _cross(n, y)
 
 
+def unpose_split(y: np.ndarray, omega: np.ndarray, rot: np.ndarray, share: np.ndarray, n_rigid: int) -> np.ndarray:
+    """:func:`unpose_blend` for vertices ordered rigid first (share 1: u = R^T y, a matrix product)."""
+    out = np.empty_like(y)
+    np.matmul(y[:, :n_rigid], rot, out=out[:, :n_rigid])  # rows: u^T = y^T R
+    out[:, n_rigid:] = unpose_blend(y[:, n_rigid:], omega, share[n_rigid:])
+    return out
+
+
 def pose_blend(u: np.ndarray, omega: np.ndarray, share: np.ndarray) -> np.ndarray:
     """((1 - a) I + a R) u, the forward twin of :func:`unpose_blend`."""
     axis, p, q = _axis_terms(omega, share)
@@ -121,12 +130,10 @@ class FlameFitter:
     """Fits FLAME values to points on ``vertex_ids`` of one subject (identity ``shape``) of ``head``."""
 
     def __init__(self, head: HeadModel, shape: np.ndarray | None = None, vertex_ids: np.ndarray | None = None,
-                 ridge: float = 1e-8, iterations: int = 4, n_expr: int = 50, search_vertices: int = 240,
-                 grid: tuple[float, ...] = (0.0, 0.15, 0.3, 0.45)) -> None:
-        """``ridge``: m^2 per unit coefficient^2 (1e-8 = (0.1 mm)^2); ``grid``: initial jaw openings (rad);
-        ``search_vertices``: how many jaw-moved vertices the jaw search unposes (the final solve uses all)."""
+                 ridge: float = 1e-8, iterations: int = 3, n_expr: int = 50, search_vertices: int = 120) -> None:
+        """``ridge``: m^2 per unit coefficient^2 (1e-8 = (0.1 mm)^2); ``iterations``: Gauss-Newton steps of
+        the jaw search; ``search_vertices``: how many jaw-moved vertices it unposes (the final solve uses all)."""
         ids = fit_vertices(head) if vertex_ids is None else np.asarray(vertex_ids, np.int64)
-        subject = HeadSubject.create(head, shape)
         w = head.weights[ids]
         eye_share = w[:, list(EYE_JOINTS)]
         rigid_eye = [eye_share[:, k] > 0.999 for k in range(2)]
@@ -135,52 +142,71 @@ class FlameFitter:
             raise ValueError("fit vertices must be either eyeball vertices or vertices that no eye joint moves")
         if rigid_eye[0].sum() < 3 or rigid_eye[1].sum() < 3:
             raise ValueError("fit vertices need at least 3 vertices on each eyeball")
-        self.vertex_ids, self.iterations, self.grid = ids, iterations, grid
+        self.head, self.vertex_ids, self.iterations = head, ids, iterations
         self._eye = [np.nonzero(m)[0] for m in rigid_eye]
-        self._eye_centre = subject.j_id[list(EYE_JOINTS)]
-        self._eye_rest = [subject.v_id[ids[m]] - c for m, c in zip(self._eye, self._eye_centre)]
         self._skin = np.nonzero(skin)[0]
         sk = ids[self._skin]
         ns = len(sk)
-        self._joint = subject.j_id[JAW_JOINT]
-        self._v_id = subject.v_id[sk]  # (ns, 3)
         share = w[self._skin, JAW_JOINT]
         posedirs = head.posedirs.reshape(-1, head.num_vertices, 3)[:, sk]  # (36, ns, 3)
         self._p_eye = posedirs[_EYE_ROWS].reshape(18, 3 * ns)
         self._p_jaw = posedirs[_JAW_ROWS].reshape(9, 3 * ns)
         e = head.exprdirs[sk][:, :, :n_expr].reshape(3 * ns, n_expr)
         self._e = e
-        u, s, vt = np.linalg.svd(e, full_matrices=False)
-        self._solve = (vt.T * (s / (s * s + ridge))) @ u.T  # (n_expr, 3 ns): ridge least squares
+        # Ridge least squares: (E^T E + ridge I)^-1 E^T.
+        self._solve = np.linalg.solve(e.T @ e + ridge * np.eye(e.shape[1]), e.T)  # (n_expr, 3 ns)
         self._jaw_share = share
 
         # The jaw search: jaw-moved vertices J (a subsample, unposed explicitly) and the others N (they
         # feel the jaw only through its pose correctives, so they enter through precomputed products).
-        moved = np.nonzero(share > 1e-9)[0]
-        self._moved = moved
-        if len(moved) > search_vertices:
-            moved = moved[np.linspace(0, len(moved) - 1, search_vertices).round().astype(np.int64)]
+        rigid, blended = np.nonzero(share >= 1.0 - 1e-12)[0], np.nonzero((share > 1e-9) & (share < 1.0 - 1e-12))[0]
+        self._moved, self._moved_rigid = np.concatenate([rigid, blended]), len(rigid)
+        if len(rigid) + len(blended) > search_vertices:  # an even subsample of each kind
+            k = round(search_vertices * len(rigid) / (len(rigid) + len(blended)))
+            rigid = rigid[np.linspace(0, len(rigid) - 1, k).round().astype(np.int64)] if k else rigid[:0]
+            blended = blended[np.linspace(0, len(blended) - 1, search_vertices - k).round().astype(np.int64)]
+        moved = np.concatenate([rigid, blended])
+        self._search_rigid = len(rigid)
         others = np.nonzero(share <= 1e-9)[0]
         cols = lambda idx: (3 * idx[:, None] + np.arange(3)).reshape(-1)  # noqa: E731
         self._jset, self._jcols, self._ncols = moved, cols(moved), cols(others)
         self._nset = others
         self._share = share[moved]
-        self._v_id_j = self._v_id[moved]
         self._p_jaw_j = self._p_jaw[:, self._jcols]
         p_n = self._p_jaw[:, self._ncols]
         search_rows = np.concatenate([self._jcols, self._ncols])
-        uq, sq, _ = np.linalg.svd(e[search_rows], full_matrices=False)
-        q = uq[:, : int(np.sum(sq > sq[0] * 1e-10))]  # orthonormal basis of the expression span (search rows)
+        es = e[search_rows]
+        lam, vec = np.linalg.eigh(es.T @ es)  # orthonormal basis of the expression span (search rows)
+        keep = lam > lam.max() * 1e-12
+        q = es @ (vec[:, keep] / np.sqrt(lam[keep]))
         self._q_j, self._q_n = q[: len(self._jcols)], q[len(self._jcols):]
         self._p_n = p_n
         self._g_n = p_n @ p_n.T  # (9, 9)
         self._pq_n = p_n @ self._q_n  # (9, rank)
+        self._set_identity(shape)
+
+    def _set_identity(self, shape: np.ndarray | None) -> None:
+        subject = HeadSubject.create(self.head, shape)
+        ids = self.vertex_ids
+        self.shape = None if shape is None else np.asarray(shape, np.float64)
+        self._eye_centre = subject.j_id[list(EYE_JOINTS)]
+        self._eye_rest = [subject.v_id[ids[m]] - c for m, c in zip(self._eye, self._eye_centre)]
+        self._joint = subject.j_id[JAW_JOINT]
+        self._v_id = subject.v_id[ids[self._skin]]  # (ns, 3)
+        self._v_id_j = self._v_id[self._jset]
+
+    def with_identity(self, shape: np.ndarray | None) -> FlameFitter:
+        """The same fitter for another subject (identity ``shape``), sharing every identity-free part."""
+        other = copy.copy(self)
+        other._set_identity(shape)
+        return other
 
     def _evaluate(self, omega: np.ndarray, target_j: np.ndarray, static_j: np.ndarray, c_n: dict):
         """Jaw search state at axis-angle omega (T, 3): x_J, pose feature, Q^T x, objective |(I - QQ^T) x|^2."""
         t = len(omega)
-        u = unpose_blend(target_j, omega, self._share)
-        feat = (axis_angle_to_matrix(omega) - np.eye(3)).reshape(t, 9)
+        rot = axis_angle_to_matrix(omega)
+        u = unpose_split(target_j, omega, rot, self._share, self._search_rigid)
+        feat = (rot - np.eye(3)).reshape(t, 9)
         x_j = (u - self._v_id_j).reshape(t, -1) - feat @ self._p_jaw_j - static_j
         qx = x_j @ self._q_j + c_n["qc"] - feat @ self._pq_n
         ss = np.sum(x_j * x_j, axis=1) + c_n["cc"] - 2 * np.sum(feat * c_n["pc"], axis=1) \
@@ -206,11 +232,14 @@ class FlameFitter:
         c_n = {"qc": c @ self._q_n, "cc": np.sum(c * c, axis=1), "pc": c @ self._p_n.T}
         args = (target_j, static_j, c_n)
 
-        omega = np.zeros((t, 3))  # initial jaw: the best of a coarse grid of openings about x
+        # Initial jaw: Kabsch on the vertices the jaw moves rigidly (expression biases it a little), or
+        # no rotation, whichever projects better; then Gauss-Newton.
+        omega = np.zeros((t, 3))
         state = self._evaluate(omega, *args)
-        for angle in self.grid[1:]:
-            cand = np.zeros((t, 3))
-            cand[:, 0] = angle
+        if self._moved_rigid >= 3:
+            rigid = self._moved[: self._moved_rigid]
+            rest = self._v_id[rigid] - self._v_id[rigid].mean(axis=0)
+            cand = matrix_to_axis_angle(_kabsch(rest, target[:, rigid] - target[:, rigid].mean(axis=1, keepdims=True)))
             new = self._evaluate(cand, *args)
             better = new[3] < state[3]
             omega[better] = cand[better]
@@ -247,14 +276,13 @@ class FlameFitter:
         feat = (jaw - np.eye(3)).reshape(t, 9)
         moved, share = self._moved, self._jaw_share[self._moved]
         u = target.copy()
-        u[:, moved] = unpose_blend(target[:, moved] - self._joint, omega, share) + self._joint
+        u[:, moved] = unpose_split(target[:, moved] - self._joint, omega, jaw, share, self._moved_rigid) + self._joint
         x = (u - self._v_id).reshape(t, -1) - feat @ self._p_jaw - static
         expr = x @ self._solve.T
         flame = join_flame_values(expr, jaw, eyes[0], eyes[1]).astype(np.float64)
-        # RMS distance over the fitted skin and eyeball vertices, in posed space.
-        posed = (expr @ self._e.T + feat @ self._p_jaw + static).reshape(t, -1, 3) + self._v_id
-        posed[:, moved] = pose_blend(posed[:, moved] - self._joint, omega, share) + self._joint
-        err = np.sum((posed - target) ** 2, axis=(1, 2))
+        # Fit residual over the fitted vertices: skin in the unposed frame (equal to the posed residual
+        # where the jaw moves vertices rigidly, within a few percent elsewhere), eyeballs posed.
+        err = np.sum((x - expr @ self._e.T) ** 2, axis=1)
         n = len(self._skin)
         for r, ids, rest, cen in zip(eyes, self._eye, self._eye_rest, self._eye_centre):
             err += np.sum((rest @ np.swapaxes(r, 1, 2) + cen - pts[:, ids]) ** 2, axis=(1, 2))

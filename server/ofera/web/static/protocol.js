@@ -1,0 +1,329 @@
+// The client side of the OFERA protocol v1 (PROTOCOL.md): message builders, server message checks,
+// and the Gaussian state a client keeps (avatar chunks, then dense or sparse frames in f32/f16/q13).
+import { decode, encode, MsgpackError } from "./msgpack.js";
+
+export const PROTOCOL = 1;
+export const ENDPOINT = "/v1/stream";
+export const ENCODINGS = ["f32", "f16", "q13"];
+/** Bytes per Gaussian of position, rotation, scale in each frame encoding (section 6). */
+export const FIELD_BYTES = { f32: [12, 16, 12], f16: [6, 8, 6], q13: [6, 4, 3] };
+export const SH_C0 = 0.28209479;
+
+export class ProtocolError extends Error {
+  constructor(code, message) {
+    super(`${code}: ${message}`);
+    this.code = code;
+    this.detail = message;
+  }
+}
+
+/** The client clock put in `bs.t` and `ping.t`: microseconds (integer, exact in a double). */
+export function nowUs() {
+  return Math.round((performance.timeOrigin + performance.now()) * 1000);
+}
+
+// ----- client -> server ------------------------------------------------------------------------------
+
+/** `hello` (keys in the order of section 4.1; options left undefined are omitted). */
+export function helloMessage({ layout = "arkit52", avatar, encoding, coords, sparse, device, token, maxGaussians } = {}) {
+  return encode({
+    type: "hello", protocol: PROTOCOL, layout, avatar, encoding, coords, sparse, device, token,
+    max_gaussians: maxGaussians,
+  });
+}
+
+/** `bs`: weights as float32 (a Float32Array or an array of numbers). */
+export function bsMessage(seq, t, weights) {
+  const w = weights instanceof Float32Array ? weights : Float32Array.from(weights);
+  return encode({ type: "bs", seq, t, w: new Uint8Array(w.buffer, w.byteOffset, w.byteLength) });
+}
+
+export function pingMessage(t) {
+  return encode({ type: "ping", t });
+}
+
+export function byeMessage() {
+  return encode({ type: "bye" });
+}
+
+// ----- server -> client ------------------------------------------------------------------------------
+
+function isInt(v) {
+  return (typeof v === "number" && Number.isInteger(v)) || typeof v === "bigint";
+}
+
+function field(msg, key, kind, optional = false) {
+  const v = msg[key];
+  if (v === undefined || v === null) {
+    if (optional) return undefined;
+    throw new ProtocolError("bad_field", `${msg.type}: missing field '${key}'`);
+  }
+  const ok = kind === "int" ? isInt(v) : kind === "bin" ? v instanceof Uint8Array
+    : kind === "map" ? typeof v === "object" && !Array.isArray(v) && !(v instanceof Uint8Array)
+      : typeof v === kind;
+  if (!ok) throw new ProtocolError("bad_field", `${msg.type}: field '${key}' is not a ${kind}`);
+  return kind === "int" && typeof v === "bigint" ? Number(v) : v;
+}
+
+function binLength(msg, key, bytes) {
+  const b = field(msg, key, "bin");
+  if (b.length !== bytes) {
+    throw new ProtocolError("bad_length", `${msg.type}: '${key}' has ${b.length} bytes, expected ${bytes}`);
+  }
+  return b;
+}
+
+// Typed views of a bin; copied when the bytes are not aligned for the element type.
+function view(Type, b) {
+  if (b.byteOffset % Type.BYTES_PER_ELEMENT === 0) return new Type(b.buffer, b.byteOffset, b.length / Type.BYTES_PER_ELEMENT);
+  return new Type(b.slice().buffer);
+}
+export const f32view = (b) => view(Float32Array, b);
+export const u16view = (b) => view(Uint16Array, b);
+export const u32view = (b) => view(Uint32Array, b);
+
+function checkFinite(a, what) {
+  for (let i = 0; i < a.length; i++) {
+    if (!Number.isFinite(a[i])) throw new ProtocolError("non_finite", `${what}: value ${i} is ${a[i]}`);
+  }
+}
+
+/**
+ * Decode one server message and check its fields (types, and for `avatar` the array lengths).
+ * Frame arrays are left as bins: `AvatarState.applyFrame` decodes them in the session's encoding.
+ */
+export function decodeServerMessage(bytes) {
+  let msg;
+  try {
+    msg = decode(bytes);
+  } catch (e) {
+    if (e instanceof MsgpackError) throw new ProtocolError("malformed", e.message);
+    throw e;
+  }
+  if (typeof msg !== "object" || msg === null || Array.isArray(msg) || msg instanceof Uint8Array) {
+    throw new ProtocolError("malformed", "a message is a msgpack map");
+  }
+  const type = msg.type;
+  if (typeof type !== "string") throw new ProtocolError("bad_field", "message without a string 'type'");
+  switch (type) {
+    case "welcome": {
+      field(msg, "protocol", "int");
+      field(msg, "session", "string");
+      const av = field(msg, "avatar", "map");
+      const avatar = { id: field(av, "id", "string"), count: field(av, "count", "int"), sh_degree: field(av, "sh_degree", "int") };
+      const out = {
+        type, protocol: msg.protocol, session: msg.session, avatar, layout: field(msg, "layout", "string"),
+        encoding: field(msg, "encoding", "string"), coords: field(msg, "coords", "string"),
+        sparse: field(msg, "sparse", "boolean", true) ?? false, server: field(msg, "server", "string", true),
+      };
+      if (!ENCODINGS.includes(out.encoding)) throw new ProtocolError("bad_field", `welcome: unknown encoding ${out.encoding}`);
+      if (out.encoding === "q13") {
+        const q = field(msg, "quant", "map");
+        out.quant = {
+          pos_min: f32view(binLength(q, "pos_min", 12)).slice(),
+          pos_max: f32view(binLength(q, "pos_max", 12)).slice(),
+          log_scale: f32view(binLength(q, "log_scale", 8)).slice(),
+        };
+      }
+      return out;
+    }
+    case "avatar": {
+      const n = field(msg, "n", "int");
+      const shDegree = field(msg, "sh_degree", "int");
+      const k = (shDegree + 1) * (shDegree + 1);
+      return {
+        type, count: field(msg, "count", "int"), sh_degree: shDegree, chunk: field(msg, "chunk", "int"),
+        chunks: field(msg, "chunks", "int"), offset: field(msg, "offset", "int"), n,
+        opacity: f32view(binLength(msg, "opacity", n * 4)), sh: f32view(binLength(msg, "sh", n * k * 12)),
+        position: f32view(binLength(msg, "position", n * 12)), rotation: f32view(binLength(msg, "rotation", n * 16)),
+        scale: f32view(binLength(msg, "scale", n * 12)),
+      };
+    }
+    case "frame":
+      return {
+        type, seq: field(msg, "seq", "int"), t: field(msg, "t", "int"), timing: field(msg, "timing", "map", true) ?? {},
+        n: field(msg, "n", "int"), index: field(msg, "index", "bin", true), position: field(msg, "position", "bin"),
+        rotation: field(msg, "rotation", "bin"), scale: field(msg, "scale", "bin"),
+      };
+    case "error":
+      return {
+        type, code: field(msg, "code", "string"), message: field(msg, "message", "string"),
+        fatal: field(msg, "fatal", "boolean"), seq: field(msg, "seq", "int", true),
+      };
+    case "pong":
+      return { type, t: field(msg, "t", "int") };
+    default:
+      throw new ProtocolError("unknown_type", `unknown message type '${type}'`);
+  }
+}
+
+// ----- frame encodings -------------------------------------------------------------------------------
+
+/** IEEE binary16 -> float32 for all 65536 bit patterns. */
+export const HALF_TO_FLOAT = (() => {
+  const t = new Float32Array(65536);
+  for (let h = 0; h < 65536; h++) {
+    const e = (h >> 10) & 31;
+    const m = h & 1023;
+    const v = e === 0 ? m * 2 ** -24 : e === 31 ? (m ? NaN : Infinity) : (1 + m / 1024) * 2 ** (e - 15);
+    t[h] = h & 0x8000 ? -v : v;
+  }
+  return t;
+})();
+
+function decodeF16(bin, out, what) {
+  const h = u16view(bin);
+  for (let i = 0; i < h.length; i++) { // check first: a refused frame leaves the state untouched
+    if ((h[i] & 0x7c00) === 0x7c00) throw new ProtocolError("non_finite", `${what}: value ${i} is ${HALF_TO_FLOAT[h[i]]}`);
+  }
+  for (let i = 0; i < h.length; i++) out[i] = HALF_TO_FLOAT[h[i]];
+}
+
+const SQRT1_2 = Math.SQRT1_2;
+
+/** q13 position, rotation, scale of `n` Gaussians into float32 arrays (section 6.3). */
+function decodeQ13(quant, n, pBin, rBin, sBin, pos, rot, scl) {
+  const q = u16view(pBin);
+  const lo = quant.pos_min;
+  const step = [0, 1, 2].map((a) => (quant.pos_max[a] - lo[a]) / 65535);
+  for (let i = 0; i < n; i++) {
+    for (let a = 0; a < 3; a++) pos[3 * i + a] = lo[a] + q[3 * i + a] * step[a];
+  }
+  const r = u32view(rBin);
+  for (let i = 0; i < n; i++) {
+    const v = r[i];
+    const drop = v >>> 30;
+    let s0 = (v >>> 20) & 1023, s1 = (v >>> 10) & 1023, s2 = v & 1023;
+    if (s0 >= 512) s0 -= 1024;
+    if (s1 >= 512) s1 -= 1024;
+    if (s2 >= 512) s2 -= 1024;
+    const c0 = Math.max(s0 / 511, -1) * SQRT1_2, c1 = Math.max(s1 / 511, -1) * SQRT1_2, c2 = Math.max(s2 / 511, -1) * SQRT1_2;
+    const d = Math.sqrt(Math.max(0, 1 - c0 * c0 - c1 * c1 - c2 * c2));
+    const o = 4 * i;
+    if (drop === 0) { rot[o] = d; rot[o + 1] = c0; rot[o + 2] = c1; rot[o + 3] = c2; }
+    else if (drop === 1) { rot[o] = c0; rot[o + 1] = d; rot[o + 2] = c1; rot[o + 3] = c2; }
+    else if (drop === 2) { rot[o] = c0; rot[o + 1] = c1; rot[o + 2] = d; rot[o + 3] = c2; }
+    else { rot[o] = c0; rot[o + 1] = c1; rot[o + 2] = c2; rot[o + 3] = d; }
+  }
+  const [lmin, lmax] = quant.log_scale;
+  const table = new Float32Array(256);
+  for (let k = 0; k < 256; k++) table[k] = Math.exp(lmin + (k * (lmax - lmin)) / 255);
+  for (let i = 0; i < 3 * n; i++) scl[i] = table[sBin[i]];
+}
+
+/**
+ * Decode a frame's position, rotation, scale (n Gaussians) from the session's encoding into float32
+ * arrays (n*3, n*4, n*3). Checks byte lengths and finiteness. Exported for tests.
+ */
+export function decodeFrameArrays(encoding, n, frame, quant, out) {
+  const [pb, rb, sb] = FIELD_BYTES[encoding] ?? [];
+  if (pb === undefined) throw new ProtocolError("bad_field", `unknown encoding ${encoding}`);
+  for (const [key, bytes] of [["position", pb], ["rotation", rb], ["scale", sb]]) {
+    if (frame[key].length !== n * bytes) {
+      throw new ProtocolError("bad_length", `frame: '${key}' has ${frame[key].length} bytes, ${n} Gaussians in ${encoding} need ${n * bytes}`);
+    }
+  }
+  const pos = out?.position ?? new Float32Array(n * 3);
+  const rot = out?.rotation ?? new Float32Array(n * 4);
+  const scl = out?.scale ?? new Float32Array(n * 3);
+  if (encoding === "f32") {
+    const src = [f32view(frame.position), f32view(frame.rotation), f32view(frame.scale)];
+    src.forEach((a, i) => checkFinite(a, `frame ${["position", "rotation", "scale"][i]}`));
+    pos.set(src[0]);
+    rot.set(src[1]);
+    scl.set(src[2]);
+  } else if (encoding === "f16") {
+    decodeF16(frame.position, pos, "frame position");
+    decodeF16(frame.rotation, rot, "frame rotation");
+    decodeF16(frame.scale, scl, "frame scale");
+  } else {
+    if (!quant) throw new ProtocolError("bad_field", "q13 frame without the welcome's quant");
+    decodeQ13(quant, n, frame.position, frame.rotation, frame.scale, pos, rot, scl);
+  }
+  return { position: pos, rotation: rot, scale: scl };
+}
+
+/** Gaussians of one session: static attributes from `avatar`, the newest values from frames. */
+export class AvatarState {
+  /** `capacity` >= count: arrays are that long (the renderer's textures are padded). */
+  constructor(welcome, capacity = welcome.avatar.count) {
+    this.welcome = welcome;
+    this.count = welcome.avatar.count;
+    this.shDegree = welcome.avatar.sh_degree;
+    this.encoding = welcome.encoding;
+    this.sparse = welcome.sparse;
+    this.quant = welcome.quant;
+    this.capacity = Math.max(capacity, this.count);
+    this.position = new Float32Array(this.capacity * 3);
+    this.rotation = new Float32Array(this.capacity * 4);
+    this.scale = new Float32Array(this.capacity * 3);
+    this.color = new Uint8Array(this.capacity * 4); // RGBA8: SH degree 0 colour, opacity
+    this.received = 0;
+    this.nextChunk = 0;
+    this.complete = false;
+    this.scratch = null;
+  }
+
+  /** Apply one `avatar` chunk (decoded); returns true when it was the last. */
+  applyChunk(c) {
+    if (c.count !== this.count || c.sh_degree !== this.shDegree) {
+      throw new ProtocolError("bad_field", `avatar chunk: count ${c.count}, sh_degree ${c.sh_degree} differ from welcome's ${this.count}, ${this.shDegree}`);
+    }
+    if (c.chunk !== this.nextChunk || c.offset !== this.received || c.offset + c.n > this.count || c.chunk >= c.chunks) {
+      throw new ProtocolError("bad_field", `avatar chunk ${c.chunk}/${c.chunks} at offset ${c.offset} out of order (expected chunk ${this.nextChunk} at ${this.received})`);
+    }
+    const o = c.offset, n = c.n, k3 = (this.shDegree + 1) * (this.shDegree + 1) * 3;
+    checkFinite(c.position, "avatar position");
+    checkFinite(c.rotation, "avatar rotation");
+    checkFinite(c.scale, "avatar scale");
+    this.position.set(c.position, o * 3);
+    this.rotation.set(c.rotation, o * 4);
+    this.scale.set(c.scale, o * 3);
+    const col = this.color;
+    for (let i = 0; i < n; i++) {
+      const a = c.opacity[i];
+      if (!(a >= 0 && a <= 1)) throw new ProtocolError("bad_field", `avatar opacity ${i} is ${a}, outside [0, 1]`);
+      const j = 4 * (o + i);
+      for (let ch = 0; ch < 3; ch++) col[j + ch] = Math.round(255 * Math.min(1, Math.max(0, SH_C0 * c.sh[i * k3 + ch] + 0.5)));
+      col[j + 3] = Math.round(255 * a);
+    }
+    this.received += n;
+    this.nextChunk += 1;
+    if (c.chunk === c.chunks - 1) {
+      if (this.received !== this.count) throw new ProtocolError("bad_field", `avatar: last chunk ends at ${this.received}, count is ${this.count}`);
+      this.complete = true;
+    }
+    return this.complete;
+  }
+
+  /** Apply a decoded `frame`: dense (all Gaussians) or sparse (those in `index`). */
+  applyFrame(f) {
+    if (!this.complete) throw new ProtocolError("not_ready", "frame before the whole avatar");
+    if (f.index !== undefined) {
+      if (!this.sparse) throw new ProtocolError("bad_field", "frame with 'index' in a non-sparse session");
+      if (f.index.length !== f.n * 4) throw new ProtocolError("bad_length", `frame: index has ${f.index.length} bytes for n = ${f.n}`);
+      const idx = u32view(f.index);
+      for (let k = 0; k < idx.length; k++) {
+        if (idx[k] >= this.count || (k > 0 && idx[k] <= idx[k - 1])) {
+          throw new ProtocolError("bad_field", "frame: index must be strictly ascending and below count");
+        }
+      }
+      const n = f.n;
+      if (!this.scratch || this.scratch.n < n) {
+        this.scratch = { n, position: new Float32Array(n * 3), rotation: new Float32Array(n * 4), scale: new Float32Array(n * 3) };
+      }
+      const s = decodeFrameArrays(this.encoding, n, f, this.quant, this.scratch);
+      const P = this.position, R = this.rotation, S = this.scale;
+      for (let k = 0; k < n; k++) {
+        const i = idx[k];
+        P[3 * i] = s.position[3 * k]; P[3 * i + 1] = s.position[3 * k + 1]; P[3 * i + 2] = s.position[3 * k + 2];
+        R[4 * i] = s.rotation[4 * k]; R[4 * i + 1] = s.rotation[4 * k + 1];
+        R[4 * i + 2] = s.rotation[4 * k + 2]; R[4 * i + 3] = s.rotation[4 * k + 3];
+        S[3 * i] = s.scale[3 * k]; S[3 * i + 1] = s.scale[3 * k + 1]; S[3 * i + 2] = s.scale[3 * k + 2];
+      }
+    } else {
+      if (f.n !== this.count) throw new ProtocolError("bad_length", `dense frame with n = ${f.n}, count is ${this.count}`);
+      decodeFrameArrays(this.encoding, f.n, f, this.quant, this);
+    }
+  }
+}

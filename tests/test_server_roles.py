@@ -1,0 +1,128 @@
+"""Source / viewer roles without a socket: newest-wins slots, and one computed frame fanned out to viewers
+(encoded once per wire format), as rooms will need."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from types import SimpleNamespace
+
+import numpy as np
+from ofera.streaming.metrics import Metrics
+from ofera.streaming.roles import LatestSlot, PendingBs, Source, Viewer
+from ofera_protocol import Blendshapes, FrameFormat, decode_server_message
+from test_server_support import run
+
+N = 5
+
+
+class FakePipeline:
+    """Stands in for Pipeline: position x = the first weight; blocks while `gate` is clear."""
+
+    def __init__(self) -> None:
+        self.gate = threading.Event()
+        self.gate.set()
+        self.seen: list[float] = []
+
+    def run(self, w):
+        self.gate.wait(10)
+        self.seen.append(float(w[0]))
+        pos = np.full((N, 3), w[0], np.float32)
+        rot = np.tile(np.float32([0, 0, 0, 1]), (N, 1))
+        return SimpleNamespace(position=pos, rotation=rot, scale=np.full((N, 3), 0.01, np.float32)), {"epm": 1}
+
+
+def pending(seq: int) -> PendingBs:
+    return PendingBs(Blendshapes(seq=seq, t=seq * 10, w=np.full(52, seq, np.float32)), 0, 0)
+
+
+def test_latest_slot_keeps_only_the_newest() -> None:
+    async def main() -> None:
+        slot: LatestSlot[int] = LatestSlot()
+        assert slot.put(1) is False and slot.put(2) is True
+        assert await slot.get() == 2
+        waiter = asyncio.create_task(slot.get())
+        await asyncio.sleep(0)
+        slot.put(3)
+        assert await asyncio.wait_for(waiter, 1) == 3
+
+    run(main())
+
+
+def test_source_computes_only_the_newest_and_fans_out_encoded_once() -> None:
+    metrics = Metrics()
+    fmt = FrameFormat("f32", N)
+
+    async def main() -> None:
+        with ThreadPoolExecutor(2) as pool:
+            pipeline = FakePipeline()
+            source = Source(pipeline, pool, metrics)
+            sent: dict[str, list[bytes]] = {"a": [], "b": []}
+
+            def sender(name: str):
+                async def send(data: bytes) -> None:
+                    sent[name].append(data)
+                return send
+
+            viewers = [Viewer(sender(n), fmt, "flame", None, None, ("f32", "flame", False, None), pool, metrics)
+                       for n in ("a", "b")]
+            for v in viewers:
+                source.subscribers.append(v.offer)
+            tasks = [asyncio.create_task(x.run()) for x in (source, *viewers)]
+
+            pipeline.gate.clear()  # the pipeline is busy with bs 0 while 1..9 arrive
+            source.offer(pending(0))
+            await asyncio.sleep(0.05)
+            for seq in range(1, 10):
+                source.offer(pending(seq))
+            pipeline.gate.set()
+            while not (sent["a"] and sent["b"] and decode_server_message(sent["a"][-1], fmt).seq == 9
+                       and decode_server_message(sent["b"][-1], fmt).seq == 9):
+                await asyncio.sleep(0.01)
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+            assert pipeline.seen == [0.0, 9.0]  # 1..8 were replaced before being computed
+            assert source.skipped == 8
+            for name in ("a", "b"):
+                frames = [decode_server_message(d, fmt) for d in sent[name]]
+                assert [f.seq for f in frames] == [0, 9] and frames[-1].t == 90
+                np.testing.assert_array_equal(frames[-1].position, np.full((N, 3), 9, np.float32))
+            assert sent["a"][-1] is sent["b"][-1]  # one encoding shared by both viewers
+
+    run(main())
+
+
+def test_viewer_keeps_only_the_newest_unsent_frame() -> None:
+    metrics = Metrics()
+    fmt = FrameFormat("f32", N)
+
+    async def main() -> None:
+        with ThreadPoolExecutor(1) as pool:
+            release = asyncio.Event()
+            got: list[int] = []
+
+            async def slow_send(data: bytes) -> None:
+                await release.wait()
+                got.append(decode_server_message(data, fmt).seq)
+
+            pipeline = FakePipeline()
+            source = Source(pipeline, pool, metrics)
+            viewer = Viewer(slow_send, fmt, "flame", None, None, ("k",), pool, metrics)
+            source.subscribers.append(viewer.offer)
+            tasks = [asyncio.create_task(source.run()), asyncio.create_task(viewer.run())]
+            for seq in range(6):  # each computed while frame 0 is stuck in the socket
+                source.offer(pending(seq))
+                while source.computed <= seq:
+                    await asyncio.sleep(0.005)
+            release.set()
+            while not got or got[-1] != 5:
+                await asyncio.sleep(0.01)
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            assert got == [0, 5] and viewer.skipped == 4
+
+    run(main())

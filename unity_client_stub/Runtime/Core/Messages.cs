@@ -1,0 +1,194 @@
+// Message types of protocol v1. Large arrays live in reusable containers (AvatarData, FrameData)
+// that decoders fill in place. UnityEngine-free, C# 7.2.
+using System;
+
+namespace Ofera.Client
+{
+    public enum ServerMessageKind { None, Welcome, Avatar, Frame, Error, Pong }
+    public enum ClientMessageKind { None, Hello, Blendshapes, Ping, Bye }
+
+    /// <summary>Client -> server `hello`. Null fields are omitted on the wire (the server's defaults apply).</summary>
+    public sealed class Hello
+    {
+        public int Protocol = Ofera.Client.Protocol.Version;
+        public string Layout = "ovr63";
+        public string Avatar;          // null: omitted ("default")
+        public string Encoding;        // null: omitted ("f32")
+        public string Coords;          // null: omitted ("flame")
+        public bool? Sparse;
+        public string Device;
+        public string Token;
+        public long? MaxGaussians;
+    }
+
+    /// <summary>Client -> server `bs` (as decoded by a server; a client encodes from its own arrays).</summary>
+    public sealed class Blendshapes
+    {
+        public long Seq;
+        public long T;
+        public float[] W = new float[0];
+        public int Count;
+    }
+
+    /// <summary>Session format announced by `welcome`: what a receiver needs to decode frames.</summary>
+    public sealed class FrameFormat
+    {
+        public FrameEncoding Encoding;
+        public int Count;
+        public bool Sparse;
+        public Quant Quant; // only for q13
+
+        public FrameFormat() { }
+        public FrameFormat(FrameEncoding encoding, int count, bool sparse, Quant quant)
+        {
+            Encoding = encoding; Count = count; Sparse = sparse; Quant = quant;
+        }
+    }
+
+    public sealed class Welcome
+    {
+        public int Protocol;
+        public string Session;
+        public string AvatarId;
+        public int Count;
+        public int ShDegree;
+        public string Layout;
+        public string Encoding;
+        public string Coords;
+        public bool Sparse;
+        public Quant Quant;     // null unless encoding q13
+        public string Server;   // optional
+
+        public FrameFormat ToFormat()
+        {
+            FrameEncoding e;
+            Ofera.Client.Protocol.TryParseEncoding(Encoding, out e);
+            return new FrameFormat(e, Count, Sparse, e == FrameEncoding.Q13 ? Quant : null);
+        }
+    }
+
+    /// <summary>Header of one `avatar` chunk; its arrays are copied into an <see cref="AvatarData"/>.</summary>
+    public struct AvatarChunkHeader
+    {
+        public int Count, ShDegree, Chunk, Chunks, Offset, N;
+    }
+
+    /// <summary>The whole static avatar (session coordinates): N Gaussians, float32, row-major.</summary>
+    public sealed class AvatarData
+    {
+        public readonly int Count;
+        public readonly int ShDegree;
+        /// <summary>Coefficients per colour channel, (deg+1)^2.</summary>
+        public readonly int K;
+        public readonly float[] Opacity;   // N
+        public readonly float[] Sh;        // N x K x 3
+        public readonly float[] Position;  // N x 3
+        public readonly float[] Rotation;  // N x 4 (x, y, z, w)
+        public readonly float[] Scale;     // N x 3
+
+        public AvatarData(int count, int shDegree)
+        {
+            if (count < 0) throw new ArgumentOutOfRangeException("count");
+            if (shDegree < 0 || shDegree > Ofera.Client.Protocol.MaxShDegree) throw new ArgumentOutOfRangeException("shDegree");
+            Count = count;
+            ShDegree = shDegree;
+            K = Ofera.Client.Protocol.ShCoefficients(shDegree);
+            Opacity = new float[count];
+            Sh = new float[(long)count * K * 3];
+            Position = new float[3L * count];
+            Rotation = new float[4L * count];
+            Scale = new float[3L * count];
+        }
+    }
+
+    /// <summary>
+    /// One decoded `frame`, in a reusable container: arrays grow to the largest n seen and are reused.
+    /// Sparse frames carry <see cref="Index"/> (HasIndex); dense frames carry every Gaussian in order.
+    /// </summary>
+    public sealed class FrameData
+    {
+        public long Seq;
+        public long T;
+        public int N;
+        public bool HasIndex;
+        public uint[] Index = new uint[0];
+        public float[] Position = new float[0]; // N x 3
+        public float[] Rotation = new float[0]; // N x 4
+        public float[] Scale = new float[0];    // N x 3
+
+        public int TimingCount;
+        public readonly string[] TimingNames = new string[Ofera.Client.Protocol.MaxTimingStages];
+        public readonly long[] TimingValues = new long[Ofera.Client.Protocol.MaxTimingStages];
+
+        /// <summary>Client clock (µs) when the message was received; set by the client, not the codec.</summary>
+        public long ReceivedAt;
+        /// <summary>Session number (increments per connection) the frame belongs to; set by the client.</summary>
+        public int SessionNumber;
+
+        public int Capacity { get { return Index.Length; } }
+
+        public void EnsureCapacity(int n)
+        {
+            if (n <= Index.Length) return;
+            Index = new uint[n];
+            Position = new float[3L * n];
+            Rotation = new float[4L * n];
+            Scale = new float[3L * n];
+        }
+
+        /// <summary>Value of a timing stage, or -1 if absent.</summary>
+        public long Timing(string stage)
+        {
+            for (int i = 0; i < TimingCount; i++) if (TimingNames[i] == stage) return TimingValues[i];
+            return -1;
+        }
+
+        public void CopyFrom(FrameData o)
+        {
+            Seq = o.Seq; T = o.T; N = o.N; HasIndex = o.HasIndex;
+            EnsureCapacity(o.N);
+            if (o.HasIndex) Array.Copy(o.Index, Index, o.N);
+            Array.Copy(o.Position, Position, 3 * o.N);
+            Array.Copy(o.Rotation, Rotation, 4 * o.N);
+            Array.Copy(o.Scale, Scale, 3 * o.N);
+            TimingCount = o.TimingCount;
+            Array.Copy(o.TimingNames, TimingNames, o.TimingCount);
+            Array.Copy(o.TimingValues, TimingValues, o.TimingCount);
+            ReceivedAt = o.ReceivedAt;
+            SessionNumber = o.SessionNumber;
+        }
+    }
+
+    public sealed class ErrorMessage
+    {
+        public string Code;
+        public string Message;
+        public bool Fatal;
+        public long? Seq;
+
+        public override string ToString()
+        {
+            return Code + (Fatal ? " (fatal)" : "") + ": " + Message + (Seq.HasValue ? " [seq " + Seq.Value + "]" : "");
+        }
+    }
+
+    /// <summary>Holder of the latest decoded server message of each kind (reused; no per-message allocation for frames).</summary>
+    public sealed class ServerMessage
+    {
+        public ServerMessageKind Kind;
+        public Welcome Welcome;
+        public AvatarChunkHeader Avatar;
+        public FrameData Frame;
+        public ErrorMessage Error;
+        public long PongT;
+    }
+
+    /// <summary>Holder of a decoded client message (used by tests and by any C# server).</summary>
+    public sealed class ClientMessage
+    {
+        public ClientMessageKind Kind;
+        public Hello Hello;
+        public Blendshapes Blendshapes = new Blendshapes();
+        public long PingT;
+    }
+}
