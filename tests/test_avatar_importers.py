@@ -69,13 +69,18 @@ def flame_like_model(rng, n_expr=100) -> dict:
     }
 
 
-@pytest.fixture(scope="module")
+_FLAME: dict = {}
+
+
+@pytest.fixture(scope="session")
 def flame(tmp_path_factory):
-    """(path, raw dict) of a FLAME-format pickle with a mouth."""
-    raw = flame_like_model(np.random.default_rng(0))
-    path = tmp_path_factory.mktemp("flame") / "generic_model.pkl"
-    path.write_bytes(pickle.dumps(raw, protocol=2))
-    return path, raw
+    """(path, raw dict) of a FLAME-format pickle with a mouth (written once per run)."""
+    if "path" not in _FLAME:
+        raw = flame_like_model(np.random.default_rng(0))
+        path = tmp_path_factory.mktemp("flame") / "generic_model.pkl"
+        path.write_bytes(pickle.dumps(raw, protocol=2))
+        _FLAME.update(path=path, raw=raw)
+    return _FLAME["path"], _FLAME["raw"]
 
 
 def write_gaussianavatars(folder, rng, n=4000, faces=10144):

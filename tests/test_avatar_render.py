@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import pickle
 
 import numpy as np
 import pytest
@@ -12,7 +11,7 @@ from ofera.avatar.state import GaussianState
 from ofera.cli.main import app
 from plyfile import PlyData
 from test_avatar_formats import default_avatar  # noqa: F401  (session fixture)
-from test_avatar_importers import flame_like_model, write_fate_checkpoint, write_gaussianavatars
+from test_avatar_importers import flame, write_fate_checkpoint, write_gaussianavatars  # noqa: F401
 from typer.testing import CliRunner
 
 
@@ -106,18 +105,17 @@ def test_cli_errors_are_one_line(runner, tmp_path):
         assert res.exit_code == 2 and res.output.startswith("error: ") and res.output.count("\n") == 1, res.output
 
 
-def test_cli_import_both_formats(runner, tmp_path):
+def test_cli_import_both_formats(runner, tmp_path, flame):  # noqa: F811
     rng = np.random.default_rng(1)
-    raw = flame_like_model(rng)
-    (tmp_path / "flame.pkl").write_bytes(pickle.dumps(raw, protocol=2))
+    flame_path, raw = flame
     write_gaussianavatars(tmp_path / "ga", rng, n=300)
     res = runner.invoke(app, ["avatar", "import", "gaussianavatars", str(tmp_path / "ga"), "--head",
-                              str(tmp_path / "flame.pkl"), "-o", str(tmp_path / "ga.npz")])
+                              str(flame_path), "-o", str(tmp_path / "ga.npz")])
     assert res.exit_code == 0, res.output
     assert "5143 vertices, 10144 faces" in res.output
     write_fate_checkpoint(tmp_path / "f.pth", raw, rng, n=200)
     res = runner.invoke(app, ["avatar", "import", "fate", str(tmp_path / "f.pth"), "--head",
-                              str(tmp_path / "flame.pkl"), "-o", str(tmp_path / "f.npz")])
+                              str(flame_path), "-o", str(tmp_path / "f.npz")])
     assert res.exit_code == 0, res.output
     res = runner.invoke(app, ["avatar", "info", str(tmp_path / "f.npz"), "--json"])
     assert json.loads(res.stdout)["binding"] == "barycentric" and json.loads(res.stdout)["count"] == 200

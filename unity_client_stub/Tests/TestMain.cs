@@ -644,6 +644,28 @@ namespace Ofera.Client.Tests
                     Check(wrong == 0 && unmatched == 0 && mx == mirrored, "server->GPU permutation recovered" + (mirrored ? " (x-mirrored asset)" : ""), wrong + " wrong, " + unmatched + " unmatched, mirror " + mx);
                 }
             });
+            Run("gpu writer", delegate
+            {
+                AvatarData a = new AvatarData(3, 0);
+                for (int i = 0; i < 9; i++) { a.Position[i] = i * 0.01f; a.Scale[i] = 0.001f * (i + 1); }
+                for (int g = 0; g < 3; g++) { a.Rotation[4 * g + 3] = 1f; }
+                a.Rotation[4] = 0.6f; a.Rotation[7] = 0.8f; // Gaussian 1: (0.6, 0, 0, 0.8)
+                GaussianState st = new GaussianState(a);
+                int[] map = { 2, 0, 1 };
+                float[] pos = new float[9]; uint[] other = new uint[12];
+                int lo, hi;
+                UgsPacking.WriteGpu(st, 0, 2, map, false, pos, other, out lo, out hi);
+                float[] q = new float[4];
+                UgsPacking.UnpackRotation(other[0], q, 0); // GPU 0 holds server Gaussian 1
+                bool ok = lo == 0 && hi == 2 && pos[0] == a.Position[3] && pos[6] == a.Position[0] && BitCast.UIntToFloat(other[4 * 2 + 1]) == a.Scale[0] &&
+                          Math.Abs(Math.Abs(q[0]) - 0.6) < 3e-3 && Math.Abs(Math.Abs(q[3]) - 0.8) < 3e-3;
+                float[] sh = new float[2 * UgsPacking.ShFloat32Stride];
+                for (int i = 0; i < sh.Length; i++) sh[i] = 1f;
+                UgsPacking.MirrorXShFloat32(sh, 2);
+                // sh1 (index 1) unchanged, sh3 and sh4 negated, sh15 negated, padding unchanged
+                ok &= sh[0] == 1f && sh[6] == -1f && sh[9] == -1f && sh[42] == -1f && sh[45] == 1f && sh[48 + 6] == -1f;
+                Check(ok, "GPU writer: server state -> GPU order through the permutation; SH mirror in the Float32 layout");
+            });
             Run("facelog", delegate { FaceLogTests(python); });
             Run("coords", delegate
             {
@@ -999,8 +1021,10 @@ namespace Ofera.Client.Tests
                     ClientMessageEncoder.Bs(r.W, 1, OferaClock.NowMicros(), w, 51);
                     r.Send(r.W);
                     kind = NextNonPong(r);
-                    Check(kind == ServerMessageKind.Error && r.Msg.Error.Code == "bad_length" && !r.Msg.Error.Fatal && r.Msg.Error.Seq == 1,
+                    // `seq` is optional in an error ("when known"); if present it must be the offending bs's
+                    Check(kind == ServerMessageKind.Error && r.Msg.Error.Code == "bad_length" && !r.Msg.Error.Fatal && (!r.Msg.Error.Seq.HasValue || r.Msg.Error.Seq == 1),
                           "live " + enc + ": bs of the wrong length -> non-fatal bad_length", kind == ServerMessageKind.Error ? r.Msg.Error.ToString() : kind.ToString());
+                    if (kind == ServerMessageKind.Error && !r.Msg.Error.Seq.HasValue) Console.WriteLine("  note: the server's error carries no seq");
                     r.Conn.EncodeBs(2, OferaClock.NowMicros(), w, r.W);
                     r.Send(r.W);
                     kind = NextNonPong(r);

@@ -4,6 +4,7 @@ Location: ``$OFERA_CACHE`` or ``~/.cache/ofera/``, file ``avatar-default-<key>.n
 generator's version and the source of everything that shapes it (the procedural head and avatar modules,
 the binding maths), so a code change makes a new file. A missing or unreadable file is regenerated; files
 are written atomically (temporary file, then rename), so concurrent processes never see a partial one.
+Writing a new file removes the files of earlier versions.
 """
 
 from __future__ import annotations
@@ -28,10 +29,10 @@ def cache_dir() -> Path:
 def default_avatar_key() -> str:
     """16 hex digits over the generator version, the file format version and the generating sources."""
     from ..head import procedural as head_procedural
-    from . import binding, frames, procedural
+    from . import binding, frames, procedural, sh
 
     h = hashlib.sha256(f"gen{procedural.GENERATOR_VERSION}/fmt{FORMAT_VERSION}/seed{procedural.SEED}".encode())
-    for module in (head_procedural, procedural, binding, frames):
+    for module in (head_procedural, procedural, binding, frames, sh):
         h.update(Path(module.__file__).read_bytes())
     return h.hexdigest()[:16]
 
@@ -54,6 +55,10 @@ def _cached(path: Path) -> GaussianAvatar:
         save_avatar(avatar, path)
     except OSError as exc:  # a read-only cache is not fatal
         print(f"warning: cannot cache the default avatar at {path}: {exc}", file=sys.stderr)
+        return avatar
+    for old in path.parent.glob("avatar-default-*.npz"):  # files of earlier generator versions
+        if old != path:
+            old.unlink(missing_ok=True)
     return avatar
 
 

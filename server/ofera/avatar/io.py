@@ -111,6 +111,7 @@ def save_avatar(avatar: GaussianAvatar, path: str | Path) -> Path:
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **avatar_arrays(avatar))
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

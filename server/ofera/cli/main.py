@@ -8,6 +8,7 @@ from . import avatar
 from . import head, replay
 from . import mapping as mapping_cmd
 from . import serve as serve_cmd
+from .train import mia_app
 
 app = typer.Typer(help="OFERA server: blendshape-driven Gaussian head avatars.", no_args_is_help=True,
                   pretty_exceptions_enable=False)
@@ -19,6 +20,7 @@ app.add_typer(mapping_cmd.mapping_app, name="mapping")
 app.command("serve")(serve_cmd.serve)
 app.command("replay")(replay.replay)
 app.add_typer(replay.ingest_app, name="ingest")
+app.add_typer(mia_app, name="mia")
 
 
 def main() -> None:

@@ -166,7 +166,7 @@ def register(avatar_app: typer.Typer) -> None:
 @mia_app.command("experiment")
 @user_errors()
 def experiment(
-    quick: Annotated[bool, typer.Option("--quick", help="Small and short (64 px, 3 cameras, 500 steps).")] = False,
+    quick: Annotated[bool, typer.Option("--quick", help="Small and short (64 px, 3 cameras, 700 steps).")] = False,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the results as JSON here.")] = None,
     grid: Annotated[Path | None, typer.Option("--grid", help="Write a PNG grid GT / without / with MiA here.")]
     = None,

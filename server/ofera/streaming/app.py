@@ -14,7 +14,7 @@ from fastapi.responses import JSONResponse, Response
 from ofera_protocol import COORDS, ENCODINGS, ENDPOINT, LAYOUTS, PROTOCOL_VERSION
 from starlette.websockets import WebSocketDisconnect
 
-from .. import __version__
+from .. import __version__, web
 from .config import Settings
 from .metrics import CONTENT_TYPE, Metrics
 from .registry import registry_for
@@ -107,4 +107,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                              "encodings": list(ENCODINGS), "coords": list(COORDS),
                              "auth": settings.token is not None})
 
+    app.include_router(web.router)  # the browser preview: / and /static/
     return app

@@ -37,10 +37,11 @@ class ExperimentConfig:
     background: float = 1.0
     correct_basis: bool = True
     grid_frames: int = 4
+    views_per_step: int = 1
 
 
 FULL = ExperimentConfig()
-QUICK = ExperimentConfig(size=64, cameras=3, train_frames=48, test_frames=16, iterations=500)
+QUICK = ExperimentConfig(size=64, cameras=3, train_frames=48, test_frames=16, iterations=700)
 
 
 # ----- the mapper --------------------------------------------------------------------------------------------
@@ -175,7 +176,7 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
 
     start = degraded_copy(scene.gt_avatar, seed=cfg.seed + 1, correct_basis=cfg.correct_basis)
     tcfg = TrainConfig(iterations=cfg.iterations, seed=cfg.seed, background=cfg.background,
-                       correct_basis=cfg.correct_basis, checkpoint_every=0)
+                       correct_basis=cfg.correct_basis, checkpoint_every=0, views_per_step=cfg.views_per_step)
     if train_overrides:
         tcfg = replace(tcfg, **train_overrides)
     results: dict = {"psnr": {}, "ssim": {}, "psnr_moving": {}}

@@ -69,7 +69,7 @@ def sample_blendshapes(n: int, rng: np.random.Generator) -> np.ndarray:
     return np.clip(w, 0.0, 1.0).astype(np.float32)
 
 
-def capture_cameras(n: int = 3, size: int = 64, distance: float = 0.45, fov_deg: float = 30.0) -> list[Camera]:
+def capture_cameras(n: int = 3, size: int = 64, distance: float = 0.45, fov_deg: float = 26.0) -> list[Camera]:
     """``n`` cameras around the face (front, left, right, then from below), looking at the face's centre."""
     target = np.array([0.0, -0.005, 0.03])
     views = [(0.0, 0.0), (-35.0, 5.0), (35.0, 5.0), (0.0, -20.0), (-20.0, -15.0), (20.0, 15.0)]

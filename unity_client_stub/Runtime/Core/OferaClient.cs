@@ -302,7 +302,7 @@ namespace Ofera.Client
                 {
                     await RunSessionAsync(stop, end).ConfigureAwait(false);
                 }
-                catch (OperationCanceledException) { end.Reason = "cancelled"; }
+                catch (OperationCanceledException) { end.Reason = stop.IsCancellationRequested ? "stopped" : "connection lost or timed out"; }
                 catch (Exception e) { end.Reason = e.GetType().Name + ": " + e.Message; }
                 if (stop.IsCancellationRequested || _byeRequested) break;
                 if (end.Permanent) { SetStatus(ClientStatus.Failed, "giving up: " + end.Reason); return; }

@@ -147,6 +147,25 @@ namespace Ofera.Client
             }
         }
 
+        /// <summary>Floats per splat in UnityGaussianSplatting's Float32 SH data: sh1..sh15 (float3 each) and a float3 of padding.</summary>
+        public const int ShFloat32Stride = 48;
+
+        /// <summary>
+        /// Mirrors x in UnityGaussianSplatting's Float32 SH data (GPU order): negates the coefficients whose
+        /// basis is odd in x (3DGS order 3, 4, 7, 10, 13, 15; the DC term 0 lives in the colour texture).
+        /// </summary>
+        public static void MirrorXShFloat32(float[] sh, int splats)
+        {
+            for (int i = 0; i < splats; i++)
+            {
+                for (int j = 0; j < Coords.ShOddInX.Length; j++)
+                {
+                    int o = i * ShFloat32Stride + (Coords.ShOddInX[j] - 1) * 3;
+                    sh[o] = -sh[o]; sh[o + 1] = -sh[o + 1]; sh[o + 2] = -sh[o + 2];
+                }
+            }
+        }
+
         /// <summary>
         /// Writes Gaussians [from, to] of <paramref name="state"/> (server order) into GPU-order arrays:
         /// pos (3 floats per splat, Float32 position format) and other (4 uints per splat: packed rotation

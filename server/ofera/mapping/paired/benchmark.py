@@ -92,7 +92,7 @@ def _rich_progress() -> tuple[Progress, Callable[[], None]]:
 
 def make_subject(head: HeadModel, basis: RigBasis, fitter: FlameFitter, seed: int, subject: int,
                  source: Source, frames: int, fps: float, estimator: dict, device: HeadsetDevice,
-                 chunk: int = 500) -> dict[str, np.ndarray]:
+                 chunk: int = 200) -> dict[str, np.ndarray]:
     """One subject's frames: rig weights, FLAME fit, camera bs, headset stream, identity."""
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence([seed, subject]).spawn(4)]
     style = RigStyle.random(rngs[0], head.shape_dims)

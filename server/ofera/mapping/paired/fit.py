@@ -9,14 +9,14 @@ identity, as in the FLAME values), find per frame expr (50), jaw and eye rotatio
    with jaw share a moves by M = (1 - a) I + a R about the jaw joint, and M^-1 has a closed form (M acts
    on the plane normal to R's axis as the complex number (1 - a) + a e^{i theta}). Unposing the targets
    gives x(R) = E psi + residual; eliminating psi by projection leaves a 3-parameter problem per frame,
-   solved by Gauss-Newton (finite differences, Levenberg damping) from the best of a coarse grid of jaw
-   openings. Vertices without jaw share enter only through the jaw's pose correctives, which are
+   solved by Gauss-Newton (finite differences, Levenberg damping) from a Kabsch estimate on the
+   vertices the jaw moves rigidly. Vertices without jaw share enter only through the jaw's pose correctives, which are
    linear in (R - I): their part of the normal equations comes from precomputed 9x9 / 9x50 products.
 3. expr: ridge least squares on the unposed targets, (E^T E + ridge I)^-1 E^T x(R).
 
 Joints are held at the subject's neutral joints (exact for the procedural head, whose expression basis
 does not move joints; FLAME's expression moves them by well under a millimetre).
-Everything is batched over frames with numpy: thousands of frames per second on one core.
+Everything is batched over frames with numpy.
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ def fit_vertices(head: HeadModel, stride: int = 2, eye_stride: int = 5) -> np.nd
     """Default vertex set for fitting (and for the rig): the face, denser at lids and lips, plus eyeballs.
 
     Skin vertices on the front of the face that no eye joint moves, every ``stride``-th of them but
-    every one near the eyes and lips; every ``eye_stride``-th eyeball vertex.
+    every one near the eyes and lips; every ``eye_stride``-th eyeball vertex. Any vertex set works with
+    :class:`FlameFitter`; this one also comes in its working order (faster).
     """
     v = head.v_template
     x, y, z = v.T
@@ -59,9 +60,13 @@ def fit_vertices(head: HeadModel, stride: int = 2, eye_stride: int = 5) -> np.nd
             dense |= np.linalg.norm(v - lm[key], axis=1) < 0.022
         dense |= np.linalg.norm((v - lm["mouth_centre"]) / [1.6, 1.0, 1.0], axis=1) < 0.02
     idx = np.arange(len(v))
-    keep = face & (dense | (idx % stride == 0))
+    keep = np.nonzero(face & (dense | (idx % stride == 0)))[0]
     eyes = [np.nonzero(head.weights[:, j] > 0.999)[0][::eye_stride] for j in EYE_JOINTS]
-    return np.concatenate([np.nonzero(keep)[0], *eyes])
+    # In the fitter's working order (skin the jaw does not move, moved rigidly, blended; eyeballs), so
+    # that it takes views instead of copies.
+    share = head.weights[keep, JAW_JOINT]
+    kind = np.where(share <= 1e-9, 0, np.where(share >= 1.0 - 1e-12, 1, 2))
+    return np.concatenate([keep[np.argsort(kind, kind="stable")], *eyes])
 
 
 @dataclass(frozen=True)
@@ -127,7 +132,11 @@ def pose_blend(u: np.ndarray, omega: np.ndarray, share: np.ndarray) -> np.ndarra
 
 
 class FlameFitter:
-    """Fits FLAME values to points on ``vertex_ids`` of one subject (identity ``shape``) of ``head``."""
+    """Fits FLAME values to points on ``vertex_ids`` of one subject (identity ``shape``) of ``head``.
+
+    ``fit(points (T, n, 3)) -> FitResult``; ``with_identity(shape)`` gives the fitter of another subject
+    sharing all identity-free precomputation. Fit frames in chunks of a few hundred (cache-friendly).
+    """
 
     def __init__(self, head: HeadModel, shape: np.ndarray | None = None, vertex_ids: np.ndarray | None = None,
                  ridge: float = 1e-8, iterations: int = 3, n_expr: int = 50, search_vertices: int = 120) -> None:
@@ -144,42 +153,51 @@ class FlameFitter:
             raise ValueError("fit vertices need at least 3 vertices on each eyeball")
         self.head, self.vertex_ids, self.iterations = head, ids, iterations
         self._eye = [np.nonzero(m)[0] for m in rigid_eye]
-        self._skin = np.nonzero(skin)[0]
+        # Working order of the skin points: not moved by the jaw (N), moved rigidly (share 1), blended.
+        share = w[:, JAW_JOINT]
+        kind = np.where(share <= 1e-9, 0, np.where(share >= 1.0 - 1e-12, 1, 2))
+        skin_idx = np.nonzero(skin)[0]
+        self._skin = skin_idx[np.argsort(kind[skin_idx], kind="stable")]  # positions in vertex_ids
+        self._skin_view = slice(0, len(skin_idx)) if np.array_equal(self._skin, np.arange(len(skin_idx))) else None
+        counts = np.bincount(kind[skin_idx], minlength=3)
+        n_n, n_r = int(counts[0]), int(counts[1])
+        ns = len(skin_idx)
+        self._n = slice(0, n_n)  # within the skin points
+        self._m = slice(n_n, ns)
+        self._m_rigid = n_r
         sk = ids[self._skin]
-        ns = len(sk)
-        share = w[self._skin, JAW_JOINT]
+        share = share[self._skin]
+        self._share_m = share[self._m]
         posedirs = head.posedirs.reshape(-1, head.num_vertices, 3)[:, sk]  # (36, ns, 3)
-        self._p_eye = posedirs[_EYE_ROWS].reshape(18, 3 * ns)
+        p_eye = posedirs[_EYE_ROWS].reshape(18, 3 * ns)
+        self._p_eye = p_eye if np.any(p_eye) else None
         self._p_jaw = posedirs[_JAW_ROWS].reshape(9, 3 * ns)
         e = head.exprdirs[sk][:, :, :n_expr].reshape(3 * ns, n_expr)
         self._e = e
-        # Ridge least squares: (E^T E + ridge I)^-1 E^T.
-        self._solve = np.linalg.solve(e.T @ e + ridge * np.eye(e.shape[1]), e.T)  # (n_expr, 3 ns)
-        self._jaw_share = share
+        self._gram = e.T @ e
+        self._solve = np.linalg.solve(self._gram + ridge * np.eye(n_expr), e.T)  # (n_expr, 3 ns) ridge LS
+        cn, cm = slice(0, 3 * n_n), slice(3 * n_n, 3 * ns)
+        self._cn, self._cm = cn, cm
 
-        # The jaw search: jaw-moved vertices J (a subsample, unposed explicitly) and the others N (they
-        # feel the jaw only through its pose correctives, so they enter through precomputed products).
-        rigid, blended = np.nonzero(share >= 1.0 - 1e-12)[0], np.nonzero((share > 1e-9) & (share < 1.0 - 1e-12))[0]
-        self._moved, self._moved_rigid = np.concatenate([rigid, blended]), len(rigid)
-        if len(rigid) + len(blended) > search_vertices:  # an even subsample of each kind
-            k = round(search_vertices * len(rigid) / (len(rigid) + len(blended)))
-            rigid = rigid[np.linspace(0, len(rigid) - 1, k).round().astype(np.int64)] if k else rigid[:0]
+        # The jaw search: a subsample J of the jaw-moved points (unposed explicitly, rigid ones first) and
+        # the points N that feel the jaw only through its pose correctives (precomputed products).
+        rigid, blended = np.arange(n_r), np.arange(n_r, ns - n_n)
+        if ns - n_n > search_vertices:
+            k = round(search_vertices * n_r / (ns - n_n))
+            rigid = rigid[np.linspace(0, n_r - 1, k).round().astype(np.int64)] if k else rigid[:0]
             blended = blended[np.linspace(0, len(blended) - 1, search_vertices - k).round().astype(np.int64)]
-        moved = np.concatenate([rigid, blended])
-        self._search_rigid = len(rigid)
-        others = np.nonzero(share <= 1e-9)[0]
-        cols = lambda idx: (3 * idx[:, None] + np.arange(3)).reshape(-1)  # noqa: E731
-        self._jset, self._jcols, self._ncols = moved, cols(moved), cols(others)
-        self._nset = others
-        self._share = share[moved]
-        self._p_jaw_j = self._p_jaw[:, self._jcols]
-        p_n = self._p_jaw[:, self._ncols]
-        search_rows = np.concatenate([self._jcols, self._ncols])
-        es = e[search_rows]
-        lam, vec = np.linalg.eigh(es.T @ es)  # orthonormal basis of the expression span (search rows)
+        self._j = np.concatenate([rigid, blended])  # within the moved points
+        self._j_rigid = len(rigid)
+        jcols = (3 * (n_n + self._j)[:, None] + np.arange(3)).reshape(-1)  # within the skin coordinates
+        self._jcols = jcols
+        self._share_j = self._share_m[self._j]
+        self._p_jaw_j = self._p_jaw[:, jcols]
+        p_n = self._p_jaw[:, cn]
+        es = np.concatenate([e[jcols], e[cn]])
+        lam, vec = np.linalg.eigh(es.T @ es)  # orthonormal basis of the expression span on the search rows
         keep = lam > lam.max() * 1e-12
         q = es @ (vec[:, keep] / np.sqrt(lam[keep]))
-        self._q_j, self._q_n = q[: len(self._jcols)], q[len(self._jcols):]
+        self._q_j, self._q_n = q[: len(jcols)], q[len(jcols):]
         self._p_n = p_n
         self._g_n = p_n @ p_n.T  # (9, 9)
         self._pq_n = p_n @ self._q_n  # (9, rank)
@@ -192,8 +210,10 @@ class FlameFitter:
         self._eye_centre = subject.j_id[list(EYE_JOINTS)]
         self._eye_rest = [subject.v_id[ids[m]] - c for m, c in zip(self._eye, self._eye_centre)]
         self._joint = subject.j_id[JAW_JOINT]
-        self._v_id = subject.v_id[ids[self._skin]]  # (ns, 3)
-        self._v_id_j = self._v_id[self._jset]
+        self._v_id = subject.v_id[ids[self._skin]]  # (ns, 3) in working order
+        # Rest-space offsets of the moved points from the jaw joint (unposing is about the joint).
+        self._rel_m = self._v_id[self._m] - self._joint
+        self._rel_j = self._rel_m[self._j].reshape(-1)
 
     def with_identity(self, shape: np.ndarray | None) -> FlameFitter:
         """The same fitter for another subject (identity ``shape``), sharing every identity-free part."""
@@ -201,17 +221,20 @@ class FlameFitter:
         other._set_identity(shape)
         return other
 
-    def _evaluate(self, omega: np.ndarray, target_j: np.ndarray, static_j: np.ndarray, c_n: dict):
+    def _evaluate(self, omega: np.ndarray, y_j: np.ndarray, static_j, c_n: dict):
         """Jaw search state at axis-angle omega (T, 3): x_J, pose feature, Q^T x, objective |(I - QQ^T) x|^2."""
         t = len(omega)
         rot = axis_angle_to_matrix(omega)
-        u = unpose_split(target_j, omega, rot, self._share, self._search_rigid)
         feat = (rot - np.eye(3)).reshape(t, 9)
-        x_j = (u - self._v_id_j).reshape(t, -1) - feat @ self._p_jaw_j - static_j
+        x_j = unpose_split(y_j, omega, rot, self._share_j, self._j_rigid).reshape(t, -1)
+        x_j -= self._rel_j
+        x_j -= feat @ self._p_jaw_j
+        if static_j is not None:
+            x_j -= static_j
         qx = x_j @ self._q_j + c_n["qc"] - feat @ self._pq_n
-        ss = np.sum(x_j * x_j, axis=1) + c_n["cc"] - 2 * np.sum(feat * c_n["pc"], axis=1) \
-            + np.sum((feat @ self._g_n) * feat, axis=1)
-        return x_j, feat, qx, ss - np.sum(qx * qx, axis=1)
+        ss = np.einsum("ij,ij->i", x_j, x_j) + c_n["cc"] - 2 * np.einsum("ij,ij->i", feat, c_n["pc"]) \
+            + np.einsum("ij,ij->i", feat @ self._g_n, feat)
+        return x_j, feat, qx, ss - np.einsum("ij,ij->i", qx, qx)
 
     def fit(self, points: np.ndarray) -> FitResult:
         """points (T, n, 3) on ``vertex_ids`` (or (n, 3)) -> :class:`FitResult`."""
@@ -222,31 +245,30 @@ class FlameFitter:
             raise ValueError(f"points must be (T, {len(self.vertex_ids)}, 3) on the fitter's vertices, got {pts.shape}")
         t = len(pts)
         eyes = [_kabsch(rest, pts[:, ids] - c) for rest, ids, c in zip(self._eye_rest, self._eye, self._eye_centre)]
-        feat_eye = np.concatenate([(r - np.eye(3)).reshape(t, 9) for r in eyes], axis=1)
-        static = feat_eye @ self._p_eye  # (T, 3 ns) eye pose correctives, known now
-        target = pts[:, self._skin]
-        # Unposing is about the jaw joint: shift once, add the joint back in the rest-space offsets.
-        target_j = target[:, self._jset] - self._joint
-        static_j = static[:, self._jcols] - np.tile(self._joint, len(self._jset))
-        c = (target[:, self._nset] - self._v_id[self._nset]).reshape(t, -1) - static[:, self._ncols]
-        c_n = {"qc": c @ self._q_n, "cc": np.sum(c * c, axis=1), "pc": c @ self._p_n.T}
-        args = (target_j, static_j, c_n)
+        static = None  # eye pose correctives on the skin (none on the procedural head)
+        if self._p_eye is not None:
+            static = np.concatenate([(r - np.eye(3)).reshape(t, 9) for r in eyes], axis=1) @ self._p_eye
+        target = pts[:, self._skin_view] if self._skin_view is not None else pts[:, self._skin]
+        y_m = target[:, self._m] - self._joint  # moved points relative to the jaw joint
+        y_j = y_m[:, self._j]
+        c = (target[:, self._n] - self._v_id[self._n]).reshape(t, -1)
+        if static is not None:
+            c -= static[:, self._cn]
+        c_n = {"qc": c @ self._q_n, "cc": np.einsum("ij,ij->i", c, c), "pc": c @ self._p_n.T}
+        args = (y_j, None if static is None else static[:, self._cm][:, self._jcols - self._cm.start], c_n)
 
-        # Initial jaw: Kabsch on the vertices the jaw moves rigidly (expression biases it a little), or
-        # no rotation, whichever projects better; then Gauss-Newton.
+        # Initial jaw: Kabsch on the points the jaw moves rigidly (expression biases it a little), or no
+        # rotation, whichever projects better; then Gauss-Newton with Levenberg damping.
         omega = np.zeros((t, 3))
         state = self._evaluate(omega, *args)
-        if self._moved_rigid >= 3:
-            rigid = self._moved[: self._moved_rigid]
-            rest = self._v_id[rigid] - self._v_id[rigid].mean(axis=0)
-            cand = matrix_to_axis_angle(_kabsch(rest, target[:, rigid] - target[:, rigid].mean(axis=1, keepdims=True)))
-            new = self._evaluate(cand, *args)
-            better = new[3] < state[3]
-            omega[better] = cand[better]
-            state = tuple(np.where(better[:, None], a, b) if a.ndim == 2 else np.where(better, a, b)
-                          for a, b in zip(new, state))
+        if self._m_rigid >= 3:
+            rest = self._rel_m[: self._m_rigid]
+            moved = y_m[:, : self._m_rigid]
+            rot0 = _kabsch(rest - rest.mean(axis=0), moved - moved.mean(axis=1, keepdims=True))
+            cand = matrix_to_axis_angle(rot0)
+            state, omega = self._accept(self._evaluate(cand, *args), state, cand, omega)
         h = 1e-6
-        for _ in range(self.iterations):  # Gauss-Newton on the projected residual, Levenberg damping
+        for _ in range(self.iterations):
             x_j, feat, qx, obj = state
             d_x, d_f = [], []
             for k in range(3):
@@ -261,30 +283,38 @@ class FlameFitter:
             dfg = df @ self._g_n
             jtj = dx @ np.swapaxes(dx, 1, 2) + dfg @ np.swapaxes(df, 1, 2) - qd @ np.swapaxes(qd, 1, 2)
             # D^T x with D_N = -dF P_N and x_N = c - F P_N: -dF P_N c + dF G F.
-            dtx = (dx @ x_j[:, :, None])[..., 0] - (df @ c_n["pc"][:, :, None])[..., 0] + (dfg @ feat[:, :, None])[..., 0]
+            dtx = (dx @ x_j[:, :, None])[..., 0] - (df @ c_n["pc"][:, :, None])[..., 0] \
+                + (dfg @ feat[:, :, None])[..., 0]
             jtr = dtx - (qd @ qx[:, :, None])[..., 0]
             damp = (1e-12 + 1e-3 * np.trace(jtj, axis1=1, axis2=2) / 3)[:, None, None] * np.eye(3)
             cand = omega - np.linalg.solve(jtj + damp, jtr[..., None])[..., 0]
-            new = self._evaluate(cand, *args)
-            ok = new[3] <= obj
-            omega[ok] = cand[ok]
-            state = tuple(np.where(ok[:, None], a, b) if a.ndim == 2 else np.where(ok, a, b)
-                          for a, b in zip(new, state))
+            state, omega = self._accept(self._evaluate(cand, *args), state, cand, omega)
 
-        # Final: unpose every skin vertex with the fitted jaw (only jaw-moved ones need it), ridge solve.
+        # Final: unpose every moved point with the fitted jaw, ridge least squares for expr.
         jaw = axis_angle_to_matrix(omega)
         feat = (jaw - np.eye(3)).reshape(t, 9)
-        moved, share = self._moved, self._jaw_share[self._moved]
-        u = target.copy()
-        u[:, moved] = unpose_split(target[:, moved] - self._joint, omega, jaw, share, self._moved_rigid) + self._joint
-        x = (u - self._v_id).reshape(t, -1) - feat @ self._p_jaw - static
+        x = np.empty((t, self._e.shape[0]))
+        x[:, self._cn] = c - feat @ self._p_n
+        u_m = unpose_split(y_m, omega, jaw, self._share_m, self._m_rigid)
+        u_m -= self._rel_m
+        x[:, self._cm] = u_m.reshape(t, -1) - feat @ self._p_jaw[:, self._cm]
+        if static is not None:
+            x[:, self._cm] -= static[:, self._cm]
         expr = x @ self._solve.T
         flame = join_flame_values(expr, jaw, eyes[0], eyes[1]).astype(np.float64)
-        # Fit residual over the fitted vertices: skin in the unposed frame (equal to the posed residual
-        # where the jaw moves vertices rigidly, within a few percent elsewhere), eyeballs posed.
-        err = np.sum((x - expr @ self._e.T) ** 2, axis=1)
+        # Fit residual: skin in the unposed frame (equal to the posed residual where the jaw moves points
+        # rigidly, within a few percent elsewhere), eyeballs posed.
+        err = np.einsum("ij,ij->i", x, x) - 2 * np.einsum("ij,ij->i", expr, x @ self._e) \
+            + np.einsum("ij,ij->i", expr @ self._gram, expr)
         n = len(self._skin)
         for r, ids, rest, cen in zip(eyes, self._eye, self._eye_rest, self._eye_centre):
             err += np.sum((rest @ np.swapaxes(r, 1, 2) + cen - pts[:, ids]) ** 2, axis=(1, 2))
             n += len(ids)
-        return FitResult(flame=flame, rms=np.sqrt(err / n), jaw_axis_angle=omega)
+        return FitResult(flame=flame, rms=np.sqrt(np.maximum(err, 0.0) / n), jaw_axis_angle=omega)
+
+    @staticmethod
+    def _accept(new: tuple, state: tuple, cand: np.ndarray, omega: np.ndarray) -> tuple[tuple, np.ndarray]:
+        """Per frame, keep the candidate where it does not increase the objective."""
+        ok = new[3] <= state[3]
+        merged = tuple(np.where(ok[:, None], a, b) if a.ndim == 2 else np.where(ok, a, b) for a, b in zip(new, state))
+        return merged, np.where(ok[:, None], cand, omega)

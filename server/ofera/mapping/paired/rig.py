@@ -63,6 +63,13 @@ def saturate(x: np.ndarray, k: float = 1.6) -> np.ndarray:
     return np.tanh(k * np.clip(x, 0.0, None)) / np.tanh(k)
 
 
+def _index(ids: np.ndarray) -> np.ndarray | slice:
+    """A slice where the indices are one contiguous run (a view instead of a copy), else the indices."""
+    if len(ids) and ids[-1] - ids[0] == len(ids) - 1 and np.all(np.diff(ids) == 1):
+        return slice(int(ids[0]), int(ids[-1]) + 1)
+    return ids
+
+
 def _rotate_x(p: np.ndarray, centre: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """Rotate points p (T, m, 3) about the x axis through centre (3,) by angle (T, m) radians."""
     c, s = np.cos(angle), np.sin(angle)
@@ -331,27 +338,30 @@ class Rig:
         self.rest = subject.v_id[ids]  # (n, 3) identity-shaped template
         b = basis.take(ids)
         n = len(ids)
-        self._lin = b.linear.reshape(N_SHAPES, 3 * n)
-        self._quad = (b.quadratic * style.arc[:, None, None]).reshape(N_SHAPES, 3 * n)
-        self._corr = (b.corrective * style.corrective[:, None, None]).reshape(len(CORRECTIVES), 3 * n)
+        self._fields = np.concatenate([  # linear, quadratic (arc) and corrective fields, one matrix
+            b.linear.reshape(N_SHAPES, 3 * n),
+            (b.quadratic * style.arc[:, None, None]).reshape(N_SHAPES, 3 * n),
+            (b.corrective * style.corrective[:, None, None]).reshape(len(CORRECTIVES), 3 * n),
+        ])
         self._corr_pairs = np.array([[IDX[a], IDX[c]] for a, c in CORRECTIVES])
         self._close_gain = style.jaw_open / 0.36  # the mouthClose corrective closes this subject's gap
         shift = subject.v_id - head.v_template  # identity moves the rotation centres with the face
         self._eye_centre = subject.j_id[3:5]
         # Sparse subsets: only vertices that a rotation moves are touched.
-        self._lids = [(np.nonzero(b.upper_lid[k] > 1e-4)[0], np.nonzero(b.lower_lid[k] > 1e-4)[0]) for k in range(2)]
+        self._lids = [(np.nonzero(b.upper_lid[k] > 2e-3)[0], np.nonzero(b.lower_lid[k] > 2e-3)[0]) for k in range(2)]
         self._upper_share = [b.upper_lid[k, i] for k, (i, _) in enumerate(self._lids)]
         self._lower_share = [b.lower_lid[k, j] for k, (_, j) in enumerate(self._lids)]
-        self._roll = [np.nonzero(b.roll[k] > 1e-4)[0] for k in range(2)]
+        self._roll = [np.nonzero(b.roll[k] > 2e-3)[0] for k in range(2)]
         self._roll_share = [b.roll[k, i] for k, i in enumerate(self._roll)]
         lip_shift = [shift[int(np.argmin(np.sum((head.v_template - a) ** 2, axis=1)))] for a in b.roll_axis]
         self._roll_axis = b.roll_axis + np.array(lip_shift)
-        self._jaw_ids = np.nonzero(b.jaw > 1e-6)[0]
-        self._jaw_share = b.jaw[self._jaw_ids]
+        jaw_ids = np.nonzero(b.jaw > 1e-6)[0]
+        self._jaw_share = b.jaw[jaw_ids]
+        self._jaw_ids = _index(jaw_ids)
         landmark = head.landmarks["jaw_pivot"]
         near = int(np.argmin(np.sum((head.v_template - landmark) ** 2, axis=1)))
         self._pivot = landmark + shift[near] + style.pivot_offset
-        self._eyeballs = [np.nonzero(b.eyeball[k])[0] for k in range(2)]
+        self._eyeballs = [_index(np.nonzero(b.eyeball[k])[0]) for k in range(2)]
 
     # --- the parts of the rig --------------------------------------------------------------------
 
@@ -411,8 +421,8 @@ class Rig:
         # mouthClose acts only while the jaw is open (lips together), at most as far as the jaw opened.
         products[:, ci] = np.minimum(e[:, IDX["mouthClose"]], e[:, IDX["jawOpen"]]) \
             * _smoothstep(e[:, IDX["jawOpen"]] / 0.15) * self._close_gain
-        disp = e @ self._lin + (e**2) @ self._quad + products @ self._corr
-        p = self.rest[None] + disp.reshape(t, n, 3)
+        p = (np.concatenate([e, e * e, products], axis=1) @ self._fields).reshape(t, n, 3)
+        p += self.rest
         lids = self.lid_angles(e)
         for k in range(2):
             centre = self._eye_centre[k]
@@ -425,10 +435,11 @@ class Rig:
             p[:, ids] = _rotate_x(p[:, ids], self._roll_axis[k], angle[:, None] * self._roll_share[k])
         rot, trans = self.jaw_rotation(e)
         ids, share = self._jaw_ids, self._jaw_share
-        moved = np.einsum("tij,tvj->tvi", rot - np.eye(3), p[:, ids] - self._pivot) + trans[:, None, :]
+        moved = (p[:, ids] - self._pivot) @ np.swapaxes(rot - np.eye(3), 1, 2)  # rows: (R - I) (p - pivot)
+        moved += trans[:, None, :]
         p[:, ids] += share[None, :, None] * moved
         eyes = self.eye_rotations(e)
         for k in range(2):
             ids, c = self._eyeballs[k], self._eye_centre[k]
-            p[:, ids] = c + np.einsum("tij,tvj->tvi", eyes[:, k], p[:, ids] - c)
+            p[:, ids] = c + (p[:, ids] - c) @ np.swapaxes(eyes[:, k], 1, 2)
         return p

@@ -1,73 +1,24 @@
-// WebGL2 Gaussian splatting: one instanced quad per Gaussian, drawn in a depth-sorted order.
-// Per-Gaussian data lives in float textures (position RGB32F, rotation RGBA32F, scale RGB32F, colour and
-// opacity RGBA8) fetched by index; the only instance attribute is the sorted index. The vertex shader
-// projects the 3D covariance R S S^T R^T to a 2D one (EWA splatting: J W Sigma W^T J^T, plus a 0.3 px^2
-// low-pass), and spans the quad along its eigenvectors out to about 2.8 sigma; the fragment shader
-// applies the gaussian falloff. Blending is premultiplied alpha, back to front.
+// WebGL2 splat drawing: one instanced quad per Gaussian, in the order given (farthest first), blended
+// with premultiplied alpha. The per-splat screen-space ellipse (centre and the two scaled eigenvectors
+// of the projected 2D covariance) is computed with the depth sort in splat-worker.js: the vertex shader
+// only places the quad's corners, and the fragment shader applies the gaussian falloff. (Computing the
+// projection per vertex costs four times the work, which a software rasteriser like SwiftShader feels.)
 
-export const TEX_WIDTH = 1024;
-
-/** Texels needed for n Gaussians (whole texture rows). */
-export function textureCapacity(n) {
-  return TEX_WIDTH * Math.max(1, Math.ceil(n / TEX_WIDTH));
-}
+/** Bytes per splat in the instance buffer: centre (2 f32), axes (4 f32), RGBA8 colour and opacity. */
+export const SPLAT_BYTES = 28;
 
 const VS = `#version 300 es
 precision highp float;
-precision highp int;
-uniform highp sampler2D uPos;
-uniform highp sampler2D uRot;
-uniform highp sampler2D uScale;
-uniform mediump sampler2D uColor;
-uniform mat4 uView;
-uniform mat4 uProj;
-uniform vec2 uFocal;
-uniform vec2 uViewport;
-uniform float uScaleMul;
-in uint aIndex;
 in vec2 aCorner;
+in vec2 aCenter;
+in vec4 aAxes;
+in vec4 aColor;
 out vec4 vColor;
 out vec2 vPos;
-
 void main() {
-  int i = int(aIndex);
-  ivec2 tc = ivec2(i % ${TEX_WIDTH}, i / ${TEX_WIDTH});
-  vec3 p = texelFetch(uPos, tc, 0).xyz;
-  vec4 cam = uView * vec4(p, 1.0);
-  vec4 clip = uProj * cam;
-  float lim = 1.2 * clip.w;
-  if (cam.z > -1e-3 || abs(clip.x) > lim || abs(clip.y) > lim) {
-    gl_Position = vec4(0.0, 0.0, 2.0, 1.0);  // behind the camera or well off screen: clipped
-    return;
-  }
-  vec4 q = texelFetch(uRot, tc, 0);
-  q = q / max(length(q), 1e-12);
-  vec3 s = texelFetch(uScale, tc, 0).xyz * uScaleMul;
-  float x = q.x, y = q.y, z = q.z, w = q.w;
-  mat3 R = mat3(
-    1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y + w * z), 2.0 * (x * z - w * y),
-    2.0 * (x * y - w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z + w * x),
-    2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y));
-  mat3 M = mat3(uView) * R * mat3(s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, 0.0, s.z);
-  mat3 Sc = M * transpose(M);  // covariance in camera space
-  float tz = -cam.z;
-  vec3 j0 = vec3(uFocal.x / tz, 0.0, uFocal.x * cam.x / (tz * tz));
-  vec3 j1 = vec3(0.0, uFocal.y / tz, uFocal.y * cam.y / (tz * tz));
-  float a = dot(j0, Sc * j0) + 0.3;
-  float b = dot(j0, Sc * j1);
-  float c = dot(j1, Sc * j1) + 0.3;
-  float mid = 0.5 * (a + c);
-  float rad = length(vec2(0.5 * (a - c), b));
-  float l1 = mid + rad;
-  float l2 = max(mid - rad, 0.1);
-  vec2 d = vec2(b, l1 - a);
-  d = dot(d, d) < 1e-12 ? vec2(1.0, 0.0) : normalize(d);
-  vec2 major = min(sqrt(2.0 * l1), 1024.0) * d;
-  vec2 minor = min(sqrt(2.0 * l2), 1024.0) * vec2(d.y, -d.x);
-  vColor = texelFetch(uColor, tc, 0);
+  vColor = aColor;
   vPos = aCorner;
-  vec2 ndc = clip.xy / clip.w + (aCorner.x * major + aCorner.y * minor) * 2.0 / uViewport;
-  gl_Position = vec4(ndc, 0.0, 1.0);
+  gl_Position = vec4(aCenter + aCorner.x * aAxes.xy + aCorner.y * aAxes.zw, 0.0, 1.0);
 }`;
 
 const FS = `#version 300 es
@@ -118,8 +69,8 @@ export function lookAt(eye, target, up = [0, 1, 0]) {
 
 export class SplatRenderer {
   constructor(canvas, background = [0.125, 0.137, 0.165]) {
-    const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, depth: false, preserveDrawingBuffer: true,
-      powerPreference: "high-performance" });
+    const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, depth: false, stencil: false,
+      preserveDrawingBuffer: true, powerPreference: "high-performance" });
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl;
     this.canvas = canvas;
@@ -130,82 +81,43 @@ export class SplatRenderer {
     gl.linkProgram(prog);
     if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error(`program: ${gl.getProgramInfoLog(prog)}`);
     this.prog = prog;
-    this.u = {};
-    for (const name of ["uPos", "uRot", "uScale", "uColor", "uView", "uProj", "uFocal", "uViewport", "uScaleMul"]) {
-      this.u[name] = gl.getUniformLocation(prog, name);
-    }
     this.vao = gl.createVertexArray();
     gl.bindVertexArray(this.vao);
     const corners = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, corners);
     gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-2, -2, 2, -2, -2, 2, 2, 2]), gl.STATIC_DRAW);
-    const aCorner = gl.getAttribLocation(prog, "aCorner");
-    gl.enableVertexAttribArray(aCorner);
-    gl.vertexAttribPointer(aCorner, 2, gl.FLOAT, false, 0, 0);
-    this.indexBuffer = gl.createBuffer();
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.indexBuffer);
-    const aIndex = gl.getAttribLocation(prog, "aIndex");
-    gl.enableVertexAttribArray(aIndex);
-    gl.vertexAttribIPointer(aIndex, 1, gl.UNSIGNED_INT, 0, 0);
-    gl.vertexAttribDivisor(aIndex, 1);
-    gl.bindVertexArray(null);
-    this.textures = {};
-    this.count = 0;
-    this.rows = 0;
-  }
-
-  _texture(name, unit, internal, format, type, data) {
-    const gl = this.gl;
-    let t = this.textures[name];
-    gl.activeTexture(gl.TEXTURE0 + unit);
-    if (!t || t.rows !== this.rows) {
-      if (t) gl.deleteTexture(t.tex);
-      const tex = gl.createTexture();
-      gl.bindTexture(gl.TEXTURE_2D, tex);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
-      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
-      gl.texStorage2D(gl.TEXTURE_2D, 1, internal, TEX_WIDTH, this.rows);
-      t = this.textures[name] = { tex, rows: this.rows };
+    const loc = (name) => gl.getAttribLocation(prog, name);
+    gl.enableVertexAttribArray(loc("aCorner"));
+    gl.vertexAttribPointer(loc("aCorner"), 2, gl.FLOAT, false, 0, 0);
+    this.splats = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.splats);
+    const attrs = [["aCenter", 2, gl.FLOAT, false, 0], ["aAxes", 4, gl.FLOAT, false, 8], ["aColor", 4, gl.UNSIGNED_BYTE, true, 24]];
+    for (const [name, size, type, normalized, offset] of attrs) {
+      gl.enableVertexAttribArray(loc(name));
+      gl.vertexAttribPointer(loc(name), size, type, normalized, SPLAT_BYTES, offset);
+      gl.vertexAttribDivisor(loc(name), 1);
     }
-    gl.bindTexture(gl.TEXTURE_2D, t.tex);
-    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, TEX_WIDTH, this.rows, format, type, data);
+    gl.bindVertexArray(null);
+    this.count = 0;
+    this.capacity = 0;
   }
 
-  /** A new set of Gaussians (an AvatarState whose arrays are textureCapacity(count) long). */
-  setGaussians(state) {
+  /** Splats to draw, farthest first: `count` records of SPLAT_BYTES in `buffer` (an ArrayBuffer). */
+  setSplats(buffer, count) {
     const gl = this.gl;
-    this.count = state.count;
-    this.rows = textureCapacity(state.count) / TEX_WIDTH;
-    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
-    this._texture("color", 3, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, state.color);
-    this.updateDynamic(state);
-    const identity = new Uint32Array(state.count);
-    for (let i = 0; i < identity.length; i++) identity[i] = i;
-    this.setOrder(identity);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.splats);
+    const bytes = count * SPLAT_BYTES;
+    if (bytes > this.capacity) {
+      this.capacity = Math.max(bytes, Math.ceil(this.capacity * 1.25));
+      gl.bufferData(gl.ARRAY_BUFFER, this.capacity, gl.DYNAMIC_DRAW);
+    }
+    if (bytes) gl.bufferSubData(gl.ARRAY_BUFFER, 0, new Uint8Array(buffer, 0, bytes));
+    this.count = count;
   }
 
-  /** Upload the newest positions, rotations and scales. */
-  updateDynamic(state) {
+  draw() {
     const gl = this.gl;
-    this._texture("pos", 0, gl.RGB32F, gl.RGB, gl.FLOAT, state.position);
-    this._texture("rot", 1, gl.RGBA32F, gl.RGBA, gl.FLOAT, state.rotation);
-    this._texture("scale", 2, gl.RGB32F, gl.RGB, gl.FLOAT, state.scale);
-  }
-
-  /** Draw order (indices, farthest first). */
-  setOrder(order) {
-    const gl = this.gl;
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.indexBuffer);
-    gl.bufferData(gl.ARRAY_BUFFER, order, gl.DYNAMIC_DRAW);
-    this.drawCount = order.length;
-  }
-
-  draw(view, proj, scaleMul = 1) {
-    const gl = this.gl;
-    const w = this.canvas.width, h = this.canvas.height;
-    gl.viewport(0, 0, w, h);
+    gl.viewport(0, 0, this.canvas.width, this.canvas.height);
     const [r, g, b] = this.background;
     gl.clearColor(r, g, b, 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
@@ -214,19 +126,8 @@ export class SplatRenderer {
     gl.disable(gl.DEPTH_TEST);
     gl.enable(gl.BLEND);
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
-    const units = { uPos: ["pos", 0], uRot: ["rot", 1], uScale: ["scale", 2], uColor: ["color", 3] };
-    for (const [u, [name, unit]] of Object.entries(units)) {
-      gl.activeTexture(gl.TEXTURE0 + unit);
-      gl.bindTexture(gl.TEXTURE_2D, this.textures[name].tex);
-      gl.uniform1i(this.u[u], unit);
-    }
-    gl.uniformMatrix4fv(this.u.uView, false, view);
-    gl.uniformMatrix4fv(this.u.uProj, false, proj);
-    gl.uniform2f(this.u.uFocal, (proj[0] * w) / 2, (proj[5] * h) / 2);
-    gl.uniform2f(this.u.uViewport, w, h);
-    gl.uniform1f(this.u.uScaleMul, scaleMul);
     gl.bindVertexArray(this.vao);
-    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, Math.min(this.drawCount, this.count));
+    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.count);
     gl.bindVertexArray(null);
   }
 }

@@ -1,0 +1,603 @@
+// The preview page: a protocol client of /v1/stream with sliders, presets, CSV playback, an orbit camera
+// and a WebGL2 splat renderer. URL options: ?max=N (ask for at most N Gaussians; no automatic
+// reduction), ?auto=0 (never reduce), ?enc=f32|f16|q13 (default f16), ?sparse=0, ?res=PIXELS (largest
+// canvas side, default 480), ?minfps=15, ?fill=0 (no splat enlargement of a reduced stream),
+// ?avatar=ID, ?device=NAME, ?token=T, ?ws=URL.
+import { parseFaceLog } from "./facelog.js";
+import {
+  AvatarState, byeMessage, bsMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError,
+} from "./protocol.js";
+import { lookAt, perspective, SplatRenderer, textureCapacity } from "./renderer.js";
+
+const params = new URLSearchParams(location.search);
+const intParam = (name) => {
+  const v = Number.parseInt(params.get(name) ?? "", 10);
+  return Number.isFinite(v) && v > 0 ? v : null;
+};
+const opts = {
+  encoding: ["f32", "f16", "q13"].includes(params.get("enc")) ? params.get("enc") : "f16",
+  sparse: params.get("sparse") !== "0",
+  forcedMax: intParam("max"),
+  res: intParam("res") ?? 480,
+  minFps: intParam("minfps") ?? 15,
+  fill: params.get("fill") !== "0",
+  avatar: params.get("avatar") || "default",
+  device: params.get("device") || undefined,
+  token: params.get("token") || undefined,
+  url: params.get("ws") || `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${ENDPOINT}`,
+};
+opts.auto = params.get("auto") !== "0" && opts.forcedMax === null;
+
+const MIN_GAUSSIANS = 4000; // never ask for fewer when reducing automatically
+const SLOW_WINDOW_MS = 3000; // fps below minFps for this long -> reduced stream
+const MEASURE_MS = 4000; // draw continuously this long after an avatar arrives, to measure fps
+
+const PRESETS = {
+  neutral: {},
+  smile: { mouthSmileLeft: 0.85, mouthSmileRight: 0.85, cheekSquintLeft: 0.45, cheekSquintRight: 0.45, eyeSquintLeft: 0.25, eyeSquintRight: 0.25, mouthDimpleLeft: 0.2, mouthDimpleRight: 0.2 },
+  "jaw open": { jawOpen: 1.0 },
+  blink: { eyeBlinkLeft: 1.0, eyeBlinkRight: 1.0 },
+  surprise: { browInnerUp: 0.9, browOuterUpLeft: 0.8, browOuterUpRight: 0.8, eyeWideLeft: 0.8, eyeWideRight: 0.8, jawOpen: 0.45, mouthFunnel: 0.2 },
+  anger: { browDownLeft: 0.9, browDownRight: 0.9, eyeSquintLeft: 0.5, eyeSquintRight: 0.5, eyeWideLeft: 0.25, eyeWideRight: 0.25, mouthPressLeft: 0.6, mouthPressRight: 0.6, noseSneerLeft: 0.4, noseSneerRight: 0.4, mouthFrownLeft: 0.3, mouthFrownRight: 0.3 },
+};
+const REGION_TITLES = { eyes: "Eyes", brows: "Brows", mouth_jaw: "Mouth & jaw", cheeks_nose: "Cheeks & nose" };
+
+const $ = (id) => document.getElementById(id);
+const canvas = $("canvas");
+
+// ----- page state ----------------------------------------------------------------------------------------
+
+let table = null; // /static/layouts.json
+let names = [];
+const weights = new Float32Array(52);
+const sliders = [];
+let weightsDirty = true;
+
+let renderer = null;
+let conn = null; // { ws, gen, state, welcome, avatar, maxGaussians, seq, lastSeq, lastSendMs, since }
+let connGen = 0;
+let retryMs = 1000;
+let fullCount = null; // Gaussians of the full avatar (from /v1/avatars or a full welcome)
+let reductions = 0;
+
+const cam = { yaw: 0, pitch: 0, dist: 0.6, target: [0, 0, 0], home: null, fovy: (30 * Math.PI) / 180 };
+let viewMat = null, projMat = null;
+
+let dynamicDirty = false, needsDraw = false, sortWanted = false, sortBusy = false;
+let pendingSeq = -1, drawnSeq = -1, sortedSeq = -1, sortId = 0;
+let rafPending = false, activeUntil = 0, activeSince = null;
+const drawTimes = [];
+const latencies = [];
+let lastBytes = 0, lastTiming = null, framesReceived = 0, framesDrawn = 0, droppedSeq = 0;
+let fps = 0;
+let playback = null;
+const errors = [];
+
+// A debugging and testing handle (read by tests/test_browser_*.py).
+const debug = {
+  opts,
+  get status() { return conn?.state ?? "idle"; },
+  get session() { return conn?.welcome?.session ?? null; },
+  get count() { return conn?.avatar?.count ?? 0; },
+  get fullCount() { return fullCount; },
+  get maxGaussians() { return conn?.maxGaussians ?? null; },
+  get encoding() { return conn?.welcome?.encoding ?? null; },
+  get lastSentSeq() { return conn ? conn.seq - 1 : -1; },
+  get lastFrameSeq() { return conn?.lastSeq ?? -1; },
+  get drawnSeq() { return drawnSeq; },
+  get sortedSeq() { return sortedSeq; },
+  get framesReceived() { return framesReceived; },
+  get framesDrawn() { return framesDrawn; },
+  get fps() { return fps; },
+  get reductions() { return reductions; },
+  get errors() { return errors.slice(); },
+  get settled() {
+    return conn?.state === "streaming" && !weightsDirty && conn.lastSeq === conn.seq - 1 && drawnSeq === conn.lastSeq
+      && sortedSeq === drawnSeq && !dynamicDirty && !needsDraw && !sortBusy && !sortWanted;
+  },
+  get playing() { return playback !== null && playback.timer !== null; },
+  setWeight(name, value) { setWeights({ ...currentWeights(), [name]: value }); },
+  setWeights,
+  preset: applyPreset,
+  playText(text, name = "test.csv") { return loadRecording(text, name); },
+  weights: () => Array.from(weights),
+  /** Milliseconds per draw (waiting for the pixels), averaged over `n` draws: the renderer's own cost. */
+  benchDraw(n = 3) {
+    const c = conn;
+    if (!c?.avatar?.complete) return null;
+    const [v, p] = matrices();
+    const px = new Uint8Array(4);
+    const t0 = performance.now();
+    for (let i = 0; i < n; i++) {
+      renderer.draw(v, p, 1);
+      renderer.gl.readPixels(0, 0, 1, 1, renderer.gl.RGBA, renderer.gl.UNSIGNED_BYTE, px);
+    }
+    return (performance.now() - t0) / n;
+  },
+};
+window.__ofera = debug;
+
+function currentWeights() {
+  const out = {};
+  names.forEach((n, i) => { if (weights[i]) out[n] = weights[i]; });
+  return out;
+}
+
+// ----- UI ------------------------------------------------------------------------------------------------
+
+function setStatus(text, isError = false) {
+  const el = $("status");
+  el.textContent = text;
+  el.classList.toggle("error", isError);
+}
+
+function reportError(text) {
+  errors.push(text);
+  if (errors.length > 20) errors.shift();
+  const box = $("errors");
+  const div = document.createElement("div");
+  div.textContent = text;
+  box.prepend(div);
+  while (box.children.length > 4) box.lastChild.remove();
+  console.warn(text);
+}
+
+function buildControls() {
+  const box = $("sliders");
+  for (const [region, list] of Object.entries(table.regions)) {
+    const det = document.createElement("details");
+    det.open = true;
+    const sum = document.createElement("summary");
+    sum.textContent = `${REGION_TITLES[region] ?? region} (${list.length})`;
+    det.append(sum);
+    for (const name of list) {
+      const i = names.indexOf(name);
+      const row = document.createElement("div");
+      row.className = "row";
+      const label = document.createElement("label");
+      label.textContent = name;
+      label.htmlFor = `bs-${name}`;
+      const input = document.createElement("input");
+      Object.assign(input, { type: "range", min: "0", max: "1", step: "0.01", value: "0", id: `bs-${name}` });
+      input.dataset.name = name;
+      const out = document.createElement("output");
+      out.textContent = "0.00";
+      input.addEventListener("input", () => {
+        weights[i] = Number(input.value);
+        out.textContent = weights[i].toFixed(2);
+        row.classList.toggle("on", weights[i] > 0);
+        weightsDirty = true;
+        wake();
+      });
+      row.append(label, input, out);
+      det.append(row);
+      sliders[i] = { input, out, row };
+    }
+    box.append(det);
+  }
+  const presets = $("presets");
+  for (const name of Object.keys(PRESETS)) {
+    const b = document.createElement("button");
+    b.textContent = name;
+    b.addEventListener("click", () => { stopPlayback(); applyPreset(name); });
+    presets.append(b);
+  }
+  $("file").addEventListener("change", async (ev) => {
+    const f = ev.target.files[0];
+    if (f) loadRecording(await f.text(), f.name);
+    ev.target.value = "";
+  });
+  $("play").addEventListener("click", () => startPlayback());
+  $("stop").addEventListener("click", () => stopPlayback());
+  $("full").addEventListener("click", () => { opts.forcedMax = null; connect(null); });
+  $("reconnect").addEventListener("click", () => connect(conn?.maxGaussians ?? opts.forcedMax));
+  document.addEventListener("dragover", (ev) => { ev.preventDefault(); document.body.classList.add("dragging"); });
+  document.addEventListener("dragleave", (ev) => { if (!ev.relatedTarget) document.body.classList.remove("dragging"); });
+  document.addEventListener("drop", async (ev) => {
+    ev.preventDefault();
+    document.body.classList.remove("dragging");
+    const f = ev.dataTransfer?.files?.[0];
+    if (f) loadRecording(await f.text(), f.name);
+  });
+}
+
+function syncSliders() {
+  for (let i = 0; i < 52; i++) {
+    const s = sliders[i];
+    if (!s) continue;
+    const v = weights[i];
+    if (Number(s.input.value) !== v) s.input.value = String(v);
+    s.out.textContent = v.toFixed(2);
+    s.row.classList.toggle("on", v > 0);
+  }
+}
+
+function setWeights(map) {
+  weights.fill(0);
+  for (const [name, v] of Object.entries(map)) {
+    const i = names.indexOf(name);
+    if (i < 0) throw new Error(`unknown blendshape ${name}`);
+    weights[i] = Math.min(1, Math.max(0, Number(v)));
+  }
+  syncSliders();
+  weightsDirty = true;
+  wake();
+}
+
+function applyPreset(name) {
+  if (!(name in PRESETS)) throw new Error(`unknown preset ${name}`);
+  setWeights(PRESETS[name]);
+}
+
+// ----- playback of recordings ----------------------------------------------------------------------------
+
+function loadRecording(text, name) {
+  stopPlayback();
+  try {
+    const log = parseFaceLog(text, table, name);
+    playback = { log, name, start: 0, idx: -1, timer: null };
+    $("playinfo").textContent = `${name}: ${log.kind}, layout ${log.layout}, ${log.rows} rows, ${log.duration.toFixed(2)} s`;
+    $("play").disabled = false;
+    startPlayback();
+    return { rows: log.rows, layout: log.layout, duration: log.duration };
+  } catch (e) {
+    $("playinfo").textContent = "";
+    reportError(`${e.message}`);
+    return { error: e.message };
+  }
+}
+
+function startPlayback() {
+  if (!playback) return;
+  stopPlayback(true);
+  playback.start = performance.now();
+  playback.idx = -1;
+  $("stop").disabled = false;
+  playStep();
+}
+
+function stopPlayback(keep = false) {
+  if (playback?.timer) clearTimeout(playback.timer);
+  if (playback) playback.timer = null;
+  $("stop").disabled = true;
+  if (!keep && playback) $("playinfo").textContent = $("playinfo").textContent.replace(/ · playing.*$/, "");
+}
+
+function playStep() {
+  const p = playback;
+  const { times, frames, rows } = p.log;
+  const t = (performance.now() - p.start) / 1000;
+  let idx = p.idx;
+  while (idx + 1 < rows && times[idx + 1] <= t) idx++;
+  if (idx !== p.idx && idx >= 0) {
+    p.idx = idx;
+    weights.set(frames.subarray(52 * idx, 52 * idx + 52));
+    weightsDirty = true;
+    p.slidersStale = true;
+    maybeSend(performance.now()); // at the recorded time (flow control permitting)
+    wake();
+  }
+  const info = $("playinfo");
+  info.textContent = info.textContent.replace(/ · playing.*$/, "") + ` · playing ${t.toFixed(1)} s`;
+  if (idx + 1 >= rows) {
+    if ($("loop").checked && rows > 1) {
+      p.timer = setTimeout(() => { p.start = performance.now(); p.idx = -1; playStep(); }, 200);
+    } else {
+      stopPlayback();
+    }
+    return;
+  }
+  const next = p.start + times[idx + 1] * 1000;
+  p.timer = setTimeout(playStep, Math.max(0, next - performance.now()));
+}
+
+// ----- connection ----------------------------------------------------------------------------------------
+
+function connect(maxGaussians) {
+  if (conn) {
+    const old = conn;
+    old.closing = true;
+    try { if (old.ws.readyState === WebSocket.OPEN) old.ws.send(byeMessage()); old.ws.close(1000); } catch { /* gone */ }
+  }
+  const gen = ++connGen;
+  const ws = new WebSocket(opts.url);
+  ws.binaryType = "arraybuffer";
+  conn = { ws, gen, state: "connecting", welcome: null, avatar: null, maxGaussians, seq: 0, lastSeq: -1, lastSendMs: 0, since: performance.now() };
+  const c = conn;
+  setStatus(`connecting to ${opts.url}${maxGaussians ? ` (at most ${maxGaussians} Gaussians)` : ""} …`);
+  ws.onopen = () => {
+    ws.send(helloMessage({ layout: "arkit52", avatar: opts.avatar, encoding: opts.encoding, sparse: opts.sparse,
+      device: opts.device, token: opts.token, maxGaussians: maxGaussians ?? undefined }));
+  };
+  ws.onmessage = (ev) => {
+    if (c !== conn) return;
+    try {
+      onMessage(c, new Uint8Array(ev.data));
+    } catch (e) {
+      const fatal = c.state !== "streaming" || !(e instanceof ProtocolError);
+      reportError(`${fatal ? "fatal" : "dropped a frame"}: ${e.message}`);
+      if (fatal) { setStatus(`protocol error: ${e.message}`, true); c.closing = true; ws.close(4000, e.code ?? "internal"); }
+    }
+  };
+  ws.onclose = (ev) => {
+    if (c !== conn) return;
+    const was = c.state;
+    c.state = "closed";
+    if (c.closing) return;
+    const why = ev.reason ? `${ev.code} ${ev.reason}` : `${ev.code}`;
+    setStatus(`disconnected (${why}); retrying in ${(retryMs / 1000).toFixed(0)} s`, true);
+    setTimeout(() => { if (c === conn) connect(c.maxGaussians); }, retryMs);
+    retryMs = was === "streaming" ? 1000 : Math.min(retryMs * 2, 15000);
+  };
+}
+
+function onMessage(c, bytes) {
+  const msg = decodeServerMessage(bytes);
+  if (msg.type === "error") {
+    reportError(`server ${msg.fatal ? "fatal " : ""}error ${msg.code}: ${msg.message}`);
+    if (msg.fatal) setStatus(`server refused: ${msg.code}: ${msg.message}`, true);
+    return;
+  }
+  if (msg.type === "pong") return;
+  if (c.state === "connecting") {
+    if (msg.type !== "welcome") throw new ProtocolError("not_ready", `expected welcome, got ${msg.type}`);
+    c.welcome = msg;
+    c.state = "avatar";
+    if (c.maxGaussians === null || c.maxGaussians === undefined) fullCount = msg.avatar.count;
+    if (c.maxGaussians && msg.avatar.count > c.maxGaussians) {
+      reportError(`the server ignored max_gaussians ${c.maxGaussians} (welcome count ${msg.avatar.count})`);
+    }
+    c.avatar = new AvatarState(msg, textureCapacity(msg.avatar.count));
+    setStatus(`receiving avatar: ${msg.avatar.count} Gaussians …`);
+    return;
+  }
+  if (c.state === "avatar") {
+    if (msg.type !== "avatar") throw new ProtocolError("not_ready", `expected an avatar chunk, got ${msg.type}`);
+    const done = c.avatar.applyChunk(msg);
+    setStatus(`receiving avatar: chunk ${msg.chunk + 1}/${msg.chunks}`);
+    if (done) onAvatar(c);
+    return;
+  }
+  if (msg.type !== "frame") throw new ProtocolError("bad_field", `unexpected ${msg.type} while streaming`);
+  c.avatar.applyFrame(msg);
+  if (c.lastSeq >= 0 && msg.seq > c.lastSeq + 1) droppedSeq += msg.seq - c.lastSeq - 1;
+  c.lastSeq = msg.seq;
+  framesReceived++;
+  lastBytes = bytes.length;
+  lastTiming = msg.timing;
+  latencies.push((nowUs() - msg.t) / 1000);
+  if (latencies.length > 30) latencies.shift();
+  pendingSeq = msg.seq;
+  dynamicDirty = true;
+  wake();
+}
+
+function onAvatar(c) {
+  c.state = "streaming";
+  retryMs = 1000;
+  const a = c.avatar;
+  renderer.setGaussians(a);
+  drawnSeq = sortedSeq = pendingSeq = -1;
+  if (!cam.home) frameCamera(a);
+  const w = c.welcome;
+  setStatus(`streaming ${w.avatar.id}: ${a.count}${fullCount && a.count < fullCount ? ` of ${fullCount}` : ""} Gaussians, ${w.encoding}${w.sparse ? " sparse" : ""} · session ${w.session}`);
+  weightsDirty = true; // the first frame shows the sliders' expression
+  sortWanted = needsDraw = true;
+  activeSince = null;
+  wake(MEASURE_MS);
+}
+
+function maybeSend(now) {
+  const c = conn;
+  if (!c || c.state !== "streaming" || !weightsDirty || c.ws.readyState !== WebSocket.OPEN) return;
+  const outstanding = c.seq - 1 - c.lastSeq; // sent, not answered (the server may skip some)
+  if (outstanding >= 2 && now - c.lastSendMs < 1000) return;
+  c.ws.send(bsMessage(c.seq, nowUs(), weights));
+  c.seq += 1;
+  c.lastSendMs = now;
+  weightsDirty = false;
+}
+
+// ----- camera ---------------------------------------------------------------------------------------------
+
+function frameCamera(a) {
+  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < a.count; i++) {
+    for (let k = 0; k < 3; k++) {
+      const v = a.position[3 * i + k];
+      if (v < lo[k]) lo[k] = v;
+      if (v > hi[k]) hi[k] = v;
+    }
+  }
+  const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 1e-3);
+  const target = [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2 + 0.08 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2];
+  cam.home = { target, dist: (0.55 * size) / Math.tan(cam.fovy / 2), yaw: 0, pitch: 0 };
+  resetCamera();
+}
+
+function resetCamera() {
+  if (!cam.home) return;
+  Object.assign(cam, { target: cam.home.target.slice(), dist: cam.home.dist, yaw: cam.home.yaw, pitch: cam.home.pitch });
+  viewChanged();
+}
+
+function viewChanged() {
+  viewMat = null;
+  sortWanted = needsDraw = true;
+  wake();
+}
+
+function matrices() {
+  if (!viewMat) {
+    const cp = Math.cos(cam.pitch);
+    const eye = [cam.target[0] + cam.dist * cp * Math.sin(cam.yaw), cam.target[1] + cam.dist * Math.sin(cam.pitch),
+      cam.target[2] + cam.dist * cp * Math.cos(cam.yaw)];
+    viewMat = lookAt(eye, cam.target);
+    projMat = perspective(cam.fovy, canvas.width / canvas.height, Math.max(0.005, cam.dist * 0.05), cam.dist * 20);
+  }
+  return [viewMat, projMat];
+}
+
+function setupCameraInput() {
+  let drag = null;
+  canvas.addEventListener("pointerdown", (ev) => { drag = { x: ev.clientX, y: ev.clientY }; canvas.setPointerCapture(ev.pointerId); });
+  canvas.addEventListener("pointermove", (ev) => {
+    if (!drag) return;
+    cam.yaw -= (ev.clientX - drag.x) * 0.008;
+    cam.pitch = Math.min(1.45, Math.max(-1.45, cam.pitch + (ev.clientY - drag.y) * 0.008));
+    drag = { x: ev.clientX, y: ev.clientY };
+    viewChanged();
+  });
+  const end = () => { drag = null; };
+  canvas.addEventListener("pointerup", end);
+  canvas.addEventListener("pointercancel", end);
+  canvas.addEventListener("wheel", (ev) => {
+    ev.preventDefault();
+    cam.dist = Math.min(20, Math.max(0.05, cam.dist * Math.exp(ev.deltaY * 0.001)));
+    viewChanged();
+  }, { passive: false });
+  canvas.addEventListener("dblclick", resetCamera);
+}
+
+function resize() {
+  const r = canvas.getBoundingClientRect();
+  const k = Math.min(window.devicePixelRatio || 1, opts.res / Math.max(r.width, r.height, 1));
+  const w = Math.max(1, Math.round(r.width * k)), h = Math.max(1, Math.round(r.height * k));
+  if (canvas.width !== w || canvas.height !== h) {
+    canvas.width = w;
+    canvas.height = h;
+    viewChanged();
+  }
+}
+
+// ----- sorting -------------------------------------------------------------------------------------------
+
+const sorter = new Worker(new URL("./sort-worker.js", import.meta.url));
+sorter.onmessage = (ev) => {
+  sortBusy = false;
+  const { id, order } = ev.data;
+  const job = sorter.job;
+  if (job && job.id === id && job.gen === connGen && conn?.avatar && order.length === conn.avatar.count) {
+    renderer.setOrder(order);
+    sortedSeq = job.seq;
+    needsDraw = true;
+  }
+  wake();
+};
+
+function requestSort() {
+  const a = conn?.avatar;
+  if (!a?.complete) return;
+  const [v] = matrices();
+  const positions = a.position.slice(0, a.count * 3);
+  sorter.job = { id: ++sortId, gen: connGen, seq: drawnSeq };
+  sortBusy = true;
+  sortWanted = false;
+  sorter.postMessage({ id: sortId, positions, n: a.count, view: [v[2], v[6], v[10], v[14]] }, [positions.buffer]);
+}
+
+// ----- the display loop ----------------------------------------------------------------------------------
+
+function wake(ms = 1500) {
+  activeUntil = Math.max(activeUntil, performance.now() + ms);
+  if (!rafPending) {
+    rafPending = true;
+    requestAnimationFrame(tick);
+  }
+}
+
+function tick(now) {
+  rafPending = false;
+  maybeSend(now);
+  const c = conn;
+  const ready = c?.avatar?.complete && c.state !== "closed";
+  if (playback?.slidersStale) { playback.slidersStale = false; syncSliders(); }
+  if (ready && dynamicDirty) {
+    renderer.updateDynamic(c.avatar);
+    dynamicDirty = false;
+    drawnSeq = pendingSeq;
+    sortWanted = needsDraw = true;
+  }
+  if (ready && sortWanted && !sortBusy) requestSort();
+  const active = now < activeUntil;
+  if (ready && (needsDraw || active)) {
+    const [v, p] = matrices();
+    const full = fullCount ?? c.avatar.count;
+    const mul = opts.fill && c.avatar.count < full ? Math.min(2.5, Math.sqrt(full / c.avatar.count)) : 1;
+    renderer.draw(v, p, mul);
+    needsDraw = false;
+    framesDrawn++;
+    drawTimes.push(now);
+  }
+  measure(now, active && ready);
+  updateHud(now);
+  if (active || needsDraw || dynamicDirty || weightsDirty || sortBusy) {
+    rafPending = true;
+    requestAnimationFrame(tick);
+  } else {
+    activeSince = null;
+  }
+}
+
+function measure(now, running) {
+  while (drawTimes.length && drawTimes[0] < now - SLOW_WINDOW_MS) drawTimes.shift();
+  if (!running) { activeSince = null; return; }
+  if (activeSince === null) activeSince = now;
+  const since = Math.max(activeSince, now - 1000);
+  if (now - since >= 250) fps = (drawTimes.filter((t) => t > since).length * 1000) / (now - since);
+  const c = conn;
+  if (!opts.auto || c?.state !== "streaming" || now - activeSince < SLOW_WINDOW_MS) return;
+  const windowFps = (drawTimes.filter((t) => t > now - SLOW_WINDOW_MS).length * 1000) / SLOW_WINDOW_MS;
+  if (windowFps >= opts.minFps) return;
+  const count = c.avatar.count;
+  if (count <= MIN_GAUSSIANS) return;
+  const ratio = Math.min(0.7, Math.max(0.2, windowFps / (opts.minFps * 1.3)));
+  const target = Math.max(MIN_GAUSSIANS, Math.floor(count * ratio));
+  reductions++;
+  reportError(`${windowFps.toFixed(1)} fps < ${opts.minFps} for ${SLOW_WINDOW_MS / 1000} s: reconnecting for at most ${target} Gaussians (of ${count})`);
+  activeSince = null;
+  drawTimes.length = 0;
+  connect(target);
+}
+
+let hudAt = 0;
+function updateHud(now) {
+  if (now - hudAt < 250) return;
+  hudAt = now;
+  const c = conn;
+  const lat = latencies.length ? latencies.reduce((s, x) => s + x, 0) / latencies.length : null;
+  const lines = [
+    `fps      ${activeSince === null ? "idle" : fps.toFixed(1)}`,
+    `latency  ${lat === null ? "-" : `${latencies[latencies.length - 1].toFixed(1)} ms (avg ${lat.toFixed(1)})`}`,
+    `frame    ${lastBytes ? `${(lastBytes / 1024).toFixed(1)} KiB` : "-"}${lastTiming?.total !== undefined ? ` · server ${(lastTiming.total / 1000).toFixed(1)} ms` : ""}`,
+    `gauss.   ${c?.avatar ? c.avatar.count : "-"}${fullCount && c?.avatar && c.avatar.count < fullCount ? ` / ${fullCount}` : ""}  ${c?.welcome ? `${c.welcome.encoding}${c.welcome.sparse ? " sparse" : ""}` : ""}`,
+    `frames   ${framesReceived} recv · ${droppedSeq} skipped`,
+  ];
+  $("hud").textContent = lines.join("\n");
+}
+
+// ----- start ---------------------------------------------------------------------------------------------
+
+async function main() {
+  try {
+    renderer = new SplatRenderer(canvas);
+  } catch (e) {
+    setStatus(`WebGL2 is not available: ${e.message}`, true);
+    return;
+  }
+  table = await (await fetch(new URL("./layouts.json", import.meta.url))).json();
+  names = table.arkit52;
+  buildControls();
+  setupCameraInput();
+  new ResizeObserver(() => { resize(); wake(); }).observe(canvas);
+  resize();
+  try {
+    const info = await (await fetch("/v1/avatars")).json();
+    const id = opts.avatar === "default" ? info.default : opts.avatar;
+    const entry = info.avatars?.find((a) => a.id === id);
+    if (entry?.count) fullCount = entry.count;
+  } catch { /* not essential: learnt from the first full welcome instead */ }
+  connect(opts.forcedMax);
+}
+
+main();
