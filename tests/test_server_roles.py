@@ -33,6 +33,14 @@ class FakePipeline:
         return SimpleNamespace(position=pos, rotation=rot, scale=np.full((N, 3), 0.01, np.float32)), {"epm": 1}
 
 
+async def until(cond, timeout: float = 10.0) -> None:
+    async def poll() -> None:
+        while not cond():
+            await asyncio.sleep(0.005)
+
+    await asyncio.wait_for(poll(), timeout)
+
+
 def pending(seq: int) -> PendingBs:
     return PendingBs(Blendshapes(seq=seq, t=seq * 10, w=np.full(52, seq, np.float32)), 0, 0)
 
@@ -77,9 +85,7 @@ def test_source_computes_only_the_newest_and_fans_out_encoded_once() -> None:
             for seq in range(1, 10):
                 source.offer(pending(seq))
             pipeline.gate.set()
-            while not (sent["a"] and sent["b"] and decode_server_message(sent["a"][-1], fmt).seq == 9
-                       and decode_server_message(sent["b"][-1], fmt).seq == 9):
-                await asyncio.sleep(0.01)
+            await until(lambda: all(sent[n] and decode_server_message(sent[n][-1], fmt).seq == 9 for n in sent))
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
@@ -115,11 +121,9 @@ def test_viewer_keeps_only_the_newest_unsent_frame() -> None:
             tasks = [asyncio.create_task(source.run()), asyncio.create_task(viewer.run())]
             for seq in range(6):  # each computed while frame 0 is stuck in the socket
                 source.offer(pending(seq))
-                while source.computed <= seq:
-                    await asyncio.sleep(0.005)
+                await until(lambda seq=seq: source.computed > seq)
             release.set()
-            while not got or got[-1] != 5:
-                await asyncio.sleep(0.01)
+            await until(lambda: bool(got) and got[-1] == 5)
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)

@@ -240,3 +240,28 @@ def test_cli_train_and_resume(tmp_path, tiny):
     assert len(json.loads((out / "history.json").read_text())) == 3
     res = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(out)])
     assert res.exit_code == 2 and "no such folder" in res.output
+
+
+def test_mia_experiment_smoke(tmp_path):
+    """The experiment end to end on a tiny configuration (numbers meaningless; keys, files, CLI JSON)."""
+    from ofera.training.experiment import ExperimentConfig, run_experiment, write_json
+
+    cfg = ExperimentConfig(size=20, cameras=2, train_frames=3, test_frames=2, iterations=2, grid_frames=2)
+    calls = {}
+
+    class Mapper:  # a stand-in for the EPM (keeps the test fast)
+        def map_batch(self, w):
+            calls["n"] = len(w)
+            y = np.zeros((len(w), 68), np.float32)
+            y[:, :50] = 0.3 * w[:, :50]
+            y[:, 50:] = np.tile([1, 0, 0, 0, 1, 0], 3)
+            return y
+
+    res = run_experiment(cfg, grid=tmp_path / "grid.png", progress=False, log=lambda s: None, mapper=Mapper())
+    assert calls["n"] == 5
+    for key in ("psnr", "ssim"):
+        assert set(res[key]) == {"mia", "without_mia"}
+        assert all(np.isfinite(v) for v in res[key].values())
+    assert (tmp_path / "grid.png").stat().st_size > 1000
+    out = write_json(res, tmp_path / "r.json")
+    assert json.loads(out.read_text())["psnr"] == res["psnr"]

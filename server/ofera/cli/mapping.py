@@ -57,10 +57,9 @@ def bda_fit(
         data = load_paired_data(pairs[0])
         x = to_arkit51("ovr63", np.asarray(data.headset, np.float32))
         y = np.asarray(data.bs, np.float32)
-        sp = np.asarray(data.split).astype(str)
-        fit_rows = np.ones(len(x), bool) if split == "all" else sp == split
+        fit_rows = np.ones(len(x), bool) if split == "all" else data.split_mask(split)
         if not fit_rows.any():
-            raise CliError(f"{pairs[0]}: no frames in split {split!r} (splits: {sorted(set(sp))})")
+            raise CliError(f"{pairs[0]}: no frames in split {split!r}")
         if split != "all" and (~fit_rows).any():
             held = (x[~fit_rows], y[~fit_rows])
         x, y = x[fit_rows], y[fit_rows]

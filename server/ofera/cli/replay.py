@@ -108,7 +108,7 @@ def replay(
     encoding: EncodingOpt = "f32",
     token: TokenOpt = None,
     max_lag: Annotated[float, typer.Option("--max-lag", help="Skip frames found more than this many seconds "
-                                           "overdue (a stalled sender catches up).")] = 0.25,
+                                           "overdue (a stalled sender catches up).")] = 1.0,
     drain: Annotated[float, typer.Option("--drain", help="Seconds to wait for the last frames after "
                                          "sending.")] = 2.0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,

@@ -28,6 +28,7 @@ class HeadSubject:
     v_id: np.ndarray  # (V, 3) identity-shaped template
     j_id: np.ndarray  # (K, 3) joints of v_id
     j_expr: np.ndarray  # (K, 3, E) joint motion per expression coefficient
+    expr_rows: np.ndarray  # (E, 3V) the expression basis as contiguous rows, for one matmul per batch
 
     @classmethod
     def create(cls, model: HeadModel, shape: np.ndarray | None = None) -> HeadSubject:
@@ -40,7 +41,8 @@ class HeadSubject:
             v_id = v_id + model.shapedirs[:, :, : shape.size] @ shape
         j_id = model.j_regressor @ v_id
         j_expr = np.einsum("kv,vce->kce", model.j_regressor, model.exprdirs)
-        return cls(model, v_id, j_id, j_expr)
+        expr_rows = np.ascontiguousarray(model.exprdirs.reshape(-1, model.expr_dims).T)
+        return cls(model, v_id, j_id, j_expr, expr_rows)
 
 
 def as_rotation_matrices(r: np.ndarray | None, batch: int) -> np.ndarray:
@@ -112,13 +114,13 @@ def lbs(
     b, n = expr.shape
     if n > model.expr_dims:
         raise ValueError(f"{n} expression coefficients, the model has {model.expr_dims}")
-    e = model.exprdirs[:, :, :n]
-    v_sh = subject.v_id[None] + np.einsum("vce,be->bvc", e, expr)  # (B, V, 3)
+    nv, k = model.num_vertices, model.num_joints
+    v_sh = subject.v_id[None] + (expr @ subject.expr_rows[:n]).reshape(b, nv, 3)  # (B, V, 3)
     joints = subject.j_id[None] + np.einsum("kce,be->bkc", subject.j_expr[:, :, :n], expr)  # (B, K, 3)
-    v_po = v_sh + (pose_feature(rotations) @ model.posedirs).reshape(b, -1, 3)
+    v_po = v_sh + (pose_feature(rotations) @ model.posedirs).reshape(b, nv, 3)
     a = rigid_transforms(rotations, joints, model.parents)  # (B, K, 4, 4)
-    t = np.einsum("vk,bkij->bvij", model.weights, a)  # (B, V, 4, 4) blended transforms
-    verts = np.einsum("bvij,bvj->bvi", t[..., :3, :3], v_po) + t[..., :3, 3]
+    t = (model.weights @ a[:, :, :3, :].reshape(b, k, 12)).reshape(b, nv, 3, 4)  # blended transforms
+    verts = np.einsum("bvij,bvj->bvi", t[..., :3], v_po) + t[..., 3]
     posed_joints = np.einsum("bkij,bkj->bki", a[..., :3, :3], joints) + a[..., :3, 3]
     if transl is not None:
         shift = np.asarray(transl, np.float64).reshape(-1, 1, 3)

@@ -334,12 +334,12 @@ def train_on_paired(data, config: EPMConfig | None = None, out: str | Path | Non
 
     Writes the checkpoint to ``out`` when given (with the data's description in ``meta``).
     """
-    split = np.asarray(data.split).astype(str)
-    train, val = split == "train", split == "val"
+    train, val = data.split_mask("train"), data.split_mask("val")
     if not train.any() or not val.any():
-        raise EPMError(f"paired data needs train and val frames; splits present: {sorted(set(split))}")
+        raise EPMError(f"paired data needs train and val frames (subject-disjoint); it has {int(train.sum())} "
+                       f"train and {int(val.sum())} val frames")
     x, y = np.asarray(data.bs, np.float32), np.asarray(data.flame, np.float32)
-    keys = subject_keys(np.asarray(data.subject), np.asarray(data.source) if hasattr(data, "source") else None)
+    keys = subject_keys(data.subject, data.source)
     cfg = config or EPMConfig(**DEFAULT_EPM_CONFIG)
     result = train_epm(x[train], y[train], keys[train], x[val], y[val], cfg, progress)
     if out is not None:

@@ -145,7 +145,7 @@ class Replayer:
         log: FaceLog,
         speed: float = 1.0,
         loop: bool = False,
-        max_lag: float = 0.25,
+        max_lag: float = 1.0,
         clock: Clock = time.monotonic,
         sleep: Sleep = asyncio.sleep,
         max_passes: int | None = None,

@@ -63,11 +63,15 @@ class WebSocketTransport(Transport):
 
 
 def warm_up(hub: Hub) -> None:
-    """Load the default avatar and run its pipeline a few times (blocking; before accepting clients)."""
+    """Load the default avatar and run its pipeline a few times (blocking; before accepting clients).
+    Raises what loading raises (AvatarError, MapperError, FileNotFoundError...)."""
+    if hub.warm:
+        return
     assets = hub.registry.get(hub.settings.default_avatar)
     assets.pipeline("arkit52").warm_up()
     assets.wire_avatar("flame")
     assets.selection(sparse=True, max_gaussians=None)
+    hub.warm = True
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

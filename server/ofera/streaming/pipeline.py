@@ -41,8 +41,7 @@ class AvatarAssets:
 
     @classmethod
     def create(cls, avatar_id: str, avatar: Any, mapper: Mapper, bda: BDA | None = None) -> AvatarAssets:
-        shape = getattr(avatar, "shape", None)
-        subject = HeadSubject.create(avatar.head, shape)
+        subject = HeadSubject.create(avatar.head)  # the avatar's identity is baked into its head's template
         return cls(avatar_id, avatar, subject, mapper, bda if bda is not None else BDA.identity())
 
     @property

@@ -118,10 +118,11 @@ class Source:
         start = time.monotonic_ns()
         state, stages = self.pipeline.run(p.bs.w)
         end = time.monotonic_ns()
-        # PROTOCOL.md section 9 names, plus the finer layout/bda split of `map`.
-        timing = {"decode": p.decode_us, "queue": (start - p.received_ns) // 1000, "layout": stages["layout"],
-                  "bda": stages["bda"], "map": stages["layout"] + stages["bda"], "epm": stages["epm"],
-                  "head": stages["head"], "deform": stages["deform"], "total": (end - p.received_ns) // 1000}
+        # PROTOCOL.md section 9 names (`map` = layout adapter + BDA), plus the pipeline's own stages.
+        timing = {"decode": p.decode_us, "queue": (start - p.received_ns) // 1000, **stages}
+        if "layout" in stages and "bda" in stages:
+            timing["map"] = stages["layout"] + stages["bda"]
+        timing["total"] = (end - p.received_ns) // 1000
         return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns)
 
     async def run(self) -> None:

@@ -116,8 +116,14 @@ def connect_lines(host: str, port: int) -> list[str]:
 
 
 def serve(settings: Settings) -> None:
-    """Run until Ctrl-C (uvicorn closes sessions with 1012 and stops the compute pool)."""
-    server = StreamingServer(uvicorn_config(settings))
+    """Warm up, then run until Ctrl-C (sessions are closed with 1001, the compute pool stopped).
+    Loading failures (missing avatar or EPM files...) raise before anything listens."""
+    from .app import create_app, warm_up
+
+    app = create_app(settings)
+    if settings.warmup:
+        warm_up(app.state.hub)
+    server = StreamingServer(uvicorn_config(settings, app))
     try:
         server.run()
     except KeyboardInterrupt:  # a second Ctrl-C during shutdown

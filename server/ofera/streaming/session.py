@@ -53,6 +53,7 @@ class Hub:
     executor: Executor
     metrics: Metrics
     active: int = 0
+    warm: bool = False
     sessions: dict[str, Session] = field(default_factory=dict)
 
 

@@ -1,9 +1,12 @@
 """A synthetic multi-view capture of the procedural head, rendered from the paired-data rig's ground truth.
 
-The "person" is a rig subject (``ofera.mapping.paired.rig``: ARKit weights -> mesh, deliberately not the head
-model); the "tracker" is the FLAME fit of the rig's meshes (``ofera.mapping.paired.fit``); the observed
-blendshapes are the rig's weights. Images are the ground-truth avatar (Gaussians bound to the head's faces)
-placed on the rig's mesh and rendered with the torch rasteriser.
+The capture is made the way the paired benchmark (``ofera.mapping.paired``) makes a subject, with a new
+subject the EPM never saw: a rig style and identity (the "person": ARKit weights -> mesh, deliberately not
+the head model), a capture-like weight sequence, the camera estimator's observed blendshapes (the
+benchmark's estimator for that source: gain, bias, cross-talk, lag, jitter, dropouts), and the tracker's
+FLAME fit of the rig's meshes. Images are the ground-truth avatar (Gaussians bound to the head's faces)
+placed on the rig's mesh and rendered with the torch rasteriser. Frames are taken every ``stride`` frames of
+the sequence; the held-out frames come from the end of the sequence, after the training frames.
 """
 
 from __future__ import annotations
@@ -15,58 +18,12 @@ import torch
 
 from ..head.model import HeadModel
 from ..head.render import vertex_colours
-from ..mapping.layouts import ARKIT51_NAMES
 from .data import Capture
 from .model import SH_C0, TrainableAvatar
 from .rasterize import Camera, rasterize
 
-IDX = {n: i for i, n in enumerate(ARKIT51_NAMES)}
-
-# Groups of shapes that people make together (FACS-like prototypes), sampled as units.
-_GROUPS: tuple[tuple[str, ...], ...] = (
-    ("jawOpen",),
-    ("jawOpen", "mouthFunnel"),
-    ("mouthSmileLeft", "mouthSmileRight", "cheekSquintLeft", "cheekSquintRight"),
-    ("mouthFrownLeft", "mouthFrownRight", "browInnerUp"),
-    ("mouthPucker",),
-    ("mouthStretchLeft", "mouthStretchRight", "jawOpen"),
-    ("browInnerUp", "browOuterUpLeft", "browOuterUpRight", "eyeWideLeft", "eyeWideRight", "jawOpen"),
-    ("browDownLeft", "browDownRight", "eyeSquintLeft", "eyeSquintRight"),
-    ("noseSneerLeft", "noseSneerRight", "mouthUpperUpLeft", "mouthUpperUpRight"),
-    ("mouthLeft",),
-    ("mouthRight",),
-    ("jawLeft",),
-    ("jawRight",),
-    ("mouthRollLower", "mouthRollUpper"),
-    ("mouthPressLeft", "mouthPressRight", "mouthShrugLower"),
-    ("cheekPuff",),
-    ("mouthSmileLeft",),
-    ("mouthLowerDownLeft", "mouthLowerDownRight", "jawOpen"),
-    ("eyeBlinkLeft", "eyeBlinkRight"),
-    ("mouthDimpleLeft", "mouthDimpleRight"),
-)
-_GAZE = (("eyeLookUpLeft", "eyeLookUpRight"), ("eyeLookDownLeft", "eyeLookDownRight"),
-         ("eyeLookInLeft", "eyeLookOutRight"), ("eyeLookOutLeft", "eyeLookInRight"))
-
-
-def sample_blendshapes(n: int, rng: np.random.Generator) -> np.ndarray:
-    """(n, 51) arkit51 weights: each frame 1-3 expression groups at random strengths, sometimes a blink or
-    a gaze, small noise on everything (like a tracker's output)."""
-    w = np.zeros((n, len(ARKIT51_NAMES)))
-    for t in range(n):
-        for g in rng.choice(len(_GROUPS), size=rng.integers(1, 4), replace=False):
-            s = rng.uniform(0.3, 1.0)
-            for name in _GROUPS[g]:
-                w[t, IDX[name]] = max(w[t, IDX[name]], s * rng.uniform(0.8, 1.0))
-        if rng.random() < 0.2:
-            b = rng.uniform(0.5, 1.0)
-            w[t, IDX["eyeBlinkLeft"]], w[t, IDX["eyeBlinkRight"]] = b, b * rng.uniform(0.9, 1.0)
-        if rng.random() < 0.4:
-            a, b = _GAZE[rng.integers(len(_GAZE))]
-            s = rng.uniform(0.2, 0.8)
-            w[t, IDX[a]], w[t, IDX[b]] = s, s
-    w += np.abs(rng.normal(0.0, 0.02, w.shape))
-    return np.clip(w, 0.0, 1.0).astype(np.float32)
+BENCHMARK_SEED = 0  # the estimator of the paired benchmark the default EPM was trained on
+TEST_SUBJECT = 1000  # subject ids of the benchmark are 0..29: this one is new to the EPM
 
 
 def capture_cameras(n: int = 3, size: int = 64, distance: float = 0.45, fov_deg: float = 26.0) -> list[Camera]:
@@ -152,28 +109,39 @@ def render_on_meshes(avatar: TrainableAvatar, meshes: np.ndarray, cameras: list[
 class SyntheticScene:
     head: HeadModel
     shape: np.ndarray  # (S,) the subject's identity coefficients
-    capture: Capture  # images, blendshapes, tracker (the FLAME fit of the rig meshes), split
+    capture: Capture  # images, observed blendshapes, tracker (the FLAME fit of the rig meshes), split
     gt_avatar: TrainableAvatar
+    rig_weights: np.ndarray  # (T, 51) the true weights that drove the rig
     rig_meshes: np.ndarray  # (T, V, 3)
     fit_rms: np.ndarray  # (T,) metres
 
 
 def make_scene(head: HeadModel, n_train: int, n_test: int, cameras: list[Camera], seed: int = 0,
-               per_face: int = 1, background: float = 1.0) -> SyntheticScene:
-    """Rig subject ``seed``, its blendshapes, rig meshes, tracker fit, and the ground-truth images."""
+               per_face: int = 1, background: float = 1.0, source: int = 0, stride: int = 4,
+               fps: float = 30.0) -> SyntheticScene:
+    """A new subject (``TEST_SUBJECT`` + seed) of paired-benchmark source ``source``; see the module docstring."""
+    from ..mapping.paired.benchmark import SOURCES
     from ..mapping.paired.fit import FlameFitter
-    from ..mapping.paired.rig import Rig, RigStyle
+    from ..mapping.paired.observe import estimator_params, observe_camera
+    from ..mapping.paired.rig import Rig, RigBasis, RigStyle
+    from ..mapping.paired.sequences import generate_weights
 
-    rng = np.random.default_rng(seed)
-    style = RigStyle.random(rng, head.shape_dims)
-    rig = Rig(head, style)
-    bs = sample_blendshapes(n_train + n_test, rng)
-    meshes = rig.mesh(bs)
+    src = SOURCES[source]
+    seeds = np.random.SeedSequence([BENCHMARK_SEED, TEST_SUBJECT + seed]).spawn(4)
+    rngs = [np.random.default_rng(s) for s in seeds]
+    style = RigStyle.random(rngs[0], head.shape_dims)
+    frames = (n_train + n_test) * stride
+    w = generate_weights(rngs[1], frames, fps, src.sequence)
+    estimator = estimator_params(np.random.default_rng([BENCHMARK_SEED, 0x50C, source]), src.noise)
+    bs = observe_camera(rngs[2], w, fps, src.noise, estimator)
+    pick = np.arange(0, frames, stride)
+    w, bs = w[pick], bs[pick].astype(np.float32)
+    meshes = Rig(head, style, None, RigBasis.build(head)).mesh(w)
     fitter = FlameFitter(head, shape=style.shape)
     fit = fitter.fit(meshes[:, fitter.vertex_ids])
     gt = ground_truth_avatar(head, style.shape, per_face=per_face, seed=seed)
     images = render_on_meshes(gt, meshes, cameras, background)
-    frames = [f"{i:06d}" for i in range(n_train + n_test)]
-    capture = Capture(cameras, images, bs, frames, tracker=fit.flame.astype(np.float32),
-                      split={"train": frames[:n_train], "test": frames[n_train:]})
-    return SyntheticScene(head, style.shape, capture, gt, meshes, fit.rms)
+    names = [f"{i * stride:06d}" for i in range(len(pick))]
+    capture = Capture(cameras, images, bs, names, tracker=fit.flame.astype(np.float32),
+                      split={"train": names[:n_train], "test": names[n_train:]})
+    return SyntheticScene(head, style.shape, capture, gt, w, meshes, fit.rms)

@@ -57,18 +57,18 @@ def layouts_table() -> dict:
             "layouts": layouts}
 
 
-@router.get("/", include_in_schema=False)
+@router.api_route("/", methods=["GET", "HEAD"], include_in_schema=False)
 async def index() -> FileResponse:
     """The preview page."""
     return FileResponse(STATIC / "index.html", media_type=_TYPES[".html"], headers={"Cache-Control": "no-cache"})
 
 
-@router.get("/static/layouts.json", include_in_schema=False)
+@router.api_route("/static/layouts.json", methods=["GET", "HEAD"], include_in_schema=False)
 async def layouts_json() -> JSONResponse:
     return JSONResponse(layouts_table(), headers={"Cache-Control": "no-cache"})
 
 
-@router.get("/static/{name:path}", include_in_schema=False)
+@router.api_route("/static/{name:path}", methods=["GET", "HEAD"], include_in_schema=False)
 async def static(name: str) -> FileResponse:
     """A file of the page (only files inside ``static/``, with a known type)."""
     path = (STATIC / name).resolve()

@@ -14,6 +14,7 @@ from ofera.mapping.paired.benchmark import SOURCES, make_benchmark
 from ofera.mapping.paired.data import SPLITS, PairedData, PairedDataError, concat
 from ofera.mapping.paired.fit import FitResult, FlameFitter, fit_vertices
 from ofera.mapping.paired.geometry import REGIONS, region_masks, vertices_from_flame
+from ofera.mapping.paired.importers import import_insta, import_metrical_tracker, import_vhap, read_blendshape_csv
 
 __all__ = [
     "REGIONS",
@@ -25,7 +26,11 @@ __all__ = [
     "PairedDataError",
     "concat",
     "fit_vertices",
+    "import_insta",
+    "import_metrical_tracker",
+    "import_vhap",
     "make_benchmark",
+    "read_blendshape_csv",
     "region_masks",
     "vertices_from_flame",
 ]

@@ -93,7 +93,7 @@ class RigBasis:
     roll_axis: np.ndarray  # (2, 3) points on the lower / upper roll axes (x axis direction)
     jaw: np.ndarray  # (V,) jaw share of each vertex (the rig's own, not the head's skinning weights)
     eyeball: np.ndarray  # (2, V) bool
-    close_lift: float  # lower-lip rise (m) that closes the lips at full jaw opening
+    close_lift: float  # lip gap (m) that a 0.36 rad jaw opening makes (the mouthClose corrective's scale)
 
     @classmethod
     def build(cls, head: HeadModel) -> RigBasis:
@@ -122,7 +122,7 @@ def _lip_sides(head: HeadModel) -> np.ndarray:
     return (v[:, 1] < y_line - 1e-6) | twin
 
 
-def _build_basis(head: HeadModel) -> RigBasis:  # noqa: PLR0915 - one shape after the other, by meaning
+def _build_basis(head: HeadModel) -> RigBasis:
     v = head.v_template.astype(np.float64)
     nv = len(v)
     x, y, z = v.T
@@ -231,7 +231,8 @@ def _build_basis(head: HeadModel) -> RigBasis:  # noqa: PLR0915 - one shape afte
     lin[IDX["mouthPucker"]] = lips[:, None] * ([0, 0, 0.0060] + towards_mid * 0.0050)
     lin[IDX["mouthPucker"]] += field(lips * upper, (0, -1, 0), 0.0010) + field(lips * lower, (0, 1, 0), 0.0010)
     quad[IDX["mouthPucker"]] = field(lips, (0, 0, 1), 0.0020)
-    lin[IDX["mouthFunnel"]] = field(lip_zone * upper, (0, 0.7, 1), 0.0040) + field(lip_zone * lower, (0, -0.7, 1), 0.0040)
+    lin[IDX["mouthFunnel"]] = field(lip_zone * upper, (0, 0.7, 1), 0.0040) \
+        + field(lip_zone * lower, (0, -0.7, 1), 0.0040)
     lin[IDX["mouthFunnel"]] += lip_zone[:, None] * towards_mid * 0.0030
     quad[IDX["mouthFunnel"]] = field(lips, (0, 0, 1), 0.0020)
     add("mouthLeft", bump(mouth, 0.012, (1.8, 1.0, 1.0)), (1, 0, 0.05), 0.0050)
@@ -248,9 +249,9 @@ def _build_basis(head: HeadModel) -> RigBasis:  # noqa: PLR0915 - one shape afte
     # Lips together while the jaw is open: in the rest pose the lower lip rises by the gap that the jaw
     # opens at the lips (the rotation then carries it), the upper lip comes down a little.
     pivot = lm["jaw_pivot"]
-    close_lift = float(np.linalg.norm((ll - pivot)[1:]))  # times the opening angle = gap at the lips
+    close_lift = 0.36 * float(np.linalg.norm((ll - pivot)[1:]))  # gap at the lips at a 0.36 rad opening
     ci = CORRECTIVES.index(("jawOpen", "mouthClose"))
-    corr[ci] = field(bump(ll, 0.010, (2.2, 1.4, 1.0)) * lower, (0, 1, -0.15), 0.75 * close_lift)
+    corr[ci] = field(bump(ll, 0.010, (2.2, 1.4, 1.0)) * lower, (0, 1, -0.15), 0.9 * close_lift)
     corr[ci] += field(bump(ul, 0.009, (2.2, 1.2, 1.0)) * upper, (0, -1, 0), 0.20 * close_lift)
     ci = CORRECTIVES.index(("mouthPucker", "mouthFunnel"))
     corr[ci] = field(lips, (0, 0, 1), 0.0020)
@@ -262,6 +263,9 @@ def _build_basis(head: HeadModel) -> RigBasis:  # noqa: PLR0915 - one shape afte
     roll_axis = np.stack([ll + [0, 0.001, -0.007], ul + [0, -0.001, -0.007]])
     # --- the rig's own jaw share: the head's jaw skinning, broadened -------------------------------
     jaw = np.clip(head.weights[:, 2], 0.0, 1.0) ** 0.8 * skin + head.weights[:, 2] * (1 - skin)
+    # A real upper lip stays with the skull when the jaw opens (the head's skinning lets it follow half way).
+    upper_lip = upper * (np.abs(x) < 1.3 * width) * (np.abs(y - mouth[1]) < 0.012) * (z > mouth[2] - 0.03)
+    jaw = np.where(upper_lip > 0, 0.3 * jaw, jaw)
     eyeball = np.stack([labels["eyeball_left"], labels["eyeball_right"]])
     no_eye = ~eyeball.any(axis=0)
     return RigBasis(

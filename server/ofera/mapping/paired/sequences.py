@@ -77,6 +77,10 @@ VOWELS: dict[str, np.ndarray] = {
 VISEMES = {**CONSONANTS, **VOWELS}
 _CONSONANT_P = np.array([0.18, 0.1, 0.22, 0.16, 0.07, 0.12, 0.08, 0.07])
 _VOWEL_P = np.array([0.24, 0.24, 0.2, 0.13, 0.1, 0.09])
+_IDLE_CAP = np.ones(N_SHAPES)  # idle activity is milder on shapes that real captures rarely push far
+for _name, _cap in (("mouthClose", 0.3), ("jawForward", 0.6), ("jawLeft", 0.6), ("jawRight", 0.6),
+                    ("cheekPuff", 0.8), ("mouthRollUpper", 0.7), ("mouthRollLower", 0.7)):
+    _IDLE_CAP[IDX[_name]] = _cap
 _PAIRS = np.array([[IDX[n], IDX[n[:-4] + "Right"]] for n in IDX if n.endswith("Left")])
 
 
@@ -215,7 +219,7 @@ def idle_layer(rng: np.random.Generator, frames: int, fps: float, style: Sequenc
         shape = rng.integers(0, N_SHAPES, n)
         start = rng.uniform(-1.0, frames / fps, n)
         dur = rng.uniform(0.4, 2.5, n)
-        amp = rng.uniform(0.1, 0.7, n) * style.expressiveness
+        amp = rng.uniform(0.1, 0.7, n) * style.expressiveness * _IDLE_CAP[shape]
         t = np.arange(frames) / fps
         tau = (t[None, :] - start[:, None]) / dur[:, None]
         bump = np.where((tau > 0) & (tau < 1), 0.5 - 0.5 * np.cos(2 * np.pi * np.clip(tau, 0, 1)), 0.0) * amp[:, None]

@@ -4,10 +4,9 @@
 // canvas side, default 480), ?minfps=15, ?fill=0 (no splat enlargement of a reduced stream),
 // ?avatar=ID, ?device=NAME, ?token=T, ?ws=URL.
 import { parseFaceLog } from "./facelog.js";
-import {
-  AvatarState, byeMessage, bsMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError,
-} from "./protocol.js";
-import { lookAt, perspective, SplatRenderer, textureCapacity } from "./renderer.js";
+import { decode } from "./msgpack.js";
+import { bsMessage, byeMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError } from "./protocol.js";
+import { lookAt, perspective, SplatRenderer } from "./renderer.js";
 
 const params = new URLSearchParams(location.search);
 const intParam = (name) => {
@@ -28,9 +27,10 @@ const opts = {
 };
 opts.auto = params.get("auto") !== "0" && opts.forcedMax === null;
 
-const MIN_GAUSSIANS = 4000; // never ask for fewer when reducing automatically
+const MIN_GAUSSIANS = 10000; // never ask for fewer when reducing automatically
 const SLOW_WINDOW_MS = 3000; // fps below minFps for this long -> reduced stream
-const MEASURE_MS = 4000; // draw continuously this long after an avatar arrives, to measure fps
+const MEASURE_MS = 4000; // keep updating this long after an avatar arrives, to measure fps
+const ACTIVE_MS = 1500; // keep updating this long after any change
 
 const PRESETS = {
   neutral: {},
@@ -54,7 +54,8 @@ const sliders = [];
 let weightsDirty = true;
 
 let renderer = null;
-let conn = null; // { ws, gen, state, welcome, avatar, maxGaussians, seq, lastSeq, lastSendMs, since }
+const worker = new Worker(new URL("./splat-worker.js", import.meta.url), { type: "module" });
+let conn = null; // { ws, gen, state, welcome, count, maxGaussians, seq, lastSeq, lastSendMs, closing }
 let connGen = 0;
 let retryMs = 1000;
 let fullCount = null; // Gaussians of the full avatar (from /v1/avatars or a full welcome)
@@ -63,10 +64,11 @@ let reductions = 0;
 const cam = { yaw: 0, pitch: 0, dist: 0.6, target: [0, 0, 0], home: null, fovy: (30 * Math.PI) / 180 };
 let viewMat = null, projMat = null;
 
-let dynamicDirty = false, needsDraw = false, sortWanted = false, sortBusy = false;
-let pendingSeq = -1, drawnSeq = -1, sortedSeq = -1, sortId = 0;
+let prepWanted = false, prepBusy = false, prepId = 0, prepSentAt = 0, prepMs = 0, spare = null;
+let viewVersion = 0, drawnView = -1, prepView = -1;
+let needsDraw = false, drawnSeq = -1, fresh = false;
 let rafPending = false, activeUntil = 0, activeSince = null;
-const drawTimes = [];
+const updateTimes = []; // when new content was drawn
 const latencies = [];
 let lastBytes = 0, lastTiming = null, framesReceived = 0, framesDrawn = 0, droppedSeq = 0;
 let fps = 0;
@@ -78,22 +80,23 @@ const debug = {
   opts,
   get status() { return conn?.state ?? "idle"; },
   get session() { return conn?.welcome?.session ?? null; },
-  get count() { return conn?.avatar?.count ?? 0; },
+  get count() { return conn?.count ?? 0; },
   get fullCount() { return fullCount; },
   get maxGaussians() { return conn?.maxGaussians ?? null; },
   get encoding() { return conn?.welcome?.encoding ?? null; },
   get lastSentSeq() { return conn ? conn.seq - 1 : -1; },
   get lastFrameSeq() { return conn?.lastSeq ?? -1; },
   get drawnSeq() { return drawnSeq; },
-  get sortedSeq() { return sortedSeq; },
   get framesReceived() { return framesReceived; },
   get framesDrawn() { return framesDrawn; },
   get fps() { return fps; },
+  get prepMs() { return prepMs; },
   get reductions() { return reductions; },
   get errors() { return errors.slice(); },
+  /** Streaming, every slider change sent and answered, and the newest frame drawn. */
   get settled() {
     return conn?.state === "streaming" && !weightsDirty && conn.lastSeq === conn.seq - 1 && drawnSeq === conn.lastSeq
-      && sortedSeq === drawnSeq && !dynamicDirty && !needsDraw && !sortBusy && !sortWanted;
+      && drawnView === viewVersion && !prepBusy && !needsDraw;
   },
   get playing() { return playback !== null && playback.timer !== null; },
   setWeight(name, value) { setWeights({ ...currentWeights(), [name]: value }); },
@@ -101,16 +104,14 @@ const debug = {
   preset: applyPreset,
   playText(text, name = "test.csv") { return loadRecording(text, name); },
   weights: () => Array.from(weights),
-  /** Milliseconds per draw (waiting for the pixels), averaged over `n` draws: the renderer's own cost. */
+  /** Milliseconds per draw of the current splats (waiting for the pixels), averaged over `n` draws. */
   benchDraw(n = 3) {
-    const c = conn;
-    if (!c?.avatar?.complete) return null;
-    const [v, p] = matrices();
     const px = new Uint8Array(4);
+    const gl = renderer.gl;
     const t0 = performance.now();
     for (let i = 0; i < n; i++) {
-      renderer.draw(v, p, 1);
-      renderer.gl.readPixels(0, 0, 1, 1, renderer.gl.RGBA, renderer.gl.UNSIGNED_BYTE, px);
+      renderer.draw();
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);
     }
     return (performance.now() - t0) / n;
   },
@@ -302,8 +303,9 @@ function connect(maxGaussians) {
   const gen = ++connGen;
   const ws = new WebSocket(opts.url);
   ws.binaryType = "arraybuffer";
-  conn = { ws, gen, state: "connecting", welcome: null, avatar: null, maxGaussians, seq: 0, lastSeq: -1, lastSendMs: 0, since: performance.now() };
+  conn = { ws, gen, state: "connecting", welcome: null, count: 0, maxGaussians, seq: 0, lastSeq: -1, lastSendMs: 0 };
   const c = conn;
+  prepBusy = false;
   setStatus(`connecting to ${opts.url}${maxGaussians ? ` (at most ${maxGaussians} Gaussians)` : ""} …`);
   ws.onopen = () => {
     ws.send(helloMessage({ layout: "arkit52", avatar: opts.avatar, encoding: opts.encoding, sparse: opts.sparse,
@@ -312,11 +314,11 @@ function connect(maxGaussians) {
   ws.onmessage = (ev) => {
     if (c !== conn) return;
     try {
-      onMessage(c, new Uint8Array(ev.data));
+      onMessage(c, ev.data);
     } catch (e) {
       const fatal = c.state !== "streaming" || !(e instanceof ProtocolError);
       reportError(`${fatal ? "fatal" : "dropped a frame"}: ${e.message}`);
-      if (fatal) { setStatus(`protocol error: ${e.message}`, true); c.closing = true; ws.close(4000, e.code ?? "internal"); }
+      if (fatal) fatalClose(c, e);
     }
   };
   ws.onclose = (ev) => {
@@ -331,61 +333,94 @@ function connect(maxGaussians) {
   };
 }
 
-function onMessage(c, bytes) {
-  const msg = decodeServerMessage(bytes);
-  if (msg.type === "error") {
+function fatalClose(c, e) {
+  setStatus(`protocol error: ${e.message}`, true);
+  c.closing = true;
+  c.state = "closed";
+  const codes = { malformed: 4000, unknown_type: 4001, bad_field: 4002, bad_length: 4003, non_finite: 4004, not_ready: 4005 };
+  try { c.ws.close(codes[e.code] ?? 4000, e.code ?? "internal"); } catch { /* gone */ }
+}
+
+function intField(msg, key) {
+  const v = msg[key];
+  if (typeof v !== "number" || !Number.isInteger(v)) throw new ProtocolError("bad_field", `${msg.type}: '${key}' is not an int`);
+  return v;
+}
+
+// Avatar chunks and frames are checked and applied in the worker; here only what the page needs.
+function onMessage(c, buffer) {
+  const bytes = new Uint8Array(buffer);
+  let msg;
+  try { msg = decode(bytes); } catch (e) { throw new ProtocolError("malformed", e.message); }
+  const type = msg?.type;
+  if (type !== "avatar" && type !== "frame") msg = decodeServerMessage(bytes);
+  if (type === "error") {
     reportError(`server ${msg.fatal ? "fatal " : ""}error ${msg.code}: ${msg.message}`);
-    if (msg.fatal) setStatus(`server refused: ${msg.code}: ${msg.message}`, true);
+    if (msg.fatal) { setStatus(`server refused: ${msg.code}: ${msg.message}`, true); if (c.state !== "streaming") retryMs = 15000; }
     return;
   }
-  if (msg.type === "pong") return;
+  if (type === "pong") return;
   if (c.state === "connecting") {
-    if (msg.type !== "welcome") throw new ProtocolError("not_ready", `expected welcome, got ${msg.type}`);
+    if (type !== "welcome") throw new ProtocolError("not_ready", `expected welcome, got ${type}`);
     c.welcome = msg;
+    c.count = msg.avatar.count;
     c.state = "avatar";
     if (c.maxGaussians === null || c.maxGaussians === undefined) fullCount = msg.avatar.count;
     if (c.maxGaussians && msg.avatar.count > c.maxGaussians) {
       reportError(`the server ignored max_gaussians ${c.maxGaussians} (welcome count ${msg.avatar.count})`);
     }
-    c.avatar = new AvatarState(msg, textureCapacity(msg.avatar.count));
+    worker.postMessage({ kind: "welcome", gen: c.gen, welcome: msg });
     setStatus(`receiving avatar: ${msg.avatar.count} Gaussians …`);
     return;
   }
   if (c.state === "avatar") {
-    if (msg.type !== "avatar") throw new ProtocolError("not_ready", `expected an avatar chunk, got ${msg.type}`);
-    const done = c.avatar.applyChunk(msg);
-    setStatus(`receiving avatar: chunk ${msg.chunk + 1}/${msg.chunks}`);
-    if (done) onAvatar(c);
+    if (type !== "avatar") throw new ProtocolError("not_ready", `expected an avatar chunk, got ${type}`);
+    setStatus(`receiving avatar: chunk ${intField(msg, "chunk") + 1}/${intField(msg, "chunks")}`);
+    worker.postMessage({ kind: "chunk", gen: c.gen, buffer }, [buffer]);
     return;
   }
-  if (msg.type !== "frame") throw new ProtocolError("bad_field", `unexpected ${msg.type} while streaming`);
-  c.avatar.applyFrame(msg);
-  if (c.lastSeq >= 0 && msg.seq > c.lastSeq + 1) droppedSeq += msg.seq - c.lastSeq - 1;
-  c.lastSeq = msg.seq;
-  framesReceived++;
+  if (type !== "frame") throw new ProtocolError("bad_field", `unexpected ${type} while streaming`);
+  const seq = intField(msg, "seq"), t = intField(msg, "t");
   lastBytes = bytes.length;
+  worker.postMessage({ kind: "frame", gen: c.gen, buffer }, [buffer]);
+  if (c.lastSeq >= 0 && seq > c.lastSeq + 1) droppedSeq += seq - c.lastSeq - 1;
+  c.lastSeq = seq;
+  framesReceived++;
   lastTiming = msg.timing;
-  latencies.push((nowUs() - msg.t) / 1000);
+  latencies.push((nowUs() - t) / 1000);
   if (latencies.length > 30) latencies.shift();
-  pendingSeq = msg.seq;
-  dynamicDirty = true;
+  prepWanted = true;
   wake();
 }
 
-function onAvatar(c) {
-  c.state = "streaming";
-  retryMs = 1000;
-  const a = c.avatar;
-  renderer.setGaussians(a);
-  drawnSeq = sortedSeq = pendingSeq = -1;
-  if (!cam.home) frameCamera(a);
-  const w = c.welcome;
-  setStatus(`streaming ${w.avatar.id}: ${a.count}${fullCount && a.count < fullCount ? ` of ${fullCount}` : ""} Gaussians, ${w.encoding}${w.sparse ? " sparse" : ""} · session ${w.session}`);
-  weightsDirty = true; // the first frame shows the sliders' expression
-  sortWanted = needsDraw = true;
-  activeSince = null;
-  wake(MEASURE_MS);
-}
+worker.onmessage = ({ data }) => {
+  const c = conn;
+  if (data.kind === "prepared") prepBusy = false;
+  if (!c || data.gen !== c.gen || data.stale) { schedule(); return; }
+  if (data.kind === "avatar") {
+    c.state = "streaming";
+    retryMs = 1000;
+    if (!cam.home) frameCamera(data.lo, data.hi);
+    const w = c.welcome;
+    setStatus(`streaming ${w.avatar.id}: ${c.count}${fullCount && c.count < fullCount ? ` of ${fullCount}` : ""} Gaussians, ${w.encoding}${w.sparse ? " sparse" : ""} · session ${w.session}`);
+    weightsDirty = true; // the first frame shows the sliders' expression
+    drawnSeq = -1;
+    prepWanted = true;
+    activeSince = null;
+    wake(MEASURE_MS);
+  } else if (data.kind === "error") {
+    reportError(`${data.fatal ? "fatal" : "dropped a frame"}: ${data.code}: ${data.message}`);
+    if (data.fatal) fatalClose(c, new ProtocolError(data.code, data.message));
+  } else if (data.kind === "prepared") {
+    prepMs = performance.now() - prepSentAt;
+    renderer.setSplats(data.buffer, data.count);
+    spare = data.buffer;
+    drawnSeq = data.seq;
+    drawnView = prepView;
+    needsDraw = fresh = true;
+    schedule();
+  }
+};
 
 function maybeSend(now) {
   const c = conn;
@@ -398,20 +433,29 @@ function maybeSend(now) {
   weightsDirty = false;
 }
 
+function scaleMul() {
+  const n = conn?.count ?? 0;
+  return opts.fill && fullCount && n && n < fullCount ? Math.min(4, Math.sqrt(fullCount / n)) : 1;
+}
+
+function requestPrep() {
+  const [view, proj] = matrices();
+  prepBusy = true;
+  prepWanted = false;
+  prepSentAt = performance.now();
+  prepView = viewVersion;
+  const msg = { kind: "prep", gen: conn.gen, id: ++prepId, view, proj, width: canvas.width, height: canvas.height,
+    scaleMul: scaleMul(), buffer: spare };
+  worker.postMessage(msg, spare ? [spare] : []);
+  spare = null;
+}
+
 // ----- camera ---------------------------------------------------------------------------------------------
 
-function frameCamera(a) {
-  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-  for (let i = 0; i < a.count; i++) {
-    for (let k = 0; k < 3; k++) {
-      const v = a.position[3 * i + k];
-      if (v < lo[k]) lo[k] = v;
-      if (v > hi[k]) hi[k] = v;
-    }
-  }
+function frameCamera(lo, hi) {
   const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 1e-3);
   const target = [(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2 + 0.08 * (hi[1] - lo[1]), (lo[2] + hi[2]) / 2];
-  cam.home = { target, dist: (0.55 * size) / Math.tan(cam.fovy / 2), yaw: 0, pitch: 0 };
+  cam.home = { target, dist: (0.62 * size) / Math.tan(cam.fovy / 2), yaw: 0, pitch: 0 };
   resetCamera();
 }
 
@@ -423,7 +467,8 @@ function resetCamera() {
 
 function viewChanged() {
   viewMat = null;
-  sortWanted = needsDraw = true;
+  viewVersion++;
+  prepWanted = true;
   wake();
 }
 
@@ -470,36 +515,16 @@ function resize() {
   }
 }
 
-// ----- sorting -------------------------------------------------------------------------------------------
+// ----- the display loop ----------------------------------------------------------------------------------
+// While something changes (and for a while after), the loop keeps the worker preparing splats for the
+// current view and draws each result: the rate of new pictures is the page's fps. Idle, it stops.
 
-const sorter = new Worker(new URL("./sort-worker.js", import.meta.url));
-sorter.onmessage = (ev) => {
-  sortBusy = false;
-  const { id, order } = ev.data;
-  const job = sorter.job;
-  if (job && job.id === id && job.gen === connGen && conn?.avatar && order.length === conn.avatar.count) {
-    renderer.setOrder(order);
-    sortedSeq = job.seq;
-    needsDraw = true;
-  }
-  wake();
-};
-
-function requestSort() {
-  const a = conn?.avatar;
-  if (!a?.complete) return;
-  const [v] = matrices();
-  const positions = a.position.slice(0, a.count * 3);
-  sorter.job = { id: ++sortId, gen: connGen, seq: drawnSeq };
-  sortBusy = true;
-  sortWanted = false;
-  sorter.postMessage({ id: sortId, positions, n: a.count, view: [v[2], v[6], v[10], v[14]] }, [positions.buffer]);
+function wake(ms = ACTIVE_MS) {
+  activeUntil = Math.max(activeUntil, performance.now() + ms);
+  schedule();
 }
 
-// ----- the display loop ----------------------------------------------------------------------------------
-
-function wake(ms = 1500) {
-  activeUntil = Math.max(activeUntil, performance.now() + ms);
+function schedule() {
   if (!rafPending) {
     rafPending = true;
     requestAnimationFrame(tick);
@@ -509,29 +534,20 @@ function wake(ms = 1500) {
 function tick(now) {
   rafPending = false;
   maybeSend(now);
-  const c = conn;
-  const ready = c?.avatar?.complete && c.state !== "closed";
   if (playback?.slidersStale) { playback.slidersStale = false; syncSliders(); }
-  if (ready && dynamicDirty) {
-    renderer.updateDynamic(c.avatar);
-    dynamicDirty = false;
-    drawnSeq = pendingSeq;
-    sortWanted = needsDraw = true;
-  }
-  if (ready && sortWanted && !sortBusy) requestSort();
+  const c = conn;
+  const streaming = c?.state === "streaming";
   const active = now < activeUntil;
-  if (ready && (needsDraw || active)) {
-    const [v, p] = matrices();
-    const full = fullCount ?? c.avatar.count;
-    const mul = opts.fill && c.avatar.count < full ? Math.min(2.5, Math.sqrt(full / c.avatar.count)) : 1;
-    renderer.draw(v, p, mul);
+  if (streaming && (prepWanted || active) && !prepBusy) requestPrep();
+  if (needsDraw) {
+    renderer.draw();
     needsDraw = false;
     framesDrawn++;
-    drawTimes.push(now);
+    if (fresh) { updateTimes.push(now); fresh = false; }
   }
-  measure(now, active && ready);
+  measure(now, active && streaming);
   updateHud(now);
-  if (active || needsDraw || dynamicDirty || weightsDirty || sortBusy) {
+  if (active || needsDraw || weightsDirty || prepBusy || prepWanted) {
     rafPending = true;
     requestAnimationFrame(tick);
   } else {
@@ -540,23 +556,23 @@ function tick(now) {
 }
 
 function measure(now, running) {
-  while (drawTimes.length && drawTimes[0] < now - SLOW_WINDOW_MS) drawTimes.shift();
+  while (updateTimes.length && updateTimes[0] < now - SLOW_WINDOW_MS) updateTimes.shift();
   if (!running) { activeSince = null; return; }
   if (activeSince === null) activeSince = now;
   const since = Math.max(activeSince, now - 1000);
-  if (now - since >= 250) fps = (drawTimes.filter((t) => t > since).length * 1000) / (now - since);
+  if (now - since >= 250) fps = (updateTimes.filter((t) => t > since).length * 1000) / (now - since);
   const c = conn;
   if (!opts.auto || c?.state !== "streaming" || now - activeSince < SLOW_WINDOW_MS) return;
-  const windowFps = (drawTimes.filter((t) => t > now - SLOW_WINDOW_MS).length * 1000) / SLOW_WINDOW_MS;
+  const windowFps = (updateTimes.filter((t) => t > now - SLOW_WINDOW_MS).length * 1000) / SLOW_WINDOW_MS;
   if (windowFps >= opts.minFps) return;
-  const count = c.avatar.count;
+  const count = c.count;
   if (count <= MIN_GAUSSIANS) return;
   const ratio = Math.min(0.7, Math.max(0.2, windowFps / (opts.minFps * 1.3)));
   const target = Math.max(MIN_GAUSSIANS, Math.floor(count * ratio));
   reductions++;
   reportError(`${windowFps.toFixed(1)} fps < ${opts.minFps} for ${SLOW_WINDOW_MS / 1000} s: reconnecting for at most ${target} Gaussians (of ${count})`);
   activeSince = null;
-  drawTimes.length = 0;
+  updateTimes.length = 0;
   connect(target);
 }
 
@@ -567,10 +583,10 @@ function updateHud(now) {
   const c = conn;
   const lat = latencies.length ? latencies.reduce((s, x) => s + x, 0) / latencies.length : null;
   const lines = [
-    `fps      ${activeSince === null ? "idle" : fps.toFixed(1)}`,
+    `fps      ${fps.toFixed(1)}${activeSince === null ? " (idle)" : ""} · prepare ${prepMs.toFixed(0)} ms`,
     `latency  ${lat === null ? "-" : `${latencies[latencies.length - 1].toFixed(1)} ms (avg ${lat.toFixed(1)})`}`,
     `frame    ${lastBytes ? `${(lastBytes / 1024).toFixed(1)} KiB` : "-"}${lastTiming?.total !== undefined ? ` · server ${(lastTiming.total / 1000).toFixed(1)} ms` : ""}`,
-    `gauss.   ${c?.avatar ? c.avatar.count : "-"}${fullCount && c?.avatar && c.avatar.count < fullCount ? ` / ${fullCount}` : ""}  ${c?.welcome ? `${c.welcome.encoding}${c.welcome.sparse ? " sparse" : ""}` : ""}`,
+    `gauss.   ${c?.count || "-"}${fullCount && c?.count && c.count < fullCount ? ` / ${fullCount}` : ""}  ${c?.welcome ? `${c.welcome.encoding}${c.welcome.sparse ? " sparse" : ""}` : ""}`,
     `frames   ${framesReceived} recv · ${droppedSeq} skipped`,
   ];
   $("hud").textContent = lines.join("\n");

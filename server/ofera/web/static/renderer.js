@@ -1,24 +1,27 @@
-// WebGL2 splat drawing: one instanced quad per Gaussian, in the order given (farthest first), blended
-// with premultiplied alpha. The per-splat screen-space ellipse (centre and the two scaled eigenvectors
-// of the projected 2D covariance) is computed with the depth sort in splat-worker.js: the vertex shader
-// only places the quad's corners, and the fragment shader applies the gaussian falloff. (Computing the
-// projection per vertex costs four times the work, which a software rasteriser like SwiftShader feels.)
+// WebGL2 splat drawing: one quad per Gaussian, in the order given (farthest first), blended with
+// premultiplied alpha. The per-splat screen-space ellipse (the projected 2D covariance's eigenvectors
+// scaled by sqrt(2 lambda)) is computed with the depth sort in splat-worker.js, which writes the quads'
+// four corners; the vertex shader passes them on and the fragment shader applies the gaussian falloff
+// exp(-|p|^2) over the quad's local coordinates p in [-2, 2]^2 (from gl_VertexID).
+// Why not instanced quads with the projection in the vertex shader? Software rasterisers (SwiftShader,
+// which headless and GPU-less browsers use) pay dearly per instance and per vertex-shader instruction:
+// there a plain indexed triangle list drawn this way is an order of magnitude faster.
 
-/** Bytes per splat in the instance buffer: centre (2 f32), axes (4 f32), RGBA8 colour and opacity. */
-export const SPLAT_BYTES = 28;
+/** Bytes per vertex (corner): NDC x, y (2 float32), RGBA8 colour and opacity; four per splat. */
+export const VERTEX_BYTES = 12;
+export const SPLAT_BYTES = 4 * VERTEX_BYTES;
 
 const VS = `#version 300 es
 precision highp float;
-in vec2 aCorner;
-in vec2 aCenter;
-in vec4 aAxes;
+in vec2 aPosition;
 in vec4 aColor;
 out vec4 vColor;
 out vec2 vPos;
 void main() {
+  int corner = gl_VertexID & 3;
+  vPos = vec2((corner & 1) == 1 ? 2.0 : -2.0, (corner & 2) == 2 ? 2.0 : -2.0);
   vColor = aColor;
-  vPos = aCorner;
-  gl_Position = vec4(aCenter + aCorner.x * aAxes.xy + aCorner.y * aAxes.zw, 0.0, 1.0);
+  gl_Position = vec4(aPosition, 0.0, 1.0);
 }`;
 
 const FS = `#version 300 es
@@ -83,35 +86,43 @@ export class SplatRenderer {
     this.prog = prog;
     this.vao = gl.createVertexArray();
     gl.bindVertexArray(this.vao);
-    const corners = gl.createBuffer();
-    gl.bindBuffer(gl.ARRAY_BUFFER, corners);
-    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-2, -2, 2, -2, -2, 2, 2, 2]), gl.STATIC_DRAW);
-    const loc = (name) => gl.getAttribLocation(prog, name);
-    gl.enableVertexAttribArray(loc("aCorner"));
-    gl.vertexAttribPointer(loc("aCorner"), 2, gl.FLOAT, false, 0, 0);
-    this.splats = gl.createBuffer();
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.splats);
-    const attrs = [["aCenter", 2, gl.FLOAT, false, 0], ["aAxes", 4, gl.FLOAT, false, 8], ["aColor", 4, gl.UNSIGNED_BYTE, true, 24]];
-    for (const [name, size, type, normalized, offset] of attrs) {
-      gl.enableVertexAttribArray(loc(name));
-      gl.vertexAttribPointer(loc(name), size, type, normalized, SPLAT_BYTES, offset);
-      gl.vertexAttribDivisor(loc(name), 1);
-    }
+    this.vertices = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vertices);
+    const aPosition = gl.getAttribLocation(prog, "aPosition"), aColor = gl.getAttribLocation(prog, "aColor");
+    gl.enableVertexAttribArray(aPosition);
+    gl.vertexAttribPointer(aPosition, 2, gl.FLOAT, false, VERTEX_BYTES, 0);
+    gl.enableVertexAttribArray(aColor);
+    gl.vertexAttribPointer(aColor, 4, gl.UNSIGNED_BYTE, true, VERTEX_BYTES, 8);
+    this.indices = gl.createBuffer();
+    gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.indices);
     gl.bindVertexArray(null);
     this.count = 0;
-    this.capacity = 0;
+    this.capacity = 0; // bytes of the vertex buffer
+    this.quads = 0; // quads the index buffer holds
   }
 
-  /** Splats to draw, farthest first: `count` records of SPLAT_BYTES in `buffer` (an ArrayBuffer). */
+  /** Splats to draw, farthest first: `count` quads of SPLAT_BYTES in `buffer` (an ArrayBuffer). */
   setSplats(buffer, count) {
     const gl = this.gl;
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.splats);
+    gl.bindVertexArray(this.vao);
+    if (count > this.quads) {
+      const quads = Math.max(count, Math.ceil(this.quads * 1.25));
+      const idx = new Uint32Array(quads * 6);
+      for (let k = 0; k < quads; k++) {
+        const v = 4 * k, o = 6 * k;
+        idx[o] = v; idx[o + 1] = v + 1; idx[o + 2] = v + 2; idx[o + 3] = v + 1; idx[o + 4] = v + 3; idx[o + 5] = v + 2;
+      }
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, idx, gl.STATIC_DRAW);
+      this.quads = quads;
+    }
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vertices);
     const bytes = count * SPLAT_BYTES;
     if (bytes > this.capacity) {
       this.capacity = Math.max(bytes, Math.ceil(this.capacity * 1.25));
       gl.bufferData(gl.ARRAY_BUFFER, this.capacity, gl.DYNAMIC_DRAW);
     }
     if (bytes) gl.bufferSubData(gl.ARRAY_BUFFER, 0, new Uint8Array(buffer, 0, bytes));
+    gl.bindVertexArray(null);
     this.count = count;
   }
 
@@ -127,7 +138,7 @@ export class SplatRenderer {
     gl.enable(gl.BLEND);
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
     gl.bindVertexArray(this.vao);
-    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, this.count);
+    gl.drawElements(gl.TRIANGLES, 6 * this.count, gl.UNSIGNED_INT, 0);
     gl.bindVertexArray(null);
   }
 }

@@ -1,0 +1,252 @@
+"""Encode a frame straight into its outgoing message buffer (numpy + msgpack only; kernels pluggable).
+
+:func:`codec.encode_frame` builds the three encoded arrays, then joins them with the msgpack header
+(two full copies of the payload, plus gather / mirror copies in the caller). :class:`FrameWriter`
+instead lays the message out once per frame and lets a *kernel* read the server's float32 state and
+write each encoded field directly into its place in one buffer, selecting the frame's Gaussians
+(`gather`) and mirroring coordinates on the way. The bytes are identical to
+``encode_frame(Frame(...), fmt)`` after ``to_coords`` and the gather (tests check it).
+
+Kernels are an object with five methods (:class:`NumpyKernels` is the plain numpy one; every value is
+finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` per component):
+
+    f32(src (N, k) f32, gather (M,) int64 | None, sign (k,) f32, dst (M k,) f32) -> bool finite
+    f16(src, gather, sign, dst (M k,) uint16 [IEEE half bits])             -> bool finite, |x| <= 65504
+    q13_position(src (N, 3), gather, sign (3,), lo (3,) f64, k (3,) f64, dst (M 3,) uint16)
+                 [q = clip(rint((float64(p) - lo) * k), 0, 65535), see :func:`position_factors`]
+    q13_rotation(src (N, 4), gather, sign (4,), dst (M,) uint32)
+    q13_scale(src (N, 3), gather, thresholds (255,) f32, dst (M 3,) uint8)
+
+The protocol package stays importable with numpy and msgpack only: the numba kernels live in the
+server (``ofera.streaming.encode_fast.numba_kernels()``), which passes them in.
+
+q13 scales are encoded by threshold search: :func:`scale_thresholds` finds, with the reference
+quantiser itself, the smallest float32 scale of every code 1..255, so a kernel reproduces the
+reference's float32 logarithm bit for bit without computing one (valid because the quantiser is
+monotonic in the scale).
+
+Buffers come from a small pool: a returned ``memoryview`` is not reused while it (or anything made from
+it) is still referenced, so it can be cached and sent later; a steady stream allocates nothing.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from .encodings import POS_LEVELS, SCALE_LEVELS, FrameFormat, pack_smallest_three, quantize_log_scale
+from .messages import Quant
+
+_SIGN = {"flame": (np.ones(3, np.float32), np.ones(4, np.float32)),
+         "unity": (np.array([-1, 1, 1], np.float32), np.array([1, -1, -1, 1], np.float32))}
+_ONES3 = np.ones(3, np.float32)
+F16_MAX = 65504.0
+F32_MAX = float(np.finfo(np.float32).max)
+
+
+def coord_signs(coords: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-component factors (position (3,), rotation (4,)) that express FLAME values in `coords`."""
+    if coords not in _SIGN:
+        raise ValueError(f"unknown coords {coords!r}; expected one of {tuple(_SIGN)}")
+    return _SIGN[coords]
+
+
+def position_factors(quant: Quant) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, k) float64 of the reference position quantiser: q = rint((p - lo) * k)."""
+    lo = quant.pos_min.astype(np.float64)
+    return lo, POS_LEVELS / (quant.pos_max.astype(np.float64) - lo)
+
+
+def scale_thresholds(quant: Quant) -> np.ndarray:
+    """(255,) float32: entry c-1 is the smallest positive float32 scale the reference quantiser
+    (:func:`encodings.quantize_log_scale`) maps to a code >= c. A scale's code is the number of
+    entries <= it (0 for zero, negative and NaN scales)."""
+    target = np.arange(1, SCALE_LEVELS + 1)
+    lo = np.zeros(SCALE_LEVELS, np.int64)  # bits of +0.0: code 0
+    hi = np.full(SCALE_LEVELS, 0x7F800000, np.int64)  # bits of +inf: code 255
+    while True:  # binary search on the bit patterns of positive floats (monotonic in the value)
+        open_ = hi - lo > 1
+        if not open_.any():
+            break
+        mid = (lo + hi) // 2
+        vals = mid.astype(np.uint32).view(np.float32)
+        codes = quantize_log_scale(np.repeat(vals, 3).reshape(-1, 3), quant)[:, 0].astype(np.int64)
+        up = codes >= target
+        hi = np.where(open_ & up, mid, hi)
+        lo = np.where(open_ & ~up, mid, lo)
+    return hi.astype(np.uint32).view(np.float32).copy()
+
+
+class NumpyKernels:
+    """Plain vectorised numpy kernels (the same arithmetic as :mod:`.encodings`)."""
+
+    @staticmethod
+    def _take(src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray) -> np.ndarray:
+        a = np.asarray(src if gather is None else src[gather], np.float32)
+        return a if (sign == 1).all() else a * sign
+
+    def f32(self, src, gather, sign, dst) -> bool:
+        a = self._take(src, gather, sign)
+        if a.size and not (-F32_MAX <= a.min() and a.max() <= F32_MAX):
+            return False
+        dst[...] = a.reshape(-1)
+        return True
+
+    def f16(self, src, gather, sign, dst) -> bool:
+        a = self._take(src, gather, sign)
+        if a.size and not (-F16_MAX <= a.min() and a.max() <= F16_MAX):
+            return False
+        dst[...] = a.reshape(-1).astype("<f2").view(np.uint16)
+        return True
+
+    def q13_position(self, src, gather, sign, lo, k, dst) -> None:
+        q = self._take(src, gather, sign).astype(np.float64) - lo
+        q *= k
+        np.rint(q, out=q)
+        np.clip(q, 0, POS_LEVELS, out=q)
+        dst[...] = q.reshape(-1).astype(np.uint16)
+
+    def q13_rotation(self, src, gather, sign, dst) -> None:
+        dst[...] = pack_smallest_three(self._take(src, gather, sign))
+
+    def q13_scale(self, src, gather, thresholds, dst) -> None:
+        s = np.asarray(src if gather is None else src[gather], np.float32).reshape(-1)
+        code = np.searchsorted(thresholds, s, side="right")
+        code[np.isnan(s)] = 0
+        dst[...] = code.astype(np.uint8)
+
+
+def _bin_header(n: int) -> bytes:
+    if n < 0x100:
+        return b"\xc4" + n.to_bytes(1, "big")
+    if n < 0x10000:
+        return b"\xc5" + n.to_bytes(2, "big")
+    return b"\xc6" + n.to_bytes(4, "big")
+
+
+_PACK = msgpack.Packer(use_bin_type=True)
+
+
+class BufferPool:
+    """bytearrays handed out as memoryviews and reused once nothing references them (thread-safe)."""
+
+    def __init__(self, size: int = 4) -> None:
+        self.size = size
+        self._bufs: list[bytearray] = []
+        self._idle: list[int] = []
+        self._lock = threading.Lock()
+        self.unpooled = 0
+
+    @staticmethod
+    def _count(bufs: list[bytearray], i: int) -> int:
+        return sys.getrefcount(bufs[i])
+
+    def get(self, nbytes: int) -> bytearray:
+        with self._lock:
+            for i in range(len(self._bufs)):
+                if self._count(self._bufs, i) == self._idle[i]:
+                    if len(self._bufs[i]) < nbytes:
+                        self._bufs[i] = bytearray(nbytes + (nbytes >> 4))
+                        self._idle[i] = self._count(self._bufs, i)
+                    return self._bufs[i]
+            if len(self._bufs) < self.size:
+                self._bufs.append(bytearray(nbytes + (nbytes >> 4)))
+                self._idle.append(self._count(self._bufs, len(self._bufs) - 1))
+                return self._bufs[-1]
+            self.unpooled += 1
+            return bytearray(nbytes)
+
+
+class FrameWriter:
+    """Encodes the frames of one wire format (FrameFormat + coords + selection) into pooled buffers.
+
+    gather: (M,) int64 rows of the server state a frame carries (None: all, dense); index: the wire
+    `index` (M,) uint32 of a sparse session (None: dense frames). kernels: see the module docstring
+    (default: :class:`NumpyKernels`).
+    """
+
+    def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
+                 index: np.ndarray | None = None, kernels: Any = None, pool: int = 4) -> None:
+        self.format = fmt
+        self.coords = coords
+        self.kernels = kernels if kernels is not None else NumpyKernels()
+        self.gather = None if gather is None else np.ascontiguousarray(gather, np.int64)
+        self.n = fmt.count if gather is None else int(self.gather.shape[0])
+        if index is not None:
+            if not fmt.sparse:
+                raise ValueError("an index needs a sparse session")
+            index = np.ascontiguousarray(index, "<u4")
+            if index.shape != (self.n,):
+                raise ValueError(f"index has shape {index.shape}, the frame carries {self.n} Gaussians")
+        elif self.n != fmt.count:
+            raise ValueError(f"a dense frame carries all {fmt.count} Gaussians, the selection has {self.n}")
+        self.index = index
+        self.psign, self.rsign = coord_signs(coords)
+        if fmt.encoding == "q13":
+            assert fmt.quant is not None
+            self.lo, self.k = position_factors(fmt.quant)
+            self.thresholds = scale_thresholds(fmt.quant)
+        self._sizes = [self.n * b for b in _FIELD_BYTES[fmt.encoding]]
+        tail = b""
+        if index is not None:
+            tail += _PACK.pack("index") + _bin_header(index.nbytes)
+        self._index_prefix = tail
+        self._field_heads = [_PACK.pack(name) + _bin_header(size)
+                             for name, size in zip(("position", "rotation", "scale"), self._sizes)]
+        self.pool = BufferPool(pool)
+
+    def header(self, seq: int, t: int, timing: dict[str, int]) -> bytes:
+        keys = 9 if self.index is not None else 8
+        return b"".join((bytes([0x80 | keys]), _PACK.pack("type"), _PACK.pack("frame"), _PACK.pack("seq"),
+                         _PACK.pack(seq), _PACK.pack("t"), _PACK.pack(t), _PACK.pack("timing"), _PACK.pack(timing),
+                         _PACK.pack("n"), _PACK.pack(self.n)))
+
+    def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
+               scale: np.ndarray) -> memoryview:
+        """The frame message for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3).
+        ValueError if f32/f16 values are non-finite or out of the half range (like encode_frame)."""
+        head = self.header(seq, t, timing)
+        total = len(head) + sum(len(h) for h in self._field_heads) + sum(self._sizes)
+        if self.index is not None:
+            total += len(self._index_prefix) + self.index.nbytes
+        buf = self.pool.get(total)
+        mv = memoryview(buf)
+        off = len(head)
+        mv[:off] = head
+        if self.index is not None:
+            p = self._index_prefix
+            mv[off:off + len(p)] = p
+            off += len(p)
+            mv[off:off + self.index.nbytes] = self.index.view(np.uint8)
+            off += self.index.nbytes
+        views = []
+        for h, size in zip(self._field_heads, self._sizes):
+            mv[off:off + len(h)] = h
+            off += len(h)
+            views.append((off, size))
+            off += size
+        enc = self.format.encoding
+        kern = self.kernels
+        (po, ps), (ro, rs), (so, ss) = views
+        if enc == "q13":
+            kern.q13_position(position, self.gather, self.psign, self.lo, self.k,
+                              np.frombuffer(buf, np.uint16, ps // 2, po))
+            kern.q13_rotation(rotation, self.gather, self.rsign, np.frombuffer(buf, np.uint32, rs // 4, ro))
+            kern.q13_scale(scale, self.gather, self.thresholds, np.frombuffer(buf, np.uint8, ss, so))
+        else:
+            fn, dt = (kern.f32, np.float32) if enc == "f32" else (kern.f16, np.uint16)
+            width = np.dtype(dt).itemsize
+            for name, src, sign, (o, size) in (("position", position, self.psign, (po, ps)),
+                                               ("rotation", rotation, self.rsign, (ro, rs)),
+                                               ("scale", scale, _ONES3, (so, ss))):
+                if not fn(src, self.gather, sign, np.frombuffer(buf, dt, size // width, o)):
+                    limit = F16_MAX if enc == "f16" else F32_MAX
+                    raise ValueError(f"{name} has NaN, infinity or values beyond +-{limit:g} ({enc})")
+        return mv[:total]
+
+
+_FIELD_BYTES = {"f32": (12, 16, 12), "f16": (6, 8, 6), "q13": (6, 4, 3)}

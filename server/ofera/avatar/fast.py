@@ -1,0 +1,260 @@
+"""The fast per-frame path: subset LBS + deformation of only the Gaussians a frame can move (numba).
+
+    fast = FastAvatar(avatar)                 # once per avatar: precomputed, read-only, shareable
+    session = fast.session()                  # once per stream: scratch buffers and an output pool
+    verts = session.head(expr, rotations)     # (S, 3): LBS of the vertex subset only
+    state = session.deform(verts)             # GaussianState (float32, full N), from the pool
+
+It computes what ``lbs`` + :class:`.deform.Deformer` (the REFERENCE) compute, within float rounding,
+for both binding types, when root and neck are the identity (always true for FLAME values: the client
+owns head pose; :meth:`FastSession.head` refuses anything else):
+
+- Which Gaussians move: ``gaussians="exact"`` (default) takes every Gaussian whose face has a vertex
+  with ANY non-zero expression row, skinning weight on the jaw or an eye, or jaw/eye pose corrective;
+  all others are exactly (to 1e-16) at their neutral values in every frame. ``"movable"`` uses the
+  avatar's ``movable`` (a 0.1 um/unit tolerance: a little faster, differs below a micrometre);
+  ``"all"`` deforms every Gaussian (tests).
+- Precomputed per avatar: the vertex subset those faces need, its blend basis (:class:`SubsetLBS`),
+  the used faces as rows of the subset, runs of consecutive Gaussians on one face, and per moving
+  Gaussian its local attributes as float64 columns (normalised rotations, linear scales).
+- Per frame: one LBS kernel, one face-frame kernel (R_f, its quaternion, s_f, c_f, n_f per used
+  face), one per-Gaussian kernel writing position / rotation / scale straight into float32 output
+  arrays whose other rows already hold the neutral values.
+
+Output buffers come from a :class:`StatePool`: a returned state is never written again while anyone
+still references it or any view of its arrays (CPython reference counts), so the caller may keep it,
+hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
+nothing. States are read-only.
+
+Single-threaded kernels on purpose: measured on the 2-core target, prange over 2 threads gained
+little per frame and cost throughput once several sessions share the cores (benchmarks/scaling.py).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..head.lbs import HeadSubject
+from ..head.lbs_fast import SubsetLBS
+from . import kernels as K
+from .binding import BarycentricBinding, TriangleBinding, normalize_quaternions
+from .deform import make_deformer
+from .movable import FACE_JOINTS
+from .state import GaussianState
+
+GAUSSIAN_SETS = ("exact", "movable", "all")
+
+
+def affected_vertices(head) -> np.ndarray:
+    """(V,) bool: vertices that any expression, jaw or eye rotation moves at all (no tolerance)."""
+    v = head.num_vertices
+    expr = np.abs(head.exprdirs).reshape(v, -1).max(axis=1, initial=0.0) > 0
+    joints = np.asarray(head.weights)[:, list(FACE_JOINTS)].max(axis=1) > 0
+    rows = np.concatenate([np.arange(9 * (j - 1), 9 * j) for j in FACE_JOINTS])
+    pose = np.abs(np.asarray(head.posedirs)[rows]).reshape(len(rows), v, 3).max(axis=(0, 2)) > 0
+    return expr | joints | pose
+
+
+def gaussian_selection(avatar, gaussians: str | np.ndarray = "exact") -> np.ndarray:
+    """(N,) bool of the Gaussians the fast path deforms (see the module docstring)."""
+    if isinstance(gaussians, np.ndarray):
+        sel = np.asarray(gaussians, bool)
+        if sel.shape != (avatar.count,):
+            raise ValueError(f"gaussian mask has shape {sel.shape}, the avatar has ({avatar.count},)")
+        return sel
+    if gaussians == "all":
+        return np.ones(avatar.count, bool)
+    if gaussians == "movable":
+        return np.asarray(avatar.movable, bool)
+    if gaussians == "exact":
+        face_moves = affected_vertices(avatar.head)[avatar.head.faces].any(axis=1)
+        return face_moves[np.asarray(avatar.binding.face, np.int64)]
+    raise ValueError(f"unknown Gaussian set {gaussians!r}; expected one of {GAUSSIAN_SETS} or a mask")
+
+
+class StatePool:
+    """Reusable float32 GaussianStates, every one initialised to ``template``; see the module docstring.
+
+    ``acquire()`` returns (state, writable position, rotation, scale): a pooled state nobody references
+    any more, else a new one (up to ``size`` pooled, beyond that unpooled). Thread-safe.
+    """
+
+    def __init__(self, template: GaussianState, size: int = 8) -> None:
+        self.template = template
+        self.size = size
+        self._entries: list[list] = []  # [state, (position, rotation, scale) writable bases, idle counts]
+        self._lock = threading.Lock()
+        self.created = 0
+        self.unpooled = 0
+
+    def _new(self) -> tuple[GaussianState, tuple[np.ndarray, ...]]:
+        t = self.template
+        bases = (t.position.copy(), t.rotation.copy(), t.scale.copy())
+        views = []
+        for b in bases:
+            v = b.view()
+            v.flags.writeable = False
+            views.append(v)
+        return GaussianState(*views), bases
+
+    @staticmethod
+    def _counts(entry: list) -> tuple[int, ...]:
+        """Reference counts of an entry's state, its arrays and their bases, seen from here."""
+        state, bases = entry[0], entry[1]
+        return (sys.getrefcount(state), sys.getrefcount(state.position), sys.getrefcount(state.rotation),
+                sys.getrefcount(state.scale), sys.getrefcount(bases[0]), sys.getrefcount(bases[1]),
+                sys.getrefcount(bases[2]))
+
+    def acquire(self) -> tuple[GaussianState, np.ndarray, np.ndarray, np.ndarray]:
+        with self._lock:
+            for entry in self._entries:
+                if self._counts(entry) == entry[2]:
+                    bases = entry[1]
+                    return entry[0], bases[0], bases[1], bases[2]
+            if len(self._entries) < self.size:
+                entry = [*self._new(), ()]
+                self._entries.append(entry)
+                entry[2] = self._counts(entry)  # idle: only the pool holds it (same context as the check)
+                self.created += 1
+                bases = entry[1]
+                return entry[0], bases[0], bases[1], bases[2]
+            self.unpooled += 1
+            state, bases = self._new()
+            return state, bases[0], bases[1], bases[2]
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+@dataclass(frozen=True, eq=False)
+class _Arrays:
+    """Per-Gaussian precomputed attributes of the deformed set (read-only, shared by sessions).
+    Columns m follow the ascending avatar rows ``ids``; runs are :func:`.kernels.runs`."""
+
+    ids: np.ndarray  # (M,) int64 rows of the avatar
+    face_vids: np.ndarray  # (U, 3) int64 rows of the vertex subset
+    run_face: np.ndarray  # (R,) int64 used-face slot of each run
+    run_m: np.ndarray  # (R,) int64 first column
+    run_len: np.ndarray  # (R,) int64
+    run_row: np.ndarray  # (R,) int64 first avatar row
+    lrot: np.ndarray  # (4, M) float64 normalised local rotation (w, x, y, z)
+    lscale: np.ndarray  # (3, M) float64 linear local scale
+    lpos: np.ndarray | None = None  # triangle: (3, M) float64 local position
+    bary: np.ndarray | None = None  # barycentric: (3, M) float64
+    shift: np.ndarray | None = None  # barycentric: (M,) float64 normal_offset_scale * tanh(offset)
+    inv_canonical: np.ndarray | None = None  # barycentric: (U,) float64 1 / face_scale_canonical
+
+
+class FastAvatar:
+    """Precomputation for one avatar and head subject (read-only after construction; share it)."""
+
+    def __init__(self, avatar, subject: HeadSubject | None = None, gaussians: str | np.ndarray = "exact",
+                 n_expr: int | None = None) -> None:
+        head = avatar.head
+        self.avatar = avatar
+        self.subject = subject if subject is not None else HeadSubject.create(head)
+        if self.subject.model is not head:
+            raise ValueError("the subject must be made from the avatar's head model")
+        binding = avatar.binding
+        selected = gaussian_selection(avatar, gaussians)
+        ids = np.flatnonzero(selected).astype(np.int64)
+        used_faces, gface = np.unique(np.asarray(binding.face, np.int64)[ids], return_inverse=True)
+        vertex_ids, face_vids = np.unique(np.asarray(head.faces, np.int64)[used_faces], return_inverse=True)
+        self.count = avatar.count
+        self.selected = selected
+        self.used_faces = used_faces
+        self.lbs = SubsetLBS(self.subject, vertex_ids, n_expr)
+        self.binding_type = binding.kind
+        run_face, run_m, run_len, run_row = K.runs(ids, gface.reshape(-1))
+        self.runs = int(run_face.size)
+
+        def soa(x: np.ndarray) -> np.ndarray:  # float64 loads beat float32 + conversion here (measured)
+            return np.ascontiguousarray(np.asarray(x, np.float64).T)
+
+        common = {"ids": ids, "face_vids": face_vids.reshape(-1, 3).astype(np.int64), "run_face": run_face,
+                  "run_m": run_m, "run_len": run_len, "run_row": run_row,
+                  "lrot": soa(normalize_quaternions(binding.rotation[ids])),
+                  "lscale": soa(np.exp(binding.log_scale[ids].astype(np.float64)))}
+        if isinstance(binding, TriangleBinding):
+            self.arrays = _Arrays(**common, lpos=soa(binding.position[ids]))
+        elif isinstance(binding, BarycentricBinding):
+            shift = binding.normal_offset_scale * np.tanh(binding.offset[ids].astype(np.float64))
+            canonical = binding.face_scale_canonical.astype(np.float64)[used_faces]
+            self.arrays = _Arrays(**common, bary=soa(binding.bary[ids]), shift=np.ascontiguousarray(shift),
+                                  inv_canonical=1.0 / canonical)
+        else:
+            raise TypeError(f"unknown binding {type(binding).__name__}")
+        # Every frame starts from the subject's neutral Gaussians (what the reference gives at v_id).
+        self.neutral = make_deformer(binding, head.faces, head.num_vertices).deform(self.subject.v_id)
+        self._warm = False
+
+    @property
+    def moving(self) -> int:
+        """Gaussians deformed per frame."""
+        return int(self.arrays.ids.size)
+
+    def session(self, pool_size: int = 8) -> FastSession:
+        return FastSession(self, pool_size)
+
+    def warm_up(self) -> None:
+        """Compile (or load from the on-disk cache) every kernel now, not on the first frame."""
+        if not self._warm:
+            s = self.session(pool_size=1)
+            s.deform(s.head(np.zeros(self.lbs.n_expr, np.float32), np.broadcast_to(np.eye(3, dtype=np.float32),
+                                                                                  (self.lbs.num_joints, 3, 3))))
+            self._warm = True
+
+
+_EYE2 = np.broadcast_to(np.eye(3), (2, 3, 3))
+
+
+class FastSession:
+    """Per-stream buffers of a :class:`FastAvatar`. Not thread-safe: one frame at a time."""
+
+    def __init__(self, fast: FastAvatar, pool_size: int = 8) -> None:
+        self.fast = fast
+        self.lbs = fast.lbs.clone()
+        cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
+        self.face = np.zeros((fast.used_faces.size, cols), np.float64)
+        self.pool = StatePool(fast.neutral, pool_size)
+
+    def head(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """Subset LBS: expr (n,), rotations (5, 3, 3) with root and neck the identity -> (S, 3) float64
+        (a buffer reused by the next call)."""
+        rot = np.asarray(rotations)
+        if rot.shape[-3:] != (5, 3, 3) or not np.array_equal(rot.reshape(5, 3, 3)[:2], _EYE2):
+            raise ValueError("the fast path needs rotations (5, 3, 3) with root and neck the identity "
+                             "(FLAME values: the client owns head pose); use the reference lbs otherwise")
+        return self.lbs.forward(expr, rot.reshape(5, 3, 3))
+
+    def deform(self, verts: np.ndarray) -> GaussianState:
+        """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""
+        a = self.fast.arrays
+        verts = np.ascontiguousarray(verts, np.float64)
+        if verts.shape != (self.fast.lbs.count, 3):
+            raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
+        state, pos, rot, scale = self.pool.acquire()
+        bary = a.bary is not None
+        K.face_frames_kernel(verts, a.face_vids, self.face, bary)
+        if bary:
+            K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.bary,
+                                 a.shift, a.lrot, a.lscale, a.inv_canonical, pos, rot, scale)
+        else:
+            K.triangle_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.lpos, a.lrot, a.lscale,
+                              pos, rot, scale)
+        return state
+
+    def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:
+        return self.deform(self.head(expr, rotations))
+
+
+def reference_frame(avatar, subject: HeadSubject, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:
+    """The plain reference of :meth:`FastSession.run`: full numpy LBS, then the reference deformer."""
+    from ..head.lbs import lbs
+
+    verts, _ = lbs(subject, np.asarray(expr)[None], np.asarray(rotations)[None])
+    return avatar.deformer().deform(verts[0])

@@ -1,0 +1,261 @@
+"""numba kernels of the fast deformation path (:mod:`.fast`); each mirrors the numpy reference
+(:mod:`.frames`, :mod:`.deform`) formula for formula, in float64, writing float32 results in place.
+
+Two passes per frame, one call each:
+
+1. :func:`face_frames_kernel`: per used face, from its 3 vertices, the frame of :mod:`.frames`: the
+   rotation R_f (columns a0, a1, a2), its unit quaternion (w >= 0, the branch :func:`matrix_to_quaternion`
+   picks), the scale s_f, the centroid c_f and the unnormalised normal n_f (FATE) -> ``face`` (U, 17).
+2. :func:`triangle_kernel` / :func:`barycentric_kernel`: per deformed Gaussian, the position, the
+   rotation ``quat(R_f) (x) q_local`` written (x, y, z, w), and the scale, into its row of the full
+   float32 output arrays. Gaussians are visited in runs of consecutive rows on one face (avatars keep
+   a face's Gaussians together), so the face's values are loaded once per run.
+
+Deviations from the reference, all at float64 rounding level (~1e-16): multiplications by reciprocals
+instead of divisions, fused multiply-adds, a2 = a0 x a1 without renormalising (a0, a1 orthonormal), and
+no renormalisation of ``quat(R_f) (x) q_local`` (a product of unit quaternions).
+
+Compiled with ``cache=True`` (on disk next to this file) and ``nogil=True``, so sessions computing in
+a thread pool run in parallel.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
+_NBC = {**_NB, "fastmath": {"contract"}}  # fused multiply-add allowed (no reassociation)
+_EPS2 = 1e-20  # frames._EPS2: clamp on squared lengths
+
+# Columns of the per-face scratch (U, FACE_COLS) float64.
+R0 = 0  # R_f row-major, 9 values (R[i, j] at R0 + 3 i + j)
+Q0 = 9  # quaternion (w, x, y, z)
+S_F = 13  # scale s_f
+C0 = 14  # centroid (3)
+FACE_COLS = 17
+N0 = 17  # unnormalised normal (3), barycentric only
+FACE_COLS_BARY = 20
+
+
+@nb.njit(**_NBC)
+def face_frames_kernel(verts, face_vids, face, with_normal):
+    """verts (S, 3) f64; face_vids (U, 3) int rows of verts -> face (U, FACE_COLS[_BARY]) f64."""
+    for u in range(face_vids.shape[0]):
+        i0 = face_vids[u, 0]
+        i1 = face_vids[u, 1]
+        i2 = face_vids[u, 2]
+        v0x = verts[i0, 0]
+        v0y = verts[i0, 1]
+        v0z = verts[i0, 2]
+        e1x = verts[i1, 0] - v0x
+        e1y = verts[i1, 1] - v0y
+        e1z = verts[i1, 2] - v0z
+        e2x = verts[i2, 0] - v0x
+        e2y = verts[i2, 1] - v0y
+        e2z = verts[i2, 2] - v0z
+        # a0 = normalize(e1)
+        ll = math.sqrt(max(e1x * e1x + e1y * e1y + e1z * e1z, _EPS2))
+        inv = 1.0 / ll
+        a0x = e1x * inv
+        a0y = e1y * inv
+        a0z = e1z * inv
+        # a1 = normalize(cross(a0, e2))
+        cx = a0y * e2z - a0z * e2y
+        cy = a0z * e2x - a0x * e2z
+        cz = a0x * e2y - a0y * e2x
+        inv = 1.0 / math.sqrt(max(cx * cx + cy * cy + cz * cz, _EPS2))
+        a1x = cx * inv
+        a1y = cy * inv
+        a1z = cz * inv
+        # a2 = -normalize(cross(a1, a0)) = a0 x a1: a0 and a1 are orthonormal, so the cross product is
+        # unit to rounding (the reference's renormalisation changes it by ~1e-16).
+        a2x = a0y * a1z - a0z * a1y
+        a2y = a0z * a1x - a0x * a1z
+        a2z = a0x * a1y - a0y * a1x
+        f = face[u]
+        # R = [a0 | a1 | a2] (columns)
+        f[R0 + 0] = a0x
+        f[R0 + 1] = a1x
+        f[R0 + 2] = a2x
+        f[R0 + 3] = a0y
+        f[R0 + 4] = a1y
+        f[R0 + 5] = a2y
+        f[R0 + 6] = a0z
+        f[R0 + 7] = a1z
+        f[R0 + 8] = a2z
+        f[S_F] = (ll + abs(a2x * e2x + a2y * e2y + a2z * e2z)) * 0.5
+        f[C0 + 0] = (v0x + verts[i1, 0] + verts[i2, 0]) / 3.0
+        f[C0 + 1] = (v0y + verts[i1, 1] + verts[i2, 1]) / 3.0
+        f[C0 + 2] = (v0z + verts[i1, 2] + verts[i2, 2]) / 3.0
+        if with_normal:
+            f[N0 + 0] = e1y * e2z - e1z * e2y
+            f[N0 + 1] = e1z * e2x - e1x * e2z
+            f[N0 + 2] = e1x * e2y - e1y * e2x
+        # matrix_to_quaternion: best-conditioned branch (argmax, first on ties), normalise, w >= 0.
+        # R[i, j] is a_j[i].
+        m00 = a0x
+        m11 = a1y
+        m22 = a2z
+        r21 = a1z
+        r12 = a2y
+        r02 = a2x
+        r20 = a0z
+        r10 = a0y
+        r01 = a1x
+        sq0 = 1 + m00 + m11 + m22
+        sq1 = 1 + m00 - m11 - m22
+        sq2 = 1 - m00 + m11 - m22
+        sq3 = 1 - m00 - m11 + m22
+        d21 = r21 - r12
+        d02 = r02 - r20
+        d10 = r10 - r01
+        s21 = r21 + r12
+        s02 = r02 + r20
+        s10 = r10 + r01
+        best = 0
+        top = sq0
+        if sq1 > top:
+            best = 1
+            top = sq1
+        if sq2 > top:
+            best = 2
+            top = sq2
+        if sq3 > top:
+            best = 3
+        if best == 0:
+            qw, qx, qy, qz = sq0, d21, d02, d10
+        elif best == 1:
+            qw, qx, qy, qz = d21, sq1, s10, s02
+        elif best == 2:
+            qw, qx, qy, qz = d02, s10, sq2, s21
+        else:
+            qw, qx, qy, qz = d10, s02, s21, sq3
+        inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if qw < 0:
+            inv = -inv
+        qw *= inv
+        qx *= inv
+        qy *= inv
+        qz *= inv
+        f[Q0 + 0] = qw
+        f[Q0 + 1] = qx
+        f[Q0 + 2] = qy
+        f[Q0 + 3] = qz
+
+
+@nb.njit(**_NBC)
+def triangle_kernel(face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale):
+    """GaussianAvatars: position R_f p s_f + c_f, rotation quat(R_f) (x) q, scale exp(log s) s_f.
+
+    Runs q of consecutive avatar rows ``run_row[q] ..`` on one face ``run_face[q]``, whose local
+    attributes are columns ``run_m[q] ..`` of lpos (3, M), lrot (4, M) (w, x, y, z), lscale (3, M)."""
+    for q in range(run_face.shape[0]):
+        u = run_face[q]
+        m0 = run_m[q]
+        r0 = run_row[q]
+        f0 = face[u, R0]
+        f1 = face[u, R0 + 1]
+        f2 = face[u, R0 + 2]
+        f3 = face[u, R0 + 3]
+        f4 = face[u, R0 + 4]
+        f5 = face[u, R0 + 5]
+        f6 = face[u, R0 + 6]
+        f7 = face[u, R0 + 7]
+        f8 = face[u, R0 + 8]
+        aw = face[u, Q0]
+        ax = face[u, Q0 + 1]
+        ay = face[u, Q0 + 2]
+        az = face[u, Q0 + 3]
+        s = face[u, S_F]
+        cx = face[u, C0]
+        cy = face[u, C0 + 1]
+        cz = face[u, C0 + 2]
+        for j in range(run_len[q]):
+            m = m0 + j
+            row = r0 + j
+            px = lpos[0, m]
+            py = lpos[1, m]
+            pz = lpos[2, m]
+            out_pos[row, 0] = (f0 * px + f1 * py + f2 * pz) * s + cx
+            out_pos[row, 1] = (f3 * px + f4 * py + f5 * pz) * s + cy
+            out_pos[row, 2] = (f6 * px + f7 * py + f8 * pz) * s + cz
+            bw = lrot[0, m]
+            bx = lrot[1, m]
+            by = lrot[2, m]
+            bz = lrot[3, m]
+            out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
+            out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
+            out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
+            out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
+            out_scale[row, 0] = lscale[0, m] * s
+            out_scale[row, 1] = lscale[1, m] * s
+            out_scale[row, 2] = lscale[2, m] * s
+
+
+@nb.njit(**_NBC)
+def barycentric_kernel(face, run_face, run_m, run_len, run_row, verts, face_vids, bary, shift, lrot, lscale,
+                       inv_canonical, out_pos, out_rot, out_scale):
+    """FATE: position sum_k bary_k v_k + n_f shift, rotation quat(R_f) (x) q, scale exp(log s) s_f /
+    s_f_canonical (inv_canonical per used face). Runs as in :func:`triangle_kernel`; bary (3, M), shift (M,)."""
+    for q in range(run_face.shape[0]):
+        u = run_face[q]
+        m0 = run_m[q]
+        r0 = run_row[q]
+        i0 = face_vids[u, 0]
+        i1 = face_vids[u, 1]
+        i2 = face_vids[u, 2]
+        v0x = verts[i0, 0]
+        v0y = verts[i0, 1]
+        v0z = verts[i0, 2]
+        v1x = verts[i1, 0]
+        v1y = verts[i1, 1]
+        v1z = verts[i1, 2]
+        v2x = verts[i2, 0]
+        v2y = verts[i2, 1]
+        v2z = verts[i2, 2]
+        nx = face[u, N0]
+        ny = face[u, N0 + 1]
+        nz = face[u, N0 + 2]
+        aw = face[u, Q0]
+        ax = face[u, Q0 + 1]
+        ay = face[u, Q0 + 2]
+        az = face[u, Q0 + 3]
+        r = face[u, S_F] * inv_canonical[u]
+        for j in range(run_len[q]):
+            m = m0 + j
+            row = r0 + j
+            b0 = bary[0, m]
+            b1 = bary[1, m]
+            b2 = bary[2, m]
+            sh = shift[m]
+            out_pos[row, 0] = (b0 * v0x + b1 * v1x + b2 * v2x) + nx * sh
+            out_pos[row, 1] = (b0 * v0y + b1 * v1y + b2 * v2y) + ny * sh
+            out_pos[row, 2] = (b0 * v0z + b1 * v1z + b2 * v2z) + nz * sh
+            bw = lrot[0, m]
+            bx = lrot[1, m]
+            by = lrot[2, m]
+            bz = lrot[3, m]
+            out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
+            out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
+            out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
+            out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
+            out_scale[row, 0] = lscale[0, m] * r
+            out_scale[row, 1] = lscale[1, m] * r
+            out_scale[row, 2] = lscale[2, m] * r
+
+
+def runs(ids: np.ndarray, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Split ascending rows ``ids`` (M,) with face slots ``slots`` (M,) into runs of consecutive rows on
+    one face: (run_face, run_m, run_len, run_row), int64 each."""
+    ids = np.asarray(ids, np.int64)
+    slots = np.asarray(slots, np.int64)
+    if ids.size == 0:
+        z = np.zeros(0, np.int64)
+        return z, z, z, z
+    brk = np.flatnonzero((np.diff(ids) != 1) | (np.diff(slots) != 0)) + 1
+    start = np.concatenate([[0], brk]).astype(np.int64)
+    length = np.diff(np.concatenate([start, [ids.size]])).astype(np.int64)
+    return slots[start], start, length, ids[start]

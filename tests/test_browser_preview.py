@@ -1,0 +1,362 @@
+"""The browser preview (`server/ofera/web`) as a user sees it: headless Chromium (Debian's `chromium`,
+WebGL2 through SwiftShader) loading `/` from a real `ofera serve` with the default avatar.
+
+Needs /usr/bin/chromium and the `playwright` Python package (never `playwright install`: the system
+browser is used); without them the tests skip, unless the environment variable CI is set (then they
+fail). Writes the README's screenshot to docs/browser.png.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--no-sandbox", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run",
+]
+ROOT = Path(__file__).resolve().parents[1]
+SCREENSHOT = ROOT / "docs" / "browser.png"
+VECTORS = ROOT / "protocol" / "vectors"
+BACKGROUND = np.array([32, 35, 42])  # the page's clear colour (renderer.js: 0.125, 0.137, 0.165)
+SERVER_START_S = 300  # the default avatar's warm-up, on a busy machine
+PAGE_S = 240  # a full-size avatar through SwiftShader, on a busy machine
+VIEWPORT = {"width": 1100, "height": 720}
+
+
+def _browser_missing() -> str | None:
+    if not Path(CHROMIUM).exists():
+        return f"{CHROMIUM} is missing (apt-get install chromium)"
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError:
+        return "the playwright Python package is missing (pip install playwright; do not run `playwright install`)"
+    return None
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator:
+    missing = _browser_missing()
+    if missing:
+        if os.environ.get("CI"):
+            pytest.fail(f"browser test cannot run in CI: {missing}")
+        pytest.skip(missing)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture(scope="module")
+def server(browser) -> Iterator[str]:
+    """`ofera serve --port 0` (the built-in default avatar, ~100k Gaussians) in a subprocess; its base URL."""
+    env = dict(os.environ, OFERA_LOG_LEVEL="warning", PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-c", "from ofera.cli.main import main; main()", "serve", "--port", "0"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        lines: list[str] = []
+        url = None
+        deadline = time.monotonic() + SERVER_START_S
+        while url is None and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            m = re.search(r"health\s+(http://\S+)/healthz", line)
+            if m:
+                url = m.group(1)
+        assert url, "ofera serve did not start:\n" + "".join(lines)
+        yield url
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+def open_page(browser, url: str):
+    page = browser.new_page(viewport=VIEWPORT)
+    problems: list[str] = []
+    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
+    page.goto(url)
+    page.wait_for_function("window.__ofera && window.__ofera.settled", timeout=PAGE_S * 1000)
+    assert not problems, problems
+    return page
+
+
+def wait_settled(page, after_seq: int) -> None:
+    page.wait_for_function(f"__ofera.settled && __ofera.drawnSeq > {after_seq}", timeout=PAGE_S * 1000)
+
+
+def canvas_pixels(page) -> np.ndarray:
+    """The canvas's own pixels (its drawing buffer is preserved), without the text drawn over it."""
+    from PIL import Image
+
+    url = page.evaluate("document.getElementById('canvas').toDataURL('image/png')")
+    png = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+
+
+def foreground(img: np.ndarray) -> np.ndarray:
+    return np.abs(img - BACKGROUND).max(axis=2) > 24
+
+
+def skin(img: np.ndarray) -> np.ndarray:
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    return (r > 90) & (r >= g) & (g >= b - 10) & (r - b > 25)
+
+
+# ----- the page --------------------------------------------------------------------------------------------
+
+
+def test_page_shows_the_avatar_head(browser, server) -> None:
+    page = open_page(browser, f"{server}/?auto=0")
+    try:
+        info = page.evaluate("({count: __ofera.count, full: __ofera.fullCount, status: __ofera.status, "
+                             "errors: __ofera.errors})")
+        assert info["status"] == "streaming" and info["errors"] == []
+        assert info["count"] == info["full"] >= 50_000, info  # the default avatar, at full size
+        img = canvas_pixels(page)
+        h, w, _ = img.shape
+        centre = img[int(h * 0.35):int(h * 0.65), int(w * 0.4):int(w * 0.6)]
+        assert foreground(centre).mean() > 0.9, "the middle of the view is not covered by the avatar"
+        assert skin(centre).mean() > 0.5, f"too few skin-coloured pixels: {skin(centre).mean():.2f}"
+        assert foreground(img[: h // 20]).mean() < 0.05, "the head should fit in the view"
+        hud = page.inner_text("#hud")
+        assert re.search(r"latency\s+\d", hud) and re.search(r"frame\s+[\d.]+ KiB", hud), hud
+        SCREENSHOT.parent.mkdir(exist_ok=True)
+        page.screenshot(path=str(SCREENSHOT))
+    finally:
+        page.close()
+
+
+def test_jaw_open_slider_changes_the_mouth(browser, server) -> None:
+    page = open_page(browser, f"{server}/?auto=0")
+    try:
+        before = canvas_pixels(page)
+        seq = page.evaluate("__ofera.lastFrameSeq")
+        page.locator("#bs-jawOpen").fill("1")  # the slider itself: an input event, then a bs
+        wait_settled(page, seq)
+        weights = page.evaluate("__ofera.weights()")
+        assert weights[17] == 1.0 and sum(weights) == 1.0  # arkit52 index 17 is jawOpen
+        after = canvas_pixels(page)
+        if os.environ.get("OFERA_BROWSER_DEBUG"):  # look at what the test compares
+            from PIL import Image
+
+            for name, a in (("before", before), ("after", after)):
+                Image.fromarray(a.astype(np.uint8)).save(f"{os.environ['OFERA_BROWSER_DEBUG']}/jaw_{name}.png")
+        changed = np.abs(after - before).max(axis=2) > 40
+        fg = foreground(before)
+        ys, xs = np.nonzero(fg)
+        assert changed.sum() > 0.002 * changed.size, f"jawOpen changed only {changed.sum()} pixels"
+        # Where the face is: the rows where the head is widest (the neck below is narrower); the mouth is in
+        # the lower half of the head, the forehead and hair above the eyes must not move.
+        top = ys.min()
+        width = fg.sum(axis=1)
+        widest = int(np.argmax(width))
+        narrow = np.nonzero(width[widest:] < 0.75 * width[widest])[0]  # the chin, where the neck begins
+        head_bottom = widest + int(narrow[0]) if len(narrow) else fg.shape[0]
+        cy, cx = np.nonzero(changed)
+        upper = changed[top: top + (head_bottom - top) // 3].sum()
+        lower = changed[top + (head_bottom - top) // 2:].sum()
+        assert lower > 4 * max(upper, 1), f"changes are not around the mouth: upper third {upper}, lower half {lower}"
+        assert abs(cx.mean() - xs.mean()) < 0.1 * fg.shape[1], "changes are not centred on the face"
+    finally:
+        page.close()
+
+
+def test_reduced_stream_forced_and_automatic(browser, server) -> None:
+    page = open_page(browser, f"{server}/?max=20000")
+    try:
+        info = page.evaluate("({count: __ofera.count, max: __ofera.maxGaussians, full: __ofera.fullCount})")
+        assert info["max"] == 20000 and info["count"] == 20000 < info["full"], info
+        check_camera_and_presets(page)
+    finally:
+        page.close()
+    # A frame rate nobody reaches: the page must reconnect asking for fewer Gaussians on its own.
+    page = open_page(browser, f"{server}/?minfps=1000")
+    try:
+        page.wait_for_function("__ofera.reductions >= 1 && __ofera.settled", timeout=PAGE_S * 1000)
+        info = page.evaluate("({count: __ofera.count, max: __ofera.maxGaussians, full: __ofera.fullCount, "
+                             "errors: __ofera.errors})")
+        assert info["max"] is not None and info["count"] <= info["max"] < info["full"], info
+        assert any("reconnecting for at most" in e for e in info["errors"]), info["errors"]
+    finally:
+        page.close()
+
+
+def check_camera_and_presets(page) -> None:
+    """Orbit camera: drag rotates, the wheel zooms, a double click goes back; a preset button sends its shape."""
+    home = canvas_pixels(page)
+    box = page.locator("#canvas").bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 150, y + 20, steps=5)
+    page.mouse.up()
+    page.wait_for_function("__ofera.settled", timeout=PAGE_S * 1000)
+    turned = canvas_pixels(page)
+    assert (np.abs(turned - home).max(axis=2) > 40).mean() > 0.05, "dragging did not turn the view"
+    page.mouse.wheel(0, 600)
+    page.wait_for_function("__ofera.settled", timeout=PAGE_S * 1000)
+    assert foreground(canvas_pixels(page)).mean() < 0.8 * foreground(turned).mean(), "the wheel did not zoom out"
+    page.mouse.dblclick(x, y)
+    page.wait_for_function("__ofera.settled", timeout=PAGE_S * 1000)
+    assert np.abs(canvas_pixels(page) - home).mean() < 2, "a double click did not reset the view"
+
+    seq = page.evaluate("__ofera.lastFrameSeq")
+    page.get_by_role("button", name="blink").click()
+    wait_settled(page, seq)
+    w = page.evaluate("__ofera.weights()")
+    assert w[0] == w[7] == 1.0 and sum(w) == 2.0  # eyeBlinkLeft, eyeBlinkRight
+    assert page.input_value("#bs-eyeBlinkLeft") == "1"
+
+
+def _livelink_csv(frames: int = 30) -> str:
+    from ofera.mapping.layouts import LIVELINK61_NAMES
+
+    lines = ["Timecode,BlendshapeCount," + ",".join(LIVELINK61_NAMES)]
+    jaw = LIVELINK61_NAMES.index("JawOpen")
+    for i in range(frames):
+        w = np.zeros(len(LIVELINK61_NAMES))
+        w[jaw] = i / (frames - 1)
+        lines.append(f"17:03:10:{i % 60:02d}.{i * 37 % 1000:03d},61," + ",".join(f"{x:.4f}" for x in w))
+    return "\n".join(lines) + "\n"
+
+
+def test_dropped_recordings_play(browser, server) -> None:
+    page = open_page(browser, f"{server}/?max=20000")
+    try:
+        page.uncheck("#loop")
+        seq = page.evaluate("__ofera.lastSentSeq")
+        page.set_input_files("#file", files=[{"name": "take.csv", "mimeType": "text/csv",
+                                              "buffer": _livelink_csv().encode()}])
+        assert "livelink61" in page.inner_text("#playinfo")
+        page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=PAGE_S * 1000)
+        assert page.evaluate("__ofera.lastSentSeq") > seq + 1, "playback sent no bs"
+        assert page.evaluate("__ofera.weights()[17]") == pytest.approx(1.0)  # the last row: JawOpen 1
+        assert page.input_value("#bs-jawOpen") == "1"  # the sliders follow the playback
+
+        # A face-log CSV in Meta's layout goes through the server's own ovr63 -> arkit52 map.
+        from ofera.mapping.layouts import OVR63_NAMES
+
+        rows = ["# ofera facelog 1", "# layout: ovr63", "time," + ",".join(OVR63_NAMES)]
+        for i, t in enumerate((0.0, 0.05, 0.1)):
+            w = np.zeros(63)
+            w[OVR63_NAMES.index("EYES_CLOSED_L")] = w[OVR63_NAMES.index("EYES_CLOSED_R")] = i / 2
+            rows.append(f"{t:.6f}," + ",".join(f"{x:g}" for x in w))
+        out = page.evaluate("t => __ofera.playText(t, 'quest.csv')", "\n".join(rows))
+        assert out == {"rows": 3, "layout": "ovr63", "duration": pytest.approx(0.1)}
+        page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=PAGE_S * 1000)
+        w = page.evaluate("__ofera.weights()")
+        assert w[0] == pytest.approx(1.0) and w[7] == pytest.approx(1.0)  # eyeBlinkLeft, eyeBlinkRight
+
+        bad = page.evaluate("t => __ofera.playText(t, 'bad.csv')", "time,notAShape\n0,1\n")
+        assert "not a known blendshape layout" in bad["error"]
+    finally:
+        page.close()
+
+
+def test_javascript_codec_matches_the_golden_vectors(browser, server) -> None:
+    """protocol.js/msgpack.js against protocol/vectors: client messages byte for byte, server messages
+    decoded to the same values, invalid ones refused with the expected code."""
+    vectors = []
+    for meta in sorted(VECTORS.glob("*.json")):
+        v = json.loads(meta.read_text())
+        v["bytes"] = list(meta.with_suffix(".msgpack").read_bytes())
+        vectors.append(v)
+    page = browser.new_page()
+    try:
+        page.goto(f"{server}/static/layouts.json")
+        results = page.evaluate(JS_VECTOR_CHECK, vectors)
+    finally:
+        page.close()
+    checked = {r["name"]: r for r in results}
+    assert {"hello_full", "bs", "ping", "bye", "welcome_q13", "avatar_chunk1", "frame_f16_sparse",
+            "frame_q13", "invalid_frame_nan", "invalid_deep_nesting"} <= checked.keys()
+    bad = [r for r in results if not r["ok"]]
+    assert not bad, bad
+
+
+JS_VECTOR_CHECK = """async (vectors) => {
+  const P = await import("/static/protocol.js");
+  const hex = (b) => Array.from(b, (x) => x.toString(16).padStart(2, "0")).join("");
+  const out = [];
+  for (const v of vectors) {
+    const bytes = new Uint8Array(v.bytes);
+    const F = v.fields;
+    try {
+      if (v.name.startsWith("invalid_")) {
+        if (v.name.startsWith("invalid_hello_") || v.context?.layout) continue; // the server's own checks
+        let code = null;
+        try {
+          const m = P.decodeServerMessage(bytes);
+          const fmt = v.context?.format;
+          if (m.type === "frame" && fmt) {
+            const st = new P.AvatarState({ avatar: { count: fmt.count, sh_degree: 0 }, encoding: fmt.encoding,
+              sparse: !!fmt.sparse, quant: null });
+            st.complete = true;
+            st.applyFrame(m);
+          }
+        } catch (e) { code = e.code; }
+        out.push({ name: v.name, ok: code === v.expect_error.code, got: code, want: v.expect_error.code });
+        continue;
+      }
+      if (v.direction === "client_to_server") {
+        let b;
+        if (F.type === "hello") b = P.helloMessage({ layout: F.layout, avatar: F.avatar, encoding: F.encoding,
+          coords: F.coords, sparse: F.sparse, device: F.device, token: F.token, maxGaussians: F.max_gaussians });
+        else if (F.type === "bs") b = P.bsMessage(F.seq, F.t, F.w.values);
+        else if (F.type === "ping") b = P.pingMessage(F.t);
+        else b = P.byeMessage();
+        out.push({ name: v.name, ok: hex(b) === hex(bytes), got: hex(b) });
+        continue;
+      }
+      const m = P.decodeServerMessage(bytes);
+      let ok = m.type === F.type;
+      if (m.type === "frame") {
+        const fmt = v.format;
+        const quant = fmt.quant && { pos_min: Float32Array.from(fmt.quant.pos_min),
+          pos_max: Float32Array.from(fmt.quant.pos_max), log_scale: Float32Array.from(fmt.quant.log_scale) };
+        const d = P.decodeFrameArrays(fmt.encoding, m.n, m, quant);
+        for (const k of ["position", "rotation", "scale"]) {
+          const ref = v.decoded[k].flat();
+          for (let i = 0; i < ref.length; i++) ok = ok && Math.abs(ref[i] - d[k][i]) <= 1e-7;
+        }
+        ok = ok && m.seq === F.seq && m.t === F.t && m.n === F.n;
+      } else if (m.type === "avatar") {
+        ok = ok && m.n === F.n && m.offset === F.offset && Math.abs(m.opacity[0] - F.opacity.values[0]) < 1e-7;
+      } else if (m.type === "welcome") {
+        ok = ok && m.session === F.session && m.avatar.count === F.avatar.count && m.encoding === F.encoding;
+      } else if (m.type === "error") {
+        ok = ok && m.code === F.code && m.fatal === F.fatal;
+      } else if (m.type === "pong") {
+        ok = ok && m.t === F.t;
+      }
+      out.push({ name: v.name, ok });
+    } catch (e) {
+      out.push({ name: v.name, ok: false, error: String(e) });
+    }
+  }
+  return out;
+}"""
