@@ -246,3 +246,13 @@ def test_shutdown_closes_sessions_with_1001() -> None:
         run(main())
     finally:
         server.stop()
+
+
+def test_fast_path_matches_the_reference_pipeline() -> None:
+    w = weights(seed=8)
+    fast, t_fast = offline_pipeline(SMALL, "arkit52", w, settings=settings())
+    ref, t_ref = offline_pipeline(SMALL, "arkit52", w, settings=settings(fast=False))
+    assert set(t_fast) == set(t_ref)
+    np.testing.assert_allclose(fast.position, ref.position, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.abs(np.sum(fast.rotation * ref.rotation, axis=1)), 1.0, atol=1e-5)
+    np.testing.assert_allclose(fast.scale, ref.scale, rtol=1e-5)

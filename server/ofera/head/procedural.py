@@ -219,7 +219,12 @@ def _skinning(verts: np.ndarray, parts: dict[str, np.ndarray], lower_lip: np.nda
     z_corner, z_pivot = 0.06, JAW_PIVOT[2] + 0.012
     t = np.clip((z_corner - z) / (z_corner - z_pivot), 0.0, 1.0)
     y_line = MOUTH_Y + (JAW_PIVOT[1] - 0.012 - MOUTH_Y) * t
-    jaw = _smoothstep((y_line - y) / 0.012 + 0.5) * _smoothstep((z - z_pivot) / 0.02)
+    # At the lips the boundary is sharp and strictly below the lip line (the upper lip stays with the
+    # head); over the cheeks it is soft, so opening the jaw stretches the skin instead of creasing it.
+    lip_side = 1.0 - _smoothstep((np.abs(x) - 0.02) / 0.012)
+    below = _smoothstep((y_line - y) / 0.01 + 0.6) * (y < y_line - 1e-6)
+    jaw = lip_side * below + (1.0 - lip_side) * _smoothstep((y_line - y) / 0.016 + 0.5)
+    jaw *= _smoothstep((z - z_pivot) / 0.02)
     jaw *= _smoothstep((z - 0.012) / 0.03 + 0.4 * _smoothstep((y + 0.08) / 0.01))
     jaw *= _smoothstep((y + 0.11) / 0.02)
     jaw[lower_lip] = 1.0

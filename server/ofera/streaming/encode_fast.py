@@ -12,8 +12,9 @@ reference encoder (:mod:`ofera_protocol.encodings`) exactly; tests compare them.
 - q13 positions: the reference's float64 arithmetic, operation for operation (no fastmath).
 - q13 rotations: the reference's float32 arithmetic (|q|^2 summed in component order, as numpy's einsum
   does, a float32 division and products), branch-free selection of the dropped component.
-- q13 scales: threshold search (:func:`ofera_protocol.fast_encodings.scale_thresholds`), so no float32
-  logarithm has to match numpy's.
+- q13 scales: the reference quantiser's own thresholds
+  (:func:`ofera_protocol.fast_encodings.scale_thresholds`) looked up by the float32 bit pattern
+  (:func:`scale_table`), so no float32 logarithm has to match numpy's.
 
 :class:`DeltaQ13` keeps, per client, the values that client holds (decoded from what was sent to it)
 and sends a Gaussian only when the frame's value has moved away from them by more than a threshold,
@@ -31,10 +32,18 @@ from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
-from ofera_protocol.fast_encodings import F16_MAX, F32_MAX, FrameWriter, position_factors, scale_thresholds
+from ofera_protocol.fast_encodings import (
+    F16_MAX,
+    F32_MAX,
+    FrameWriter,
+    NumpyKernels,
+    position_factors,
+    scale_thresholds,
+)
 from ofera_protocol.messages import Quant
 
 _NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
+_SQRT2_511 = np.float32(np.sqrt(2.0) * ROT_LEVELS)  # the reference's float32 constant
 
 
 @intrinsic
@@ -84,31 +93,56 @@ def f16_kernel(src, gather, count, sign, dst):
 
 
 @nb.njit(**_NB)
+def f16_flat_kernel(src, dst):
+    """Contiguous no-gather no-mirror case of :func:`f16_kernel` (vectorises): src (n,) f32 -> dst (n,)."""
+    ok = True
+    for i in range(src.shape[0]):
+        v = src[i]
+        ok &= abs(v) <= F16_MAX
+        dst[i] = f32_to_f16_bits(v)
+    return ok
+
+
+@nb.njit(**_NB)
+def f32_flat_kernel(src, dst):
+    """Contiguous no-gather no-mirror case of :func:`f32_kernel`."""
+    ok = True
+    for i in range(src.shape[0]):
+        v = src[i]
+        ok &= abs(v) <= F32_MAX
+        dst[i] = v
+    return ok
+
+
+@nb.njit(**_NB)
 def q13_position_kernel(src, gather, count, sign, lo, k, dst):
     """uint16 q = clip(rint((float64(p) - lo) * k), 0, 65535) per axis (the reference's float64 steps)."""
     for m in range(count):
         r = _row(gather, m)
         for c in range(3):
             q = (np.float64(src[r, c] * sign[c]) - lo[c]) * k[c]
-            q = np.rint(q)
-            if q < 0.0:
-                q = 0.0
-            elif q > POS_LEVELS:
-                q = POS_LEVELS
+            if abs(q) < 2.0**50:
+                q = _rint(q)
+            q = min(max(q, 0.0), POS_LEVELS)  # NaN -> 0
             dst[m * 3 + c] = np.uint16(q)
 
 
-@nb.njit(**_NB)
+_MAGIC = 6755399441055744.0  # 1.5 * 2**52: (x + M) - M rounds |x| < 2**51 to an integer, half to even
+
+
+@nb.njit(inline="always", **_NB)
+def _rint(x):
+    """Round half to even (what np.rint does) for finite |x| < 2**51; cheaper than a libm call."""
+    return (x + _MAGIC) - _MAGIC
+
+
+@nb.njit(inline="always", **_NB)
 def _snorm10(v):
-    q = np.rint(np.float64(v))
-    if q < -ROT_LEVELS:
-        q = -ROT_LEVELS
-    elif q > ROT_LEVELS:
-        q = ROT_LEVELS
+    q = min(max(_rint(np.float64(v)), -ROT_LEVELS), ROT_LEVELS)
     return np.uint32(np.int32(q) & 0x3FF)
 
 
-@nb.njit(**_NB)
+@nb.njit(inline="always", **_NB)
 def pack_rotation(x, y, z, w):
     """One (x, y, z, w) float32 quaternion -> q13 "smallest three" uint32 (reference arithmetic)."""
     n2 = x * x
@@ -126,27 +160,19 @@ def pack_rotation(x, y, z, w):
     a2 = abs(z)
     a3 = abs(w)
     upper = max(a2, a3) > max(a0, a1)
-    if upper:
-        i = 3 if a3 > a2 else 2
-    else:
-        i = 1 if a1 > a0 else 0
+    i = np.uint32(2 * upper + ((upper and a3 > a2) or ((not upper) and a1 > a0)))
     big = x if i == 0 else (y if i == 1 else (z if i == 2 else w))
-    f = np.float32(np.sqrt(2.0) * ROT_LEVELS) / np.sqrt(n2)
-    if big < 0:
-        f = -f
+    f = _SQRT2_511 / np.sqrt(n2)
+    f = -f if big < 0 else f
     sx = _snorm10(x * f)
     sy = _snorm10(y * f)
     sz = _snorm10(z * f)
     sw = _snorm10(w * f)
-    if i == 0:
-        body = (sy << 20) | (sz << 10) | sw
-    elif i == 1:
-        body = (sx << 20) | (sz << 10) | sw
-    elif i == 2:
-        body = (sx << 20) | (sy << 10) | sw
-    else:
-        body = (sx << 20) | (sy << 10) | sz
-    return (np.uint32(i) << 30) | body
+    # kept components in index order: i=0 -> y z w, 1 -> x z w, 2 -> x y w, 3 -> x y z
+    k0 = sx if i != 0 else sy
+    k1 = sy if i >= 2 else sz
+    k2 = sz if i == 3 else sw
+    return (i << 30) | (k0 << 20) | (k1 << 10) | k2
 
 
 @nb.njit(**_NB)
@@ -156,28 +182,57 @@ def q13_rotation_kernel(src, gather, count, sign, dst):
         dst[m] = pack_rotation(src[r, 0] * sign[0], src[r, 1] * sign[1], src[r, 2] * sign[2], src[r, 3] * sign[3])
 
 
-@nb.njit(**_NB)
-def _scale_code(v, thresholds):
-    """Number of thresholds <= v (binary search; NaN -> 0)."""
-    if not v >= thresholds[0]:
+SCALE_BUCKET_SHIFT = 12
+"""Scale codes are looked up by the float32 bit pattern >> 12: a bucket spans a relative width of 2^-11
+(0.05 %), below the spacing of two codes (>= 0.39 %: the log range is >= 1 wide), so it holds at most
+one threshold and one comparison finishes the lookup."""
+
+
+def scale_table(thresholds: np.ndarray) -> np.ndarray:
+    """Lookup table of :func:`_scale_code` from the 255 thresholds: int64 (B + 2, 2) rows
+    [count of thresholds below the bucket, bits of the bucket's threshold or +inf]; row 0 holds the
+    first and last bucket numbers."""
+    bits = np.asarray(thresholds, np.float32).view(np.int32).astype(np.int64)
+    b0, b1 = bits[0] >> SCALE_BUCKET_SHIFT, bits[-1] >> SCALE_BUCKET_SHIFT
+    buckets = np.arange(b0, b1 + 1)
+    start = buckets << SCALE_BUCKET_SHIFT
+    below = np.searchsorted(bits, start, side="left")  # thresholds with bits < bucket start
+    nxt = np.full(buckets.size, 0x7F800001, np.int64)  # no threshold in the bucket: never reached
+    inside = below < bits.size
+    inside[inside] = (bits[below[inside]] >> SCALE_BUCKET_SHIFT) == buckets[inside]
+    nxt[inside] = bits[below[inside]]
+    if np.any(np.diff(bits >> SCALE_BUCKET_SHIFT) == 0):
+        raise ValueError("two scale thresholds share a lookup bucket (log-scale range too narrow)")
+    table = np.empty((buckets.size + 1, 2), np.int64)
+    table[0] = b0, b1
+    table[1:, 0] = below
+    table[1:, 1] = nxt
+    return table
+
+
+@nb.njit(inline="always", **_NB)
+def _scale_code(v, table):
+    """Number of thresholds <= v (NaN, zero and negative scales -> 0) via the bucket table."""
+    b = np.int64(np.float32(v).view(np.int32))
+    if b <= 0:  # +0, negative numbers (sign bit set)
         return 0
-    lo = 0  # thresholds[lo] <= v
-    hi = thresholds.shape[0]  # thresholds[hi] > v (virtual)
-    while hi - lo > 1:
-        mid = (lo + hi) >> 1
-        if thresholds[mid] <= v:
-            lo = mid
-        else:
-            hi = mid
-    return lo + 1
+    if b > 0x7F800000:  # NaN
+        return 0
+    bucket = b >> SCALE_BUCKET_SHIFT
+    if bucket < table[0, 0]:
+        return 0
+    if bucket > table[0, 1]:
+        return SCALE_LEVELS
+    row = bucket - table[0, 0] + 1
+    return table[row, 0] + (1 if b >= table[row, 1] else 0)
 
 
 @nb.njit(**_NB)
-def q13_scale_kernel(src, gather, count, thresholds, dst):
+def q13_scale_kernel(src, gather, count, table, dst):
     for m in range(count):
         r = _row(gather, m)
         for c in range(3):
-            dst[m * 3 + c] = np.uint8(_scale_code(src[r, c], thresholds))
+            dst[m * 3 + c] = np.uint8(_scale_code(src[r, c], table))
 
 
 _NO_GATHER = np.zeros(0, np.int64)
@@ -190,11 +245,23 @@ class NumbaKernels:
     def _g(src: np.ndarray, gather: np.ndarray | None) -> tuple[np.ndarray, int]:
         return (_NO_GATHER, src.shape[0]) if gather is None else (gather, gather.shape[0])
 
+    @staticmethod
+    def _flat(src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray) -> np.ndarray | None:
+        if gather is None and src.dtype == np.float32 and src.flags.c_contiguous and (sign == 1).all():
+            return src.reshape(-1)
+        return None
+
     def f32(self, src, gather, sign, dst) -> bool:
+        flat = self._flat(src, gather, sign)
+        if flat is not None:
+            return bool(f32_flat_kernel(flat, dst))
         g, n = self._g(src, gather)
         return bool(f32_kernel(src, g, n, sign, dst))
 
     def f16(self, src, gather, sign, dst) -> bool:
+        flat = self._flat(src, gather, sign)
+        if flat is not None:
+            return bool(f16_flat_kernel(flat, dst))
         g, n = self._g(src, gather)
         return bool(f16_kernel(src, g, n, sign, dst))
 
@@ -206,9 +273,25 @@ class NumbaKernels:
         g, n = self._g(src, gather)
         q13_rotation_kernel(src, g, n, sign, dst)
 
+    def __init__(self) -> None:
+        self._tables: dict[bytes, np.ndarray | None] = {}
+
+    def table(self, thresholds: np.ndarray) -> np.ndarray | None:
+        key = thresholds.tobytes()
+        if key not in self._tables:
+            try:
+                self._tables[key] = scale_table(thresholds)
+            except ValueError:  # a log range narrower than 1: the numpy kernel handles it
+                self._tables[key] = None
+        return self._tables[key]
+
     def q13_scale(self, src, gather, thresholds, dst) -> None:
+        table = self.table(thresholds)
+        if table is None:
+            NumpyKernels().q13_scale(src, gather, thresholds, dst)
+            return
         g, n = self._g(src, gather)
-        q13_scale_kernel(src, g, n, thresholds, dst)
+        q13_scale_kernel(src, g, n, table, dst)
 
 
 _KERNELS: NumbaKernels | None = None
@@ -233,7 +316,7 @@ def warm_up() -> None:
     s = np.full((2, 3), 1e-3, np.float32)
     ones3, ones4 = np.ones(3, np.float32), np.ones(4, np.float32)
     lo, kk = np.zeros(3), np.ones(3)
-    thr = np.linspace(1e-4, 1e-2, SCALE_LEVELS).astype(np.float32)
+    thr = np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32)
     for gather in (None, np.arange(2, dtype=np.int64)):
         k.f32(p, gather, ones3, np.zeros(6, np.float32))
         k.f16(p, gather, ones3, np.zeros(6, np.uint16))
@@ -243,6 +326,9 @@ def warm_up() -> None:
         k.q13_scale(s, gather, thr, np.zeros(6, np.uint8))
     # Unaligned destinations (fields inside a message buffer) are their own numba specialisation.
     buf = bytearray(64)
+    f16_flat_kernel(p.reshape(-1), np.frombuffer(buf, np.uint16, 6, 1))
+    f32_flat_kernel(p.reshape(-1), np.frombuffer(buf, np.float32, 6, 1))
+    f16_flat_kernel(p.reshape(-1), np.zeros(6, np.uint16))
     k.f16(p, None, ones3, np.frombuffer(buf, np.uint16, 6, 1))
     k.f32(p, None, ones3, np.frombuffer(buf, np.float32, 6, 1))
     k.q13_position(p, None, ones3, lo, kk, np.frombuffer(buf, np.uint16, 6, 1))
@@ -260,7 +346,7 @@ def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | N
 
 
 @nb.njit(**_NB)
-def _delta_select(pos, rot, scale, ids, psign, rsign, lo, k, step, thresholds, log_lo, log_step,
+def _delta_select(pos, rot, scale, ids, psign, rsign, lo, k, step, table, log_lo, log_step,
                   held_pos, held_rot, held_slo, held_shi, pos_thr2, rot_dot, log_thr, force, sel, out_pos, out_rot,
                   out_scale):
     """For the M candidate rows ``ids``: quantise, compare with what the client holds, and for the ones
@@ -301,7 +387,7 @@ def _delta_select(pos, rot, scale, ids, psign, rsign, lo, k, step, thresholds, l
         out_rot[count] = packed
         _unpack_into(packed, held_rot, m)
         for c in range(3):
-            code = _scale_code(scale[r, c], thresholds)
+            code = _scale_code(scale[r, c], table)
             out_scale[count * 3 + c] = np.uint8(code)
             held = log_lo + code * log_step
             held_slo[m, c] = math.exp(held - log_thr)
@@ -333,11 +419,14 @@ def _unpack_into(v, out, m):
             j += 1
 
 
+_WARM_TABLE = scale_table(np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32))
+
+
 def delta_kernel_warm() -> None:
     z3, z4 = np.zeros((1, 3), np.float32), np.zeros((1, 4), np.float32)
     z4[0, 3] = 1
     _delta_select(z3, z4, z3 + 1e-3, np.zeros(1, np.int64), np.ones(3, np.float32), np.ones(4, np.float32),
-                  np.zeros(3), np.ones(3), np.ones(3), np.linspace(1e-4, 1e-2, 255).astype(np.float32), -9.0, 0.01,
+                  np.zeros(3), np.ones(3), np.ones(3), _WARM_TABLE, -9.0, 0.01,
                   np.zeros((1, 3)), np.zeros((1, 4)), np.zeros((1, 3)), np.ones((1, 3)), 1e-10, 0.99, 0.01, True,
                   np.zeros(1, np.int64), np.zeros(3, np.uint16), np.zeros(1, np.uint32), np.zeros(3, np.uint8))
 
@@ -376,7 +465,7 @@ class DeltaQ13:
         self.psign, self.rsign = coord_signs(coords)
         self.lo, self.k = position_factors(quant)
         self.step = (quant.pos_max.astype(np.float64) - self.lo) / POS_LEVELS
-        self.scale_thr = scale_thresholds(quant)
+        self.scale_table = scale_table(scale_thresholds(quant))
         lmin, lmax = float(quant.log_scale[0]), float(quant.log_scale[1])
         self.log_lo, self.log_step = lmin, (lmax - lmin) / SCALE_LEVELS
         m = self.ids.size
@@ -404,7 +493,7 @@ class DeltaQ13:
         uint16, rotation codes (n,) uint32, scale codes (n, 3) uint8) of the Gaussians to send; views of
         internal buffers, valid until the next call. ``force`` sends every candidate."""
         n = _delta_select(position, rotation, scale, self.ids, self.psign, self.rsign, self.lo, self.k, self.step,
-                          self.scale_thr, self.log_lo, self.log_step, self.held_pos, self.held_rot, self.held_slo,
+                          self.scale_table, self.log_lo, self.log_step, self.held_pos, self.held_rot, self.held_slo,
                           self.held_shi,
                           self._pos_thr2, self._rot_dot, self.th.log_scale, force, self._sel, self._pos, self._rot,
                           self._scale)

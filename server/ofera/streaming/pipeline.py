@@ -37,12 +37,20 @@ class AvatarAssets:
     subject: HeadSubject
     mapper: Mapper  # the avatar's EPM (its ONNX session is shared; each Pipeline binds its own buffers)
     bda: BDA  # the avatar's own BDA (sibling <id>.bda.npz) or identity; a device profile overrides it
+    fast: Any = None  # ofera.avatar.fast.FastAvatar (shared, read-only), or None: the numpy reference
     _cache: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
-    def create(cls, avatar_id: str, avatar: Any, mapper: Mapper, bda: BDA | None = None) -> AvatarAssets:
+    def create(cls, avatar_id: str, avatar: Any, mapper: Mapper, bda: BDA | None = None,
+               fast: bool = True) -> AvatarAssets:
+        """`fast`: deform with `ofera.avatar.fast` (subset LBS + numba kernels) instead of the reference."""
         subject = HeadSubject.create(avatar.head)  # the avatar's identity is baked into its head's template
-        return cls(avatar_id, avatar, subject, mapper, bda if bda is not None else BDA.identity())
+        fast_avatar = None
+        if fast:
+            from ..avatar.fast import FastAvatar
+
+            fast_avatar = FastAvatar(avatar, subject)
+        return cls(avatar_id, avatar, subject, mapper, bda if bda is not None else BDA.identity(), fast_avatar)
 
     @property
     def count(self) -> int:
@@ -129,13 +137,16 @@ class Pipeline:
         base = assets.mapper
         # The BDA runs as its own stage; the mapper gets an identity BDA (a clamp, a no-op on [0, 1]).
         self.mapper = Mapper(base.session, None, source=base.source)
-        self.deformer = assets.avatar.deformer()
+        # Head model + deformation: the fast path's per-stream buffers, or the reference deformer.
+        self.fast = assets.fast.session() if assets.fast is not None else None
+        self.deformer = assets.avatar.deformer() if self.fast is None else None
         self._x51 = np.zeros(51, np.float32)
         self._y = np.zeros(68, np.float32)
 
     def run(self, weights: np.ndarray) -> tuple[Any, dict[str, int]]:
         """Blendshape weights (L,) in the session's layout -> (GaussianState in FLAME space, stage
-        durations in microseconds). The returned arrays belong to the caller (fresh per call)."""
+        durations in microseconds). The returned state is the caller's: never written again while referenced
+        (fresh arrays on the reference path, a pooled read-only state on the fast path)."""
         clock = time.perf_counter_ns
         t0 = clock()
         x = self.adapter(weights)
@@ -145,15 +156,22 @@ class Pipeline:
         y = self.mapper.map(a, out=self._y)
         expr, rotations = split_flame_values(y)
         t3 = clock()
-        verts, _ = lbs(self.assets.subject, expr[None], rotations[None])
-        t4 = clock()
-        state = self.deformer.deform(verts[0])
+        if self.fast is not None:
+            verts = self.fast.head(expr, rotations)
+            t4 = clock()
+            state = self.fast.deform(verts)
+        else:
+            verts = lbs(self.assets.subject, expr[None], rotations[None])[0][0]
+            t4 = clock()
+            state = self.deformer.deform(verts)
         t5 = clock()
         ts = (t0, t1, t2, t3, t4, t5)
         return state, {name: (ts[i + 1] - ts[i]) // 1000 for i, name in enumerate(STAGES)}
 
     def warm_up(self, frames: int = 3) -> None:
         """Run a few frames so that first-use costs (allocation, ONNX graph set-up) are paid now."""
+        if self.assets.fast is not None:
+            self.assets.fast.warm_up()  # compiles (or loads cached) numba kernels
         w = np.zeros(self.adapter.layout.length, np.float32)
         for _ in range(frames):
             self.run(w)

@@ -105,7 +105,7 @@ class AvatarRegistry:
         avatar = load_avatar(DEFAULT if src.path is None else src.path)
         mapper = Mapper.load(src.epm) if src.epm is not None else Mapper.default()
         bda = BDA.load(src.bda) if src.bda is not None else None
-        return AvatarAssets.create(src.id, avatar, mapper, bda)
+        return AvatarAssets.create(src.id, avatar, mapper, bda, fast=self.settings.fast)
 
     def device_bda(self, device: str) -> BDA | None:
         """The BDA profile named `device`, or None if the server has none by that name."""
@@ -133,9 +133,10 @@ _REGISTRIES_LOCK = threading.Lock()
 
 
 def registry_for(settings: Settings | None = None) -> AvatarRegistry:
-    """A process-wide registry per (avatars, devices, default_avatar): servers and offline runs share loads."""
+    """A process-wide registry per (avatars, devices, default_avatar, fast): servers and offline runs share
+    loads."""
     settings = settings or Settings()
-    key = (str(settings.avatars), str(settings.devices), settings.default_avatar)
+    key = (str(settings.avatars), str(settings.devices), settings.default_avatar, settings.fast)
     with _REGISTRIES_LOCK:
         reg = _REGISTRIES.get(key)
         if reg is None:

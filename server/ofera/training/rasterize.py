@@ -279,7 +279,8 @@ def rasterize(
 
 
 def rasterize_gsplat(means, quats, scales, opacities, colours, camera: Camera, background=None) -> Render:
-    """The same render through gsplat's CUDA kernels (optional; needs ``pip install gsplat`` and a GPU)."""
+    """The same render through gsplat's CUDA kernels (optional: ``pip install gsplat``, needs a CUDA GPU; not
+    exercised on CPU-only machines). Depth is not produced (zeros)."""
     try:
         from gsplat import rasterization
     except ImportError as exc:  # pragma: no cover - optional dependency
@@ -289,8 +290,9 @@ def rasterize_gsplat(means, quats, scales, opacities, colours, camera: Camera, b
     view[:3, :3] = torch.as_tensor(camera.R, dtype=dt, device=dev)
     view[:3, 3] = torch.as_tensor(camera.t, dtype=dt, device=dev)
     k = torch.as_tensor(camera.K, dtype=dt, device=dev)
-    bg = None if background is None else torch.as_tensor(background, dtype=dt, device=dev).expand(1, colours.shape[1])
+    ch = colours.shape[1]
+    bg = None if background is None else torch.as_tensor(background, dtype=dt, device=dev).expand(1, ch)
     img, alpha, _ = rasterization(means, quats / quats.norm(dim=-1, keepdim=True), scales, opacities.reshape(-1),
-                                  colours, view[None], k[None], camera.width, camera.height,
-                                  render_mode="RGB+ED", backgrounds=bg)
-    return Render(img[0, ..., :-1], alpha[0, ..., 0], img[0, ..., -1] * alpha[0, ..., 0])
+                                  colours, view[None], k[None], camera.width, camera.height, eps2d=LOW_PASS,
+                                  render_mode="RGB", backgrounds=bg)
+    return Render(img[0], alpha[0, ..., 0], torch.zeros_like(alpha[0, ..., 0]))

@@ -10,8 +10,9 @@ identity, as in the FLAME values), find per frame expr (50), jaw and eye rotatio
    on the plane normal to R's axis as the complex number (1 - a) + a e^{i theta}). Unposing the targets
    gives x(R) = E psi + residual; eliminating psi by projection leaves a 3-parameter problem per frame,
    solved by Gauss-Newton (finite differences, Levenberg damping) from a Kabsch estimate on the
-   vertices the jaw moves rigidly. Vertices without jaw share enter only through the jaw's pose correctives, which are
-   linear in (R - I): their part of the normal equations comes from precomputed 9x9 / 9x50 products.
+   vertices the jaw moves rigidly; the search unposes an even subsample of the jaw-moved vertices.
+   Vertices without jaw share enter only through the jaw's pose correctives, which are linear in
+   (R - I): their part of the normal equations comes from precomputed 9x9 / 9x50 products.
 3. expr: ridge least squares on the unposed targets, (E^T E + ridge I)^-1 E^T x(R) (the ridge is the
    tracker's expression prior).
 

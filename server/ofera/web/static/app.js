@@ -326,8 +326,8 @@ function connect(maxGaussians) {
     const was = c.state;
     c.state = "closed";
     if (c.closing) return;
-    const why = ev.reason ? `${ev.code} ${ev.reason}` : `${ev.code}`;
-    setStatus(`disconnected (${why}); retrying in ${(retryMs / 1000).toFixed(0)} s`, true);
+    const why = c.refused ?? `disconnected (${ev.reason ? `${ev.code} ${ev.reason}` : ev.code})`;
+    setStatus(`${why}; retrying in ${(retryMs / 1000).toFixed(0)} s`, true);
     setTimeout(() => { if (c === conn) connect(c.maxGaussians); }, retryMs);
     retryMs = was === "streaming" ? 1000 : Math.min(retryMs * 2, 15000);
   };
@@ -356,7 +356,11 @@ function onMessage(c, buffer) {
   if (type !== "avatar" && type !== "frame") msg = decodeServerMessage(bytes);
   if (type === "error") {
     reportError(`server ${msg.fatal ? "fatal " : ""}error ${msg.code}: ${msg.message}`);
-    if (msg.fatal) { setStatus(`server refused: ${msg.code}: ${msg.message}`, true); if (c.state !== "streaming") retryMs = 15000; }
+    if (msg.fatal) {
+      c.refused = `server refused: ${msg.code}: ${msg.message}`;
+      setStatus(c.refused, true);
+      if (c.state !== "streaming") retryMs = 15000;
+    }
     return;
   }
   if (type === "pong") return;

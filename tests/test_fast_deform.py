@@ -1,0 +1,198 @@
+"""The fast per-frame path (ofera.head.lbs_fast, ofera.avatar.fast/kernels) against the numpy reference
+(lbs + Deformer), for both binding types, on random expressions, jaw and eye rotations."""
+
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+import pytest
+from ofera.avatar import BarycentricBinding, GaussianAvatar, TriangleBinding
+from ofera.avatar.fast import FastAvatar, StatePool, affected_vertices, reference_frame
+from ofera.avatar.frames import face_scales
+from ofera.head.lbs import HeadSubject, pose_rotations
+from ofera.head.lbs_fast import SubsetLBS, subset_lbs_reference
+from ofera.head.rotations import axis_angle_to_matrix
+from ofera.mapping.flame_values import neutral_flame_values, split_flame_values
+
+POS_ATOL = 2e-7  # metres: float32 output of positions ~0.1 m (ulp 7e-9) plus the float32 blend basis
+ROT_ATOL = 2e-6  # quaternion components
+SCALE_RTOL = 2e-6
+
+
+def random_avatar(head, kind: str, rng, n: int = 4000, sorted_faces: bool = False) -> GaussianAvatar:
+    """Random Gaussians of `kind`; half on the face region (where expressions act), half anywhere.
+    sorted_faces: consecutive Gaussians share faces (as generated avatars are laid out: long runs)."""
+    moving = np.flatnonzero(affected_vertices(head)[head.faces].any(axis=1))
+    face = np.concatenate([rng.choice(moving, n // 2), rng.integers(0, head.num_faces, n - n // 2)])
+    face = np.sort(face) if sorted_faces else rng.permutation(face)
+    rot = rng.normal(size=(n, 4)).astype(np.float32)
+    rot[:3] = 0  # zero local rotations: the identity in both paths
+    if kind == "triangle":
+        binding = TriangleBinding(face=face, position=rng.normal(scale=0.5, size=(n, 3)).astype(np.float32),
+                                  rotation=rot, log_scale=rng.normal(-1.0, 0.5, size=(n, 3)).astype(np.float32))
+    else:
+        binding = BarycentricBinding(
+            face=face, bary=rng.dirichlet(np.ones(3), n).astype(np.float32),
+            offset=rng.normal(size=n).astype(np.float32), rotation=rot,
+            log_scale=rng.normal(-6.0, 0.5, size=(n, 3)).astype(np.float32),
+            face_scale_canonical=face_scales(head.v_template, head.faces).astype(np.float32) * 1.1)
+    return GaussianAvatar(head, binding, rng.random(n).astype(np.float32),
+                          rng.normal(size=(n, 1, 3)).astype(np.float32), name=f"random-{kind}")
+
+
+def random_flame(rng, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(expr (50,), rotations (5, 3, 3)) float32 from random FLAME values: jaw and eyes up to ~0.4 rad."""
+    y = neutral_flame_values(1)[0]
+    y[:50] = rng.normal(0, scale, 50)
+    y[50:] += rng.normal(0, 0.15 * scale, 18).astype(np.float32)
+    return split_flame_values(y)
+
+
+def assert_same_state(fast, ref, rows=None) -> None:
+    rows = slice(None) if rows is None else rows
+    np.testing.assert_allclose(fast.position[rows], ref.position[rows], rtol=0, atol=POS_ATOL)
+    # quaternions: q and -q are the same rotation
+    dot = np.abs(np.sum(fast.rotation[rows].astype(np.float64) * ref.rotation[rows], axis=1))
+    assert np.all(np.abs(dot - 1) < ROT_ATOL), float(np.abs(dot - 1).max())
+    sign = np.sign(np.sum(fast.rotation[rows] * ref.rotation[rows], axis=1))[:, None]
+    np.testing.assert_allclose(fast.rotation[rows] * sign, ref.rotation[rows], rtol=0, atol=ROT_ATOL)
+    np.testing.assert_allclose(fast.scale[rows], ref.scale[rows], rtol=SCALE_RTOL, atol=0)
+
+
+@pytest.fixture(scope="module")
+def subject(head):
+    return HeadSubject.create(head)
+
+
+def test_subset_lbs_matches_reference(head, subject) -> None:
+    rng = np.random.default_rng(0)
+    ids = np.sort(rng.choice(head.num_vertices, 1500, replace=False))
+    sub = SubsetLBS(subject, ids)
+    for _ in range(5):
+        expr, rot = random_flame(rng, 2.0)
+        ref = subset_lbs_reference(subject, expr, rot, ids)
+        np.testing.assert_allclose(sub.forward(expr, rot), ref, rtol=0, atol=1e-8)
+    # Any rotations (root and neck included) and fewer expression coefficients: still the reference.
+    rot = pose_rotations(1, jaw=rng.normal(0, 0.3, 3), neck=rng.normal(0, 0.3, 3), root=rng.normal(0, 0.3, 3))[0]
+    expr = rng.normal(0, 1, 20)
+    np.testing.assert_allclose(sub.forward(expr, rot), subset_lbs_reference(subject, expr, rot, ids), atol=1e-8)
+    with pytest.raises(ValueError):
+        sub.forward(np.zeros(head.expr_dims + 1), rot)
+
+
+def test_subset_lbs_clone_shares_arrays_not_buffers(head, subject) -> None:
+    sub = SubsetLBS(subject, np.arange(100))
+    other = sub.clone()
+    assert other.basis_t is sub.basis_t and other.out is not sub.out
+
+
+@pytest.mark.parametrize("kind", ["triangle", "barycentric"])
+@pytest.mark.parametrize("sorted_faces", [False, True])
+def test_fast_frame_matches_reference(head, subject, kind, sorted_faces) -> None:
+    rng = np.random.default_rng(3)
+    avatar = random_avatar(head, kind, rng, sorted_faces=sorted_faces)
+    fast = FastAvatar(avatar, subject)
+    assert 0 < fast.moving < avatar.count
+    session = fast.session()
+    for scale in (0.0, 1.0, 2.5):
+        expr, rot = random_flame(rng, scale)
+        state = session.run(expr, rot)
+        assert state.position.dtype == np.float32 and state.rotation.shape == (avatar.count, 4)
+        assert_same_state(state, reference_frame(avatar, subject, expr, rot))
+
+
+@pytest.mark.parametrize("kind", ["triangle", "barycentric"])
+def test_deform_kernels_on_arbitrary_vertices(head, subject, kind) -> None:
+    """Every Gaussian deformed ("all") on randomly perturbed vertices, not only LBS output."""
+    rng = np.random.default_rng(4)
+    avatar = random_avatar(head, kind, rng, n=3000)
+    fast = FastAvatar(avatar, subject, gaussians="all")
+    verts = head.v_template + rng.normal(0, 1e-3, head.v_template.shape)
+    state = fast.session().deform(verts[fast.lbs.vertex_ids])
+    assert_same_state(state, avatar.deformer().deform(verts))
+
+
+def test_default_avatar_fast_path(subject) -> None:
+    from ofera.avatar import load_avatar
+
+    avatar = load_avatar("default")
+    fast = FastAvatar(avatar, HeadSubject.create(avatar.head))
+    assert fast.runs < fast.moving / 3  # its Gaussians are laid out face by face
+    rng = np.random.default_rng(5)
+    session = fast.session()
+    for _ in range(2):
+        expr, rot = random_flame(rng)
+        assert_same_state(session.run(expr, rot), reference_frame(avatar, fast.subject, expr, rot))
+
+
+def test_movable_set_is_close_and_exact_set_is_exact(head, subject) -> None:
+    rng = np.random.default_rng(6)
+    avatar = random_avatar(head, "triangle", rng)
+    expr, rot = random_flame(rng, 2.0)
+    ref = reference_frame(avatar, subject, expr, rot)
+    movable = FastAvatar(avatar, subject, gaussians="movable")
+    assert movable.moving == int(avatar.movable.sum())
+    state = movable.session().run(expr, rot)
+    assert_same_state(state, ref, rows=avatar.movable)
+    # The rest differ from the reference by at most the tolerance's motion (0.1 um per unit coefficient).
+    assert np.abs(state.position - ref.position).max() < 1e-6
+
+
+def test_root_or_neck_rotation_is_refused(head, subject) -> None:
+    rng = np.random.default_rng(7)
+    session = FastAvatar(random_avatar(head, "triangle", rng, n=200), subject).session()
+    rot = pose_rotations(1, neck=np.array([0.0, 0.2, 0.0]))[0]
+    with pytest.raises(ValueError, match="root and neck"):
+        session.head(np.zeros(10), rot)
+
+
+def test_pool_never_rewrites_a_state_in_use(head, subject) -> None:
+    rng = np.random.default_rng(8)
+    session = FastAvatar(random_avatar(head, "triangle", rng, n=500), subject).session(pool_size=3)
+    e1, r1 = random_flame(rng)
+    kept = session.run(e1, r1)
+    snapshot = kept.position.copy()
+    view = kept.rotation[:10]  # a view keeps its array busy too
+    rot_snapshot = view.copy()
+    del kept
+    for _ in range(5):  # more frames than the pool holds
+        session.run(*random_flame(rng))
+    np.testing.assert_array_equal(view, rot_snapshot)
+    assert not view.flags.writeable
+    gc.collect()
+    # Dropped states are recycled: a steady stream keeps using the same few buffers.
+    before = session.pool.created
+    for _ in range(10):
+        s = session.run(*random_flame(rng))
+        del s
+    assert session.pool.created == before and session.pool.unpooled >= 0
+    assert snapshot.shape == (500, 3)
+
+
+def test_state_pool_reuses_only_idle_states() -> None:
+    from ofera.avatar import GaussianState
+
+    n = 4
+    template = GaussianState(np.zeros((n, 3), np.float32), np.tile(np.float32([0, 0, 0, 1]), (n, 1)),
+                             np.ones((n, 3), np.float32))
+    pool = StatePool(template, size=2)
+    a, pa, _, _ = pool.acquire()
+    pa[0] = 7
+    b, _, _, _ = pool.acquire()
+    c, _, _, _ = pool.acquire()  # both pooled ones busy: an unpooled one
+    assert pool.unpooled == 1 and a is not b and c is not a and c is not b
+    assert a.position[0, 0] == 7 and not a.position.flags.writeable
+    del a, pa
+    d, _, _, _ = pool.acquire()
+    assert d.position[0, 0] == 7  # the first entry again (its values are the last frame's)
+
+
+def test_rotation_matrices_from_axis_angle_match(head, subject) -> None:
+    """float64 rotations (not only FLAME values' float32) go through the same kernel."""
+    rng = np.random.default_rng(9)
+    avatar = random_avatar(head, "barycentric", rng, n=1000)
+    fast = FastAvatar(avatar, subject)
+    rot = np.stack([np.eye(3), np.eye(3), *axis_angle_to_matrix(rng.normal(0, 0.2, (3, 3)))])
+    expr = rng.normal(0, 1, 50)
+    assert_same_state(fast.session().run(expr, rot), reference_frame(avatar, subject, expr, rot))
