@@ -99,13 +99,29 @@ def open_page(browser, url: str):
     problems: list[str] = []
     page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
     page.goto(url)
-    page.wait_for_function("window.__ofera && window.__ofera.settled", timeout=PAGE_S * 1000)
+    wait(page, "window.__ofera && window.__ofera.settled")
     assert not problems, problems
     return page
 
 
+STATE = """JSON.stringify(window.__ofera && {status: __ofera.status, count: __ofera.count, sent: __ofera.lastSentSeq,
+  received: __ofera.lastFrameSeq, drawn: __ofera.drawnSeq, fps: __ofera.fps, reductions: __ofera.reductions,
+  errors: __ofera.errors, hud: document.getElementById("hud").textContent,
+  status_line: document.getElementById("status").textContent})"""
+
+
+def wait(page, condition: str, timeout_s: float = PAGE_S) -> None:
+    """Wait for a JavaScript condition; on timeout, say what the page was doing."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        page.wait_for_function(condition, timeout=timeout_s * 1000)
+    except PlaywrightTimeout:
+        pytest.fail(f"timed out after {timeout_s} s waiting for {condition!r}; page: {page.evaluate(STATE)}")
+
+
 def wait_settled(page, after_seq: int) -> None:
-    page.wait_for_function(f"__ofera.settled && __ofera.drawnSeq > {after_seq}", timeout=PAGE_S * 1000)
+    wait(page, f"__ofera.settled && __ofera.drawnSeq > {after_seq}")
 
 
 def canvas_pixels(page) -> np.ndarray:
@@ -196,7 +212,7 @@ def test_reduced_stream_forced_and_automatic(browser, server) -> None:
     # A frame rate nobody reaches: the page must reconnect asking for fewer Gaussians on its own.
     page = open_page(browser, f"{server}/?minfps=1000")
     try:
-        page.wait_for_function("__ofera.reductions >= 1 && __ofera.settled", timeout=PAGE_S * 1000)
+        wait(page, "__ofera.reductions >= 1 && __ofera.settled")
         info = page.evaluate("({count: __ofera.count, max: __ofera.maxGaussians, full: __ofera.fullCount, "
                              "errors: __ofera.errors})")
         assert info["max"] is not None and info["count"] <= info["max"] < info["full"], info
@@ -214,14 +230,14 @@ def check_camera_and_presets(page) -> None:
     page.mouse.down()
     page.mouse.move(x + 150, y + 20, steps=5)
     page.mouse.up()
-    page.wait_for_function("__ofera.settled", timeout=PAGE_S * 1000)
+    wait(page, "__ofera.settled")
     turned = canvas_pixels(page)
     assert (np.abs(turned - home).max(axis=2) > 40).mean() > 0.05, "dragging did not turn the view"
     page.mouse.wheel(0, 600)
-    page.wait_for_function("__ofera.settled", timeout=PAGE_S * 1000)
+    wait(page, "__ofera.settled")
     assert foreground(canvas_pixels(page)).mean() < 0.8 * foreground(turned).mean(), "the wheel did not zoom out"
     page.mouse.dblclick(x, y)
-    page.wait_for_function("__ofera.settled", timeout=PAGE_S * 1000)
+    wait(page, "__ofera.settled")
     assert np.abs(canvas_pixels(page) - home).mean() < 2, "a double click did not reset the view"
 
     seq = page.evaluate("__ofera.lastFrameSeq")
@@ -251,8 +267,8 @@ def test_dropped_recordings_play(browser, server) -> None:
         seq = page.evaluate("__ofera.lastSentSeq")
         page.set_input_files("#file", files=[{"name": "take.csv", "mimeType": "text/csv",
                                               "buffer": _livelink_csv().encode()}])
-        assert "livelink61" in page.inner_text("#playinfo")
-        page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=PAGE_S * 1000)
+        page.wait_for_function("document.getElementById('playinfo').textContent.includes('livelink61')")
+        wait(page, "!__ofera.playing && __ofera.settled")
         assert page.evaluate("__ofera.lastSentSeq") > seq + 1, "playback sent no bs"
         assert page.evaluate("__ofera.weights()[17]") == pytest.approx(1.0)  # the last row: JawOpen 1
         assert page.input_value("#bs-jawOpen") == "1"  # the sliders follow the playback
@@ -267,7 +283,7 @@ def test_dropped_recordings_play(browser, server) -> None:
             rows.append(f"{t:.6f}," + ",".join(f"{x:g}" for x in w))
         out = page.evaluate("t => __ofera.playText(t, 'quest.csv')", "\n".join(rows))
         assert out == {"rows": 3, "layout": "ovr63", "duration": pytest.approx(0.1)}
-        page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=PAGE_S * 1000)
+        wait(page, "!__ofera.playing && __ofera.settled")
         w = page.evaluate("__ofera.weights()")
         assert w[0] == pytest.approx(1.0) and w[7] == pytest.approx(1.0)  # eyeBlinkLeft, eyeBlinkRight
 

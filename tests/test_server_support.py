@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import atexit
+import dataclasses
 import functools
 import shutil
 import tempfile
@@ -28,16 +29,14 @@ DEVICE = "testset"
 def make_small_avatar(path: Path) -> None:
     """The built-in procedural avatar subsampled to SMALL_COUNT Gaussians, written as an avatar .npz."""
     from ofera.avatar import load_avatar
-    from ofera.avatar.binding import TriangleBinding
 
     full = load_avatar("default")
-    rng = np.random.default_rng(7)
-    keep = np.sort(rng.choice(full.count, size=min(SMALL_COUNT, full.count), replace=False))
+    keep = np.sort(np.random.default_rng(7).choice(full.count, size=min(SMALL_COUNT, full.count), replace=False))
     b = full.binding
-    assert isinstance(b, TriangleBinding)
-    binding = TriangleBinding(face=b.face[keep], position=b.position[keep], rotation=b.rotation[keep],
-                              log_scale=b.log_scale[keep])
-    small = type(full)(head=full.head, binding=binding, opacity=full.opacity[keep], sh=full.sh[keep], name=SMALL)
+    per_gaussian = {f.name: getattr(b, f.name)[keep] for f in dataclasses.fields(b)
+                    if f.name != "face_scale_canonical" and isinstance(getattr(b, f.name), np.ndarray)}
+    small = dataclasses.replace(full, binding=dataclasses.replace(b, **per_gaussian), opacity=full.opacity[keep],
+                                sh=full.sh[keep], name=SMALL)
     small.save(path)
 
 

@@ -26,8 +26,9 @@ still references it or any view of its arrays (CPython reference counts), so the
 hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
 nothing. States are read-only.
 
-Single-threaded kernels on purpose: measured on the 2-core target, prange over 2 threads gained
-little per frame and cost throughput once several sessions share the cores (benchmarks/scaling.py).
+Single-threaded kernels by default (``session(parallel=True)`` runs face frames and the triangle kernel
+with prange over numba's threads): on the 2-core target a second thread can only help a lone session,
+and several sessions already keep both cores busy (benchmarks/scaling.py measures both).
 """
 
 from __future__ import annotations
@@ -197,8 +198,10 @@ class FastAvatar:
         """Gaussians deformed per frame."""
         return int(self.arrays.ids.size)
 
-    def session(self, pool_size: int = 8) -> FastSession:
-        return FastSession(self, pool_size)
+    def session(self, pool_size: int = 8, parallel: bool = False) -> FastSession:
+        """Per-stream buffers. ``parallel``: face frames and triangle deformation over numba's thread pool
+        (prange); measured in benchmarks/scaling.py, off by default (see the module docstring)."""
+        return FastSession(self, pool_size, parallel)
 
     def warm_up(self) -> None:
         """Compile (or load from the on-disk cache) every kernel now, not on the first frame."""
@@ -215,8 +218,9 @@ _EYE2 = np.broadcast_to(np.eye(3), (2, 3, 3))
 class FastSession:
     """Per-stream buffers of a :class:`FastAvatar`. Not thread-safe: one frame at a time."""
 
-    def __init__(self, fast: FastAvatar, pool_size: int = 8) -> None:
+    def __init__(self, fast: FastAvatar, pool_size: int = 8, parallel: bool = False) -> None:
         self.fast = fast
+        self.parallel = parallel
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
         self.face = np.zeros((fast.used_faces.size, cols), np.float64)
@@ -239,13 +243,13 @@ class FastSession:
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
         state, pos, rot, scale = self.pool.acquire()
         bary = a.bary is not None
-        K.face_frames_kernel(verts, a.face_vids, self.face, bary)
+        (K.face_frames_kernel_parallel if self.parallel else K.face_frames_kernel)(verts, a.face_vids, self.face, bary)
         if bary:
             K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.bary,
                                  a.shift, a.lrot, a.lscale, a.inv_canonical, pos, rot, scale)
         else:
-            K.triangle_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.lpos, a.lrot, a.lscale,
-                              pos, rot, scale)
+            kernel = K.triangle_kernel_parallel if self.parallel else K.triangle_kernel
+            kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.lpos, a.lrot, a.lscale, pos, rot, scale)
         return state
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:

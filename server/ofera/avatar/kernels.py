@@ -44,106 +44,118 @@ FACE_COLS_BARY = 20
 def face_frames_kernel(verts, face_vids, face, with_normal):
     """verts (S, 3) f64; face_vids (U, 3) int rows of verts -> face (U, FACE_COLS[_BARY]) f64."""
     for u in range(face_vids.shape[0]):
-        i0 = face_vids[u, 0]
-        i1 = face_vids[u, 1]
-        i2 = face_vids[u, 2]
-        v0x = verts[i0, 0]
-        v0y = verts[i0, 1]
-        v0z = verts[i0, 2]
-        e1x = verts[i1, 0] - v0x
-        e1y = verts[i1, 1] - v0y
-        e1z = verts[i1, 2] - v0z
-        e2x = verts[i2, 0] - v0x
-        e2y = verts[i2, 1] - v0y
-        e2z = verts[i2, 2] - v0z
-        # a0 = normalize(e1)
-        ll = math.sqrt(max(e1x * e1x + e1y * e1y + e1z * e1z, _EPS2))
-        inv = 1.0 / ll
-        a0x = e1x * inv
-        a0y = e1y * inv
-        a0z = e1z * inv
-        # a1 = normalize(cross(a0, e2))
-        cx = a0y * e2z - a0z * e2y
-        cy = a0z * e2x - a0x * e2z
-        cz = a0x * e2y - a0y * e2x
-        inv = 1.0 / math.sqrt(max(cx * cx + cy * cy + cz * cz, _EPS2))
-        a1x = cx * inv
-        a1y = cy * inv
-        a1z = cz * inv
-        # a2 = -normalize(cross(a1, a0)) = a0 x a1: a0 and a1 are orthonormal, so the cross product is
-        # unit to rounding (the reference's renormalisation changes it by ~1e-16).
-        a2x = a0y * a1z - a0z * a1y
-        a2y = a0z * a1x - a0x * a1z
-        a2z = a0x * a1y - a0y * a1x
-        f = face[u]
-        # R = [a0 | a1 | a2] (columns)
-        f[R0 + 0] = a0x
-        f[R0 + 1] = a1x
-        f[R0 + 2] = a2x
-        f[R0 + 3] = a0y
-        f[R0 + 4] = a1y
-        f[R0 + 5] = a2y
-        f[R0 + 6] = a0z
-        f[R0 + 7] = a1z
-        f[R0 + 8] = a2z
-        f[S_F] = (ll + abs(a2x * e2x + a2y * e2y + a2z * e2z)) * 0.5
-        f[C0 + 0] = (v0x + verts[i1, 0] + verts[i2, 0]) / 3.0
-        f[C0 + 1] = (v0y + verts[i1, 1] + verts[i2, 1]) / 3.0
-        f[C0 + 2] = (v0z + verts[i1, 2] + verts[i2, 2]) / 3.0
-        if with_normal:
-            f[N0 + 0] = e1y * e2z - e1z * e2y
-            f[N0 + 1] = e1z * e2x - e1x * e2z
-            f[N0 + 2] = e1x * e2y - e1y * e2x
-        # matrix_to_quaternion: best-conditioned branch (argmax, first on ties), normalise, w >= 0.
-        # R[i, j] is a_j[i].
-        m00 = a0x
-        m11 = a1y
-        m22 = a2z
-        r21 = a1z
-        r12 = a2y
-        r02 = a2x
-        r20 = a0z
-        r10 = a0y
-        r01 = a1x
-        sq0 = 1 + m00 + m11 + m22
-        sq1 = 1 + m00 - m11 - m22
-        sq2 = 1 - m00 + m11 - m22
-        sq3 = 1 - m00 - m11 + m22
-        d21 = r21 - r12
-        d02 = r02 - r20
-        d10 = r10 - r01
-        s21 = r21 + r12
-        s02 = r02 + r20
-        s10 = r10 + r01
-        best = 0
-        top = sq0
-        if sq1 > top:
-            best = 1
-            top = sq1
-        if sq2 > top:
-            best = 2
-            top = sq2
-        if sq3 > top:
-            best = 3
-        if best == 0:
-            qw, qx, qy, qz = sq0, d21, d02, d10
-        elif best == 1:
-            qw, qx, qy, qz = d21, sq1, s10, s02
-        elif best == 2:
-            qw, qx, qy, qz = d02, s10, sq2, s21
-        else:
-            qw, qx, qy, qz = d10, s02, s21, sq3
-        inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        if qw < 0:
-            inv = -inv
-        qw *= inv
-        qx *= inv
-        qy *= inv
-        qz *= inv
-        f[Q0 + 0] = qw
-        f[Q0 + 1] = qx
-        f[Q0 + 2] = qy
-        f[Q0 + 3] = qz
+        _face_frame(u, verts, face_vids, face, with_normal)
+
+
+@nb.njit(parallel=True, **_NBC)
+def face_frames_kernel_parallel(verts, face_vids, face, with_normal):
+    """:func:`face_frames_kernel` over numba's threads (prange)."""
+    for u in nb.prange(face_vids.shape[0]):
+        _face_frame(u, verts, face_vids, face, with_normal)
+
+
+@nb.njit(inline="always", **_NBC)
+def _face_frame(u, verts, face_vids, face, with_normal):
+    i0 = face_vids[u, 0]
+    i1 = face_vids[u, 1]
+    i2 = face_vids[u, 2]
+    v0x = verts[i0, 0]
+    v0y = verts[i0, 1]
+    v0z = verts[i0, 2]
+    e1x = verts[i1, 0] - v0x
+    e1y = verts[i1, 1] - v0y
+    e1z = verts[i1, 2] - v0z
+    e2x = verts[i2, 0] - v0x
+    e2y = verts[i2, 1] - v0y
+    e2z = verts[i2, 2] - v0z
+    # a0 = normalize(e1)
+    ll = math.sqrt(max(e1x * e1x + e1y * e1y + e1z * e1z, _EPS2))
+    inv = 1.0 / ll
+    a0x = e1x * inv
+    a0y = e1y * inv
+    a0z = e1z * inv
+    # a1 = normalize(cross(a0, e2))
+    cx = a0y * e2z - a0z * e2y
+    cy = a0z * e2x - a0x * e2z
+    cz = a0x * e2y - a0y * e2x
+    inv = 1.0 / math.sqrt(max(cx * cx + cy * cy + cz * cz, _EPS2))
+    a1x = cx * inv
+    a1y = cy * inv
+    a1z = cz * inv
+    # a2 = -normalize(cross(a1, a0)) = a0 x a1: a0 and a1 are orthonormal, so the cross product is
+    # unit to rounding (the reference's renormalisation changes it by ~1e-16).
+    a2x = a0y * a1z - a0z * a1y
+    a2y = a0z * a1x - a0x * a1z
+    a2z = a0x * a1y - a0y * a1x
+    f = face[u]
+    # R = [a0 | a1 | a2] (columns)
+    f[R0 + 0] = a0x
+    f[R0 + 1] = a1x
+    f[R0 + 2] = a2x
+    f[R0 + 3] = a0y
+    f[R0 + 4] = a1y
+    f[R0 + 5] = a2y
+    f[R0 + 6] = a0z
+    f[R0 + 7] = a1z
+    f[R0 + 8] = a2z
+    f[S_F] = (ll + abs(a2x * e2x + a2y * e2y + a2z * e2z)) * 0.5
+    f[C0 + 0] = (v0x + verts[i1, 0] + verts[i2, 0]) / 3.0
+    f[C0 + 1] = (v0y + verts[i1, 1] + verts[i2, 1]) / 3.0
+    f[C0 + 2] = (v0z + verts[i1, 2] + verts[i2, 2]) / 3.0
+    if with_normal:
+        f[N0 + 0] = e1y * e2z - e1z * e2y
+        f[N0 + 1] = e1z * e2x - e1x * e2z
+        f[N0 + 2] = e1x * e2y - e1y * e2x
+    # matrix_to_quaternion: best-conditioned branch (argmax, first on ties), normalise, w >= 0.
+    # R[i, j] is a_j[i].
+    m00 = a0x
+    m11 = a1y
+    m22 = a2z
+    r21 = a1z
+    r12 = a2y
+    r02 = a2x
+    r20 = a0z
+    r10 = a0y
+    r01 = a1x
+    sq0 = 1 + m00 + m11 + m22
+    sq1 = 1 + m00 - m11 - m22
+    sq2 = 1 - m00 + m11 - m22
+    sq3 = 1 - m00 - m11 + m22
+    d21 = r21 - r12
+    d02 = r02 - r20
+    d10 = r10 - r01
+    s21 = r21 + r12
+    s02 = r02 + r20
+    s10 = r10 + r01
+    best = 0
+    top = sq0
+    if sq1 > top:
+        best = 1
+        top = sq1
+    if sq2 > top:
+        best = 2
+        top = sq2
+    if sq3 > top:
+        best = 3
+    if best == 0:
+        qw, qx, qy, qz = sq0, d21, d02, d10
+    elif best == 1:
+        qw, qx, qy, qz = d21, sq1, s10, s02
+    elif best == 2:
+        qw, qx, qy, qz = d02, s10, sq2, s21
+    else:
+        qw, qx, qy, qz = d10, s02, s21, sq3
+    inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if qw < 0:
+        inv = -inv
+    qw *= inv
+    qx *= inv
+    qy *= inv
+    qz *= inv
+    f[Q0 + 0] = qw
+    f[Q0 + 1] = qx
+    f[Q0 + 2] = qy
+    f[Q0 + 3] = qz
 
 
 @nb.njit(**_NBC)
@@ -153,46 +165,59 @@ def triangle_kernel(face, run_face, run_m, run_len, run_row, lpos, lrot, lscale,
     Runs q of consecutive avatar rows ``run_row[q] ..`` on one face ``run_face[q]``, whose local
     attributes are columns ``run_m[q] ..`` of lpos (3, M), lrot (4, M) (w, x, y, z), lscale (3, M)."""
     for q in range(run_face.shape[0]):
-        u = run_face[q]
-        m0 = run_m[q]
-        r0 = run_row[q]
-        f0 = face[u, R0]
-        f1 = face[u, R0 + 1]
-        f2 = face[u, R0 + 2]
-        f3 = face[u, R0 + 3]
-        f4 = face[u, R0 + 4]
-        f5 = face[u, R0 + 5]
-        f6 = face[u, R0 + 6]
-        f7 = face[u, R0 + 7]
-        f8 = face[u, R0 + 8]
-        aw = face[u, Q0]
-        ax = face[u, Q0 + 1]
-        ay = face[u, Q0 + 2]
-        az = face[u, Q0 + 3]
-        s = face[u, S_F]
-        cx = face[u, C0]
-        cy = face[u, C0 + 1]
-        cz = face[u, C0 + 2]
-        for j in range(run_len[q]):
-            m = m0 + j
-            row = r0 + j
-            px = lpos[0, m]
-            py = lpos[1, m]
-            pz = lpos[2, m]
-            out_pos[row, 0] = (f0 * px + f1 * py + f2 * pz) * s + cx
-            out_pos[row, 1] = (f3 * px + f4 * py + f5 * pz) * s + cy
-            out_pos[row, 2] = (f6 * px + f7 * py + f8 * pz) * s + cz
-            bw = lrot[0, m]
-            bx = lrot[1, m]
-            by = lrot[2, m]
-            bz = lrot[3, m]
-            out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
-            out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
-            out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
-            out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
-            out_scale[row, 0] = lscale[0, m] * s
-            out_scale[row, 1] = lscale[1, m] * s
-            out_scale[row, 2] = lscale[2, m] * s
+        _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale)
+
+
+@nb.njit(parallel=True, **_NBC)
+def triangle_kernel_parallel(face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot,
+                             out_scale):
+    """:func:`triangle_kernel` over numba's threads (prange over runs: disjoint rows)."""
+    for q in nb.prange(run_face.shape[0]):
+        _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale)
+
+
+@nb.njit(inline="always", **_NBC)
+def _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale):
+    u = run_face[q]
+    m0 = run_m[q]
+    r0 = run_row[q]
+    f0 = face[u, R0]
+    f1 = face[u, R0 + 1]
+    f2 = face[u, R0 + 2]
+    f3 = face[u, R0 + 3]
+    f4 = face[u, R0 + 4]
+    f5 = face[u, R0 + 5]
+    f6 = face[u, R0 + 6]
+    f7 = face[u, R0 + 7]
+    f8 = face[u, R0 + 8]
+    aw = face[u, Q0]
+    ax = face[u, Q0 + 1]
+    ay = face[u, Q0 + 2]
+    az = face[u, Q0 + 3]
+    s = face[u, S_F]
+    cx = face[u, C0]
+    cy = face[u, C0 + 1]
+    cz = face[u, C0 + 2]
+    for j in range(run_len[q]):
+        m = m0 + j
+        row = r0 + j
+        px = lpos[0, m]
+        py = lpos[1, m]
+        pz = lpos[2, m]
+        out_pos[row, 0] = (f0 * px + f1 * py + f2 * pz) * s + cx
+        out_pos[row, 1] = (f3 * px + f4 * py + f5 * pz) * s + cy
+        out_pos[row, 2] = (f6 * px + f7 * py + f8 * pz) * s + cz
+        bw = lrot[0, m]
+        bx = lrot[1, m]
+        by = lrot[2, m]
+        bz = lrot[3, m]
+        out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
+        out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
+        out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
+        out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
+        out_scale[row, 0] = lscale[0, m] * s
+        out_scale[row, 1] = lscale[1, m] * s
+        out_scale[row, 2] = lscale[2, m] * s
 
 
 @nb.njit(**_NBC)

@@ -196,7 +196,7 @@ def _eye_colours(m: _Mesh, pos: np.ndarray, side: str, rng: np.random.Generator)
     return np.clip(rgb * shade[:, None] + 0.8 * glint[:, None], 0, 1)
 
 
-def _surface(m: _Mesh, rng: np.random.Generator) -> _Parts:
+def _surface(m: _Mesh, rng: np.random.Generator, total: int = SURFACE_COUNT) -> _Parts:
     """Flat discs over the whole head, denser on the face and the front of the eyes."""
     c = m.centroid
     x, y, z = c.T
@@ -212,10 +212,10 @@ def _surface(m: _Mesh, rng: np.random.Generator) -> _Parts:
         weight = np.where(on, np.where(front, 8.0, 0.3), weight)
     cavity = face_label.get("mouth_cavity", np.zeros(len(c))) > 0.99
     weight = np.where(cavity, 1.5, weight)
-    counts = allocate(weight * m.area, SURFACE_COUNT)
+    counts = allocate(weight * m.area, total)
     face, bary = sample_faces(counts, rng)
     pos = m.interp(m.v, face, bary)
-    density = SURFACE_COUNT * weight / (weight * m.area).sum()  # samples per m^2 on each face
+    density = total * weight / (weight * m.area).sum()  # samples per m^2 on each face
     sigma = SPACING_TO_SIGMA / np.sqrt(density[face])
     frames = m.frames[face]
     normal = _unit(m.interp(m.vertex_normal, face, bary))
@@ -275,10 +275,10 @@ def _surface(m: _Mesh, rng: np.random.Generator) -> _Parts:
     return _Parts(face, pos, axes, scale, np.clip(rgb, 0, 1), opacity, normal, sheen)
 
 
-def _hair(m: _Mesh, rng: np.random.Generator) -> _Parts:
+def _hair(m: _Mesh, rng: np.random.Generator, total: int = HAIR_COUNT) -> _Parts:
     """Strands a little off the scalp, combed away from the crown."""
     scalp_face = m.labels.get("scalp", np.zeros(len(m.v)))[m.f].mean(axis=1)
-    counts = allocate(m.area * scalp_face**2 + 1e-30, HAIR_COUNT)
+    counts = allocate(m.area * scalp_face**2 + 1e-30, total)
     face, bary = sample_faces(counts, rng)
     base = m.interp(m.v, face, bary)
     normal = _unit(m.interp(m.vertex_normal, face, bary))
@@ -298,14 +298,14 @@ def _hair(m: _Mesh, rng: np.random.Generator) -> _Parts:
     return _Parts(face, pos, axes, scale, np.clip(rgb, 0, 1), opacity, normal, np.full(len(face), 0.03))
 
 
-def _teeth(m: _Mesh, rng: np.random.Generator) -> _Parts:
+def _teeth(m: _Mesh, rng: np.random.Generator, total: int = TEETH_COUNT) -> _Parts:
     """Upper and lower arches behind the lips, bound to cavity faces that move rigidly with head / jaw."""
     if "mouth_cavity" not in m.labels:
         return _Parts(*(np.zeros((0,) + s) for s in ((), (3,), (3, 3), (3,), (3,), (), (3,), ())))
     lm = m.lm
     zc, half_w = lm["mouth_centre"][2], abs(lm["mouth_corner_left"][0])
     zcorner = lm["mouth_corner_left"][2]
-    n = TEETH_COUNT // 2
+    n = total // 2
     upper = np.arange(2 * n) < n
     x = rng.uniform(-0.019, 0.019, 2 * n)
     y = np.where(upper, rng.uniform(MOUTH_Y + 0.0008, MOUTH_Y + 0.0085, 2 * n),
@@ -345,15 +345,23 @@ def _sh(parts: _Parts, rng: np.random.Generator) -> np.ndarray:
     return sh
 
 
-def make_default_avatar(head: HeadModel | None = None, seed: int = SEED) -> GaussianAvatar:
-    """The procedural default avatar (about 115,000 Gaussians) on ``head`` (default: the procedural head)."""
+def make_default_avatar(head: HeadModel | None = None, seed: int = SEED, count: int | None = None) -> GaussianAvatar:
+    """The procedural default avatar (about 115,000 Gaussians) on ``head`` (default: the procedural head).
+
+    ``count``: build one of about that many Gaussians instead (benchmarks), every group scaled alike."""
     if head is None:
         from ..head.io import default_head
 
         head = default_head()
+    sizes = (SURFACE_COUNT, HAIR_COUNT, TEETH_COUNT)
+    if count is not None:
+        total = sum(sizes)
+        teeth = 2 * max(1, round(count * TEETH_COUNT / total / 2))
+        hair = max(1, round(count * HAIR_COUNT / total))
+        sizes = (max(1, count - hair - teeth), hair, teeth)
     rng = np.random.default_rng(seed)
     mesh = _Mesh(head)
-    groups = [_surface(mesh, rng), _hair(mesh, rng), _teeth(mesh, rng)]
+    groups = [_surface(mesh, rng, sizes[0]), _hair(mesh, rng, sizes[1]), _teeth(mesh, rng, sizes[2])]
     parts = _Parts(*(np.concatenate([getattr(g, k) for g in groups]) for k in _Parts.__dataclass_fields__))
     rotation = matrix_to_quaternion(parts.axes)
     binding = TriangleBinding.from_world(parts.face, parts.position, rotation, parts.scale, mesh.v, head.faces)

@@ -167,10 +167,14 @@ class Client:
 async def connect(url: str, layout: str = "arkit52", avatar: str = "default", encoding: str = "f32",
                   coords: str = "flame", token: str | None = None, *, device: str | None = None,
                   sparse: bool = False, max_gaussians: int | None = None, open_timeout: float = 60.0,
-                  max_size: int = MAX_SERVER_MESSAGE) -> Client:
-    """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused."""
+                  max_size: int = MAX_SERVER_MESSAGE, max_queue: int = 2) -> Client:
+    """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused.
+
+    `max_queue`: messages the websockets library may read ahead of the application. Kept small so that
+    a client slower than the stream leaves frames to the server's newest-wins backpressure instead of
+    queueing stale ones locally (which would only add latency)."""
     ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
-                          ping_interval=None)
+                          ping_interval=None, max_queue=max_queue)
     conn = ClientConnection(max_message_size=max_size, track_gaussians=False)
     try:
         await ws.send(conn.hello(layout, avatar, encoding=encoding, coords=coords, sparse=sparse, device=device,

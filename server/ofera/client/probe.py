@@ -21,14 +21,15 @@ from .stats import LatencyStats
 
 async def probe(url: str, seconds: float = 10.0, rate: float = 72.0, layout: str = "arkit52",
                 avatar: str = "default", encoding: str = "f32", token: str | None = None,
-                warmup: float = 1.0, seed: int = 0) -> dict:
-    client: Client = await connect(url, layout=layout, avatar=avatar, encoding=encoding, token=token)
+                warmup: float = 1.0, seed: int = 0, sparse: bool = False) -> dict:
+    client: Client = await connect(url, layout=layout, avatar=avatar, encoding=encoding, token=token, sparse=sparse)
     rng = np.random.default_rng(seed)
     n = LAYOUTS[layout]
     total = int(round((seconds + warmup) * rate))
     warm = int(round(warmup * rate))
     timings: dict[str, list[int]] = {}
     frames = 0
+    frame_bytes = 0
     latency = LatencyStats()  # measured frames only (after the warm-up)
 
     async def sender() -> None:
@@ -41,9 +42,10 @@ async def probe(url: str, seconds: float = 10.0, rate: float = 72.0, layout: str
         await asyncio.sleep(2.0)  # time for the last frame
 
     async def receiver() -> None:
-        nonlocal frames
+        nonlocal frames, frame_bytes
         while True:
             f = await client.recv_frame()
+            frame_bytes = client.conn.format.payload_bytes(None if f.index is None else f.n)
             if f.seq >= warm:
                 latency.add(now_us() - f.t)
                 frames += 1
@@ -61,6 +63,7 @@ async def probe(url: str, seconds: float = 10.0, rate: float = 72.0, layout: str
     lat = latency.summary()
     return {
         "url": url, "avatar": client.welcome.avatar.id, "count": client.count, "encoding": encoding,
+        "sparse": sparse, "frame_bytes": frame_bytes,
         "rate_hz": rate, "seconds": seconds, "bs_sent": total - warm, "frames_received": frames,
         "latency_ms": lat,
         "server_stage_median_us": {k: int(np.median(v)) for k, v in timings.items()},
@@ -76,8 +79,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--avatar", default="default")
     p.add_argument("--encoding", default="f32")
     p.add_argument("--token", default=None)
+    p.add_argument("--sparse", action="store_true", help="ask for sparse frames (only the movable Gaussians)")
     a = p.parse_args(argv)
-    result = asyncio.run(probe(a.url, a.seconds, a.rate, a.layout, a.avatar, a.encoding, a.token))
+    result = asyncio.run(probe(a.url, a.seconds, a.rate, a.layout, a.avatar, a.encoding, a.token, sparse=a.sparse))
     print(json.dumps(result, indent=2))
 
 

@@ -253,8 +253,11 @@ class NumbaKernels:
 
     def f32(self, src, gather, sign, dst) -> bool:
         flat = self._flat(src, gather, sign)
-        if flat is not None:
-            return bool(f32_flat_kernel(flat, dst))
+        if flat is not None:  # a plain copy: numpy's min/max and memcpy beat a scalar loop
+            if flat.size and not (-F32_MAX <= flat.min() and flat.max() <= F32_MAX):
+                return False
+            dst[...] = flat
+            return True
         g, n = self._g(src, gather)
         return bool(f32_kernel(src, g, n, sign, dst))
 
@@ -308,7 +311,9 @@ def numba_kernels(warm: bool = True) -> NumbaKernels:
 
 
 def warm_up() -> None:
-    """Compile every kernel for the types the server uses (float32 state, full and gathered rows)."""
+    """Compile every kernel for the types the server uses: float32 state arrays, writable or read-only
+    (the fast path's pooled states are read-only, a distinct numba type), full or gathered rows, aligned
+    or unaligned destinations (fields inside a message buffer)."""
     k = NumbaKernels()
     p = np.zeros((2, 3), np.float32)
     r = np.zeros((2, 4), np.float32)
@@ -317,22 +322,27 @@ def warm_up() -> None:
     ones3, ones4 = np.ones(3, np.float32), np.ones(4, np.float32)
     lo, kk = np.zeros(3), np.ones(3)
     thr = np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32)
-    for gather in (None, np.arange(2, dtype=np.int64)):
-        k.f32(p, gather, ones3, np.zeros(6, np.float32))
-        k.f16(p, gather, ones3, np.zeros(6, np.uint16))
-        k.f16(r, gather, ones4, np.zeros(8, np.uint16))
-        k.q13_position(p, gather, ones3, lo, kk, np.zeros(6, np.uint16))
-        k.q13_rotation(r, gather, ones4, np.zeros(2, np.uint32))
-        k.q13_scale(s, gather, thr, np.zeros(6, np.uint8))
-    # Unaligned destinations (fields inside a message buffer) are their own numba specialisation.
     buf = bytearray(64)
-    f16_flat_kernel(p.reshape(-1), np.frombuffer(buf, np.uint16, 6, 1))
-    f32_flat_kernel(p.reshape(-1), np.frombuffer(buf, np.float32, 6, 1))
-    f16_flat_kernel(p.reshape(-1), np.zeros(6, np.uint16))
-    k.f16(p, None, ones3, np.frombuffer(buf, np.uint16, 6, 1))
-    k.f32(p, None, ones3, np.frombuffer(buf, np.float32, 6, 1))
-    k.q13_position(p, None, ones3, lo, kk, np.frombuffer(buf, np.uint16, 6, 1))
-    k.q13_rotation(r, None, ones4, np.frombuffer(buf, np.uint32, 2, 1))
+    for readonly in (False, True):
+        if readonly:
+            p, r, s = (a.copy() for a in (p, r, s))
+            for a in (p, r, s):
+                a.flags.writeable = False
+        for gather in (None, np.arange(2, dtype=np.int64)):
+            for dst16, dst32, dstf in ((np.zeros(8, np.uint16), np.zeros(2, np.uint32), np.zeros(8, np.float32)),
+                                       (np.frombuffer(buf, np.uint16, 8, 1), np.frombuffer(buf, np.uint32, 2, 1),
+                                        np.frombuffer(buf, np.float32, 8, 1))):
+                k.f32(p, gather, ones3, dstf[:6])
+                k.f32(r, gather, ones4, dstf)
+                k.f16(p, gather, ones3, dst16[:6])
+                k.f16(r, gather, ones4, dst16)
+                k.q13_position(p, gather, ones3, lo, kk, dst16[:6])
+                k.q13_rotation(r, gather, ones4, dst32)
+                k.q13_scale(s, gather, thr, np.zeros(6, np.uint8))
+                k.q13_scale(s, gather, thr, np.frombuffer(buf, np.uint8, 6, 1))
+                if gather is None:  # the mirrored (unity) path of the flat kernels' callers
+                    k.f16(p, gather, -ones3, dst16[:6])
+                    k.f32(p, gather, -ones3, dstf[:6])
     delta_kernel_warm()
 
 
@@ -423,12 +433,15 @@ _WARM_TABLE = scale_table(np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.fl
 
 
 def delta_kernel_warm() -> None:
-    z3, z4 = np.zeros((1, 3), np.float32), np.zeros((1, 4), np.float32)
-    z4[0, 3] = 1
-    _delta_select(z3, z4, z3 + 1e-3, np.zeros(1, np.int64), np.ones(3, np.float32), np.ones(4, np.float32),
-                  np.zeros(3), np.ones(3), np.ones(3), _WARM_TABLE, -9.0, 0.01,
-                  np.zeros((1, 3)), np.zeros((1, 4)), np.zeros((1, 3)), np.ones((1, 3)), 1e-10, 0.99, 0.01, True,
-                  np.zeros(1, np.int64), np.zeros(3, np.uint16), np.zeros(1, np.uint32), np.zeros(3, np.uint8))
+    for readonly in (False, True):
+        z3, z4, s3 = np.zeros((1, 3), np.float32), np.zeros((1, 4), np.float32), np.full((1, 3), 1e-3, np.float32)
+        z4[0, 3] = 1
+        for a in (z3, z4, s3):
+            a.flags.writeable = not readonly
+        _delta_select(z3, z4, s3, np.zeros(1, np.int64), np.ones(3, np.float32), np.ones(4, np.float32),
+                      np.zeros(3), np.ones(3), np.ones(3), _WARM_TABLE, -9.0, 0.01,
+                      np.zeros((1, 3)), np.zeros((1, 4)), np.zeros((1, 3)), np.ones((1, 3)), 1e-10, 0.99, 0.01, True,
+                      np.zeros(1, np.int64), np.zeros(3, np.uint16), np.zeros(1, np.uint32), np.zeros(3, np.uint8))
 
 
 @dataclass(frozen=True)

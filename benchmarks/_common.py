@@ -1,0 +1,325 @@
+"""Helpers shared by benchmarks/{latency,capacity,bandwidth,scaling}.py.
+
+- Avatars of a given size: the procedural default avatar generator at ``count`` Gaussians, cached as
+  ``bench-<N>-<key>.npz`` in the OFERA cache (``$OFERA_CACHE`` or ~/.cache/ofera/bench).
+- The EPM: the shipped default when present; otherwise a stand-in with the paper's shape (51 -> 128,
+  4 residual blocks, -> 68) and fixed random weights, built with ``onnx`` (same run-time cost; its
+  outputs are plausible FLAME values but not a trained mapping: results say so in a ``notes`` entry).
+- A server in a subprocess (its own interpreter and GIL, like a deployment) on a free port, the fast
+  path or the numpy reference (``--impl``), reachable when ``/healthz`` answers (after warm-up).
+- The blendshape input: the real capture /work/shared/data/livelink_dao.gesichter (or ``$OFERA_CAPTURE``)
+  when present, else a synthetic smooth log (noted).
+- Percentiles, tables, JSON and the PNG next to it.
+
+Run as a script, this module is the server process: ``python benchmarks/_common.py serve '<json>'``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+CAPTURE = Path(os.environ.get("OFERA_CAPTURE", ROOT.parent / "shared" / "data" / "livelink_dao.gesichter"))
+AVATAR_ID = "bench"
+IMPLS = ("fast", "reference")
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def cache_dir() -> Path:
+    from ofera.assets import cache_dir as ofera_cache
+
+    return ofera_cache("bench")
+
+
+def bench_avatar(count: int | None) -> Path:
+    """Path of a procedural avatar .npz of about ``count`` Gaussians (None: the default avatar)."""
+    from ofera.avatar.cache import default_avatar_key
+
+    path = cache_dir() / f"bench-{count or 'default'}-{default_avatar_key()}.npz"
+    if not path.is_file():
+        from ofera.avatar.procedural import make_default_avatar
+
+        avatar = make_default_avatar(count=count)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        avatar.save(tmp)
+        os.replace(tmp, path)
+    return path
+
+
+def load_bench_avatar(count: int | None):
+    from ofera.avatar import load_avatar
+
+    return load_avatar(bench_avatar(count))
+
+
+def standin_epm(path: Path, seed: int = 0, hidden: int = 128, blocks: int = 4) -> Path:
+    """An EPM-shaped ONNX model with fixed random weights (needs the `onnx` package)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(seed)
+    inits, nodes = [], []
+
+    def linear(name: str, x: str, n_in: int, n_out: int, scale: np.ndarray | float, bias=None) -> str:
+        w = (rng.standard_normal((n_in, n_out)) / np.sqrt(n_in) * scale).astype(np.float32)
+        b = np.zeros(n_out, np.float32) if bias is None else np.asarray(bias, np.float32)
+        inits.extend([numpy_helper.from_array(w, f"{name}_w"), numpy_helper.from_array(b, f"{name}_b")])
+        nodes.append(helper.make_node("Gemm", [x, f"{name}_w", f"{name}_b"], [name]))
+        return name
+
+    def relu(x: str) -> str:
+        nodes.append(helper.make_node("Relu", [x], [f"{x}_relu"]))
+        return f"{x}_relu"
+
+    h = relu(linear("stem", "blendshapes", 51, hidden, 2.0))
+    for i in range(blocks):
+        a = relu(linear(f"block{i}a", h, hidden, hidden, 1.0))
+        c = relu(linear(f"block{i}b", a, hidden, hidden, 0.3))
+        nodes.append(helper.make_node("Add", [h, c], [f"res{i}"]))
+        h = f"res{i}"
+    bias = np.zeros(68)
+    bias[50:] = [1, 0, 0, 0, 1, 0] * 3  # identity jaw and eyes
+    out_scale = np.concatenate([np.full(50, 0.25), np.full(18, 0.02)])  # expressions ~1, rotations ~0.1 rad
+    out = linear("head", h, hidden, 68, out_scale, bias)
+    nodes.append(helper.make_node("Identity", [out], ["flame"]))
+    graph = helper.make_graph(nodes, "standin_epm",
+                              [helper.make_tensor_value_info("blendshapes", TensorProto.FLOAT, ["batch", 51])],
+                              [helper.make_tensor_value_info("flame", TensorProto.FLOAT, ["batch", 68])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="ofera-bench")
+    model.ir_version = 8  # readable by older ONNX Runtime builds
+    onnx.checker.check_model(model)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    onnx.save(model, str(tmp))
+    os.replace(tmp, path)
+    return path
+
+
+def epm() -> tuple[Path | None, list[str]]:
+    """(EPM ONNX to use, or None for the shipped default; notes)."""
+    from ofera.assets import asset_path
+
+    if asset_path("epm_default.onnx").is_file():
+        return None, []
+    path = cache_dir() / "standin_epm.onnx"
+    if not path.is_file():
+        standin_epm(path)
+    return path, ["the shipped default EPM is missing: a stand-in EPM (same architecture, fixed random weights) "
+                  "maps the blendshapes; timings are representative, the motion is not a trained mapping"]
+
+
+def mapper():
+    from ofera.mapping.runtime import Mapper
+
+    path, notes = epm()
+    return (Mapper.default() if path is None else Mapper.load(path)), notes
+
+
+def avatars_dir(count: int | None) -> tuple[Path, list[str]]:
+    """A temporary avatars directory holding ``bench`` (and its EPM if the default is missing)."""
+    d = Path(tempfile.mkdtemp(prefix="ofera-bench-"))
+    src = bench_avatar(count)
+    try:
+        (d / f"{AVATAR_ID}.npz").symlink_to(src)
+    except OSError:
+        shutil.copy(src, d / f"{AVATAR_ID}.npz")
+    path, notes = epm()
+    if path is not None:
+        shutil.copy(path, d / f"{AVATAR_ID}.onnx")
+    return d, notes
+
+
+def capture(layout_fallback: str = "arkit52", seconds: float = 10.0,
+            fps: float = 60.0) -> tuple[np.ndarray, str, float, list[str]]:
+    """Blendshape frames (T, L) float32, their layout, fps, notes: the real capture, else synthetic."""
+    if CAPTURE.is_file():
+        from ofera.sources import read_facelog
+
+        log = read_facelog(CAPTURE)
+        fps = float(1.0 / np.median(np.diff(log.times))) if len(log.times) > 1 else 60.0
+        return log.weights.astype(np.float32), log.layout.name, fps, []
+    from ofera_protocol import LAYOUTS
+
+    n = LAYOUTS[layout_fallback]
+    t = np.arange(int(seconds * fps)) / fps
+    rng = np.random.default_rng(0)
+    freq = rng.uniform(0.2, 1.5, n)
+    phase = rng.uniform(0, 2 * np.pi, n)
+    amp = rng.uniform(0.0, 0.8, n) * (rng.random(n) < 0.5)
+    w = np.clip(amp * (0.5 + 0.5 * np.sin(2 * np.pi * freq * t[:, None] + phase)), 0, 1).astype(np.float32)
+    return w, layout_fallback, fps, [f"capture {CAPTURE} not found: a synthetic smooth {layout_fallback} log "
+                                     "stands in (bandwidth depends on the motion: re-run with the capture)"]
+
+
+# ----------------------------------------------------------------------------- servers
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class ServerProcess:
+    """``ofera`` server in a subprocess serving the ``bench`` avatar as the default."""
+
+    avatars: Path
+    impl: str = "fast"
+    threads: int = 2
+    max_sessions: int = 64
+    port: int = field(default_factory=free_port)
+    proc: subprocess.Popen | None = None
+    log: Any = None
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}/v1/stream"
+
+    def start(self, timeout: float = 300.0) -> ServerProcess:
+        settings = {"host": "127.0.0.1", "port": self.port, "avatars": str(self.avatars),
+                    "default_avatar": AVATAR_ID, "compute_threads": self.threads, "log_level": "warning",
+                    "max_sessions": self.max_sessions, "bs_rate": 1000.0, "fast": self.impl == "fast"}
+        self.log = tempfile.TemporaryFile()
+        self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "serve", json.dumps(settings),
+                                      self.impl], stdout=self.log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"benchmark server exited ({self.proc.returncode}):\n{self.output()}")
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/healthz", timeout=2) as r:
+                    if r.status == 200:
+                        return self
+            except OSError:
+                time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"benchmark server did not come up in {timeout:.0f} s:\n{self.output()}")
+
+    def output(self) -> str:
+        if self.log is None:
+            return ""
+        self.log.seek(0)
+        return self.log.read().decode(errors="replace")[-4000:]
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def __enter__(self) -> ServerProcess:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def use_fast_encoder() -> bool:
+    """Make the server's viewers encode frames with the numba FrameWriter (ofera.streaming.encode_fast)
+    unless roles.py already does. Returns True if it patched."""
+    from ofera.streaming import roles
+
+    if getattr(roles.Viewer, "USES_FRAME_WRITER", False):
+        return False
+    from ofera.streaming.encode_fast import frame_writer, numba_kernels
+
+    numba_kernels()  # compile / load now, not on the first frame
+
+    def _make(self, frame):  # noqa: ANN001 - roles.Viewer._make
+        w = getattr(self, "_frame_writer", None)
+        if w is None:
+            w = self._frame_writer = frame_writer(self.format, self.coords, self.gather, self.index)
+        s = frame.state
+        return w.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale)
+
+    roles.Viewer._make = _make
+    return True
+
+
+def _serve(settings_json: str, impl: str) -> None:
+    from ofera.streaming import Settings
+    from ofera.streaming.server import serve
+
+    if impl == "fast":
+        use_fast_encoder()
+    serve(Settings(**json.loads(settings_json)))
+
+
+# ----------------------------------------------------------------------------- statistics and output
+
+
+def pct(samples, qs=(50, 90, 99, 99.9)) -> dict[str, float | None]:
+    a = np.asarray(samples, np.float64)
+    keys = {50: "p50", 90: "p90", 99: "p99", 99.9: "p999"}
+    if a.size == 0:
+        return {**{keys[q]: None for q in qs}, "max": None, "mean": None}
+    out = {keys[q]: round(float(np.percentile(a, q)), 3) for q in qs}
+    out["max"] = round(float(a.max()), 3)
+    out["mean"] = round(float(a.mean()), 3)
+    return out
+
+
+def ratio(a: float | None, b: float | None) -> float | None:
+    return None if not a or not b else round(b / a, 2)
+
+
+def machine() -> dict[str, Any]:
+    try:
+        load = os.getloadavg()
+    except OSError:
+        load = None
+    return {"python": platform.python_version(), "numpy": np.__version__, "cpus": os.cpu_count(),
+            "processor": platform.processor() or platform.machine(), "loadavg_at_start": load}
+
+
+def table(rows: list[list[Any]], headers: list[str]) -> str:
+    cells = [[str(h) for h in headers]] + [["-" if v is None else (f"{v:g}" if isinstance(v, float) else str(v))
+                                             for v in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def write_json(path: Path, report: dict[str, Any]) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=2) + "\n")
+    return path
+
+
+def png_path(json_path: Path) -> Path:
+    return Path(json_path).with_suffix(".png")
+
+
+def pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+if __name__ == "__main__" and len(sys.argv) >= 3 and sys.argv[1] == "serve":
+    _serve(sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else "fast")

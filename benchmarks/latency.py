@@ -1,0 +1,284 @@
+"""End-to-end latency over a loopback WebSocket: a `bs` sent on a fixed schedule -> its frame decoded.
+
+    python benchmarks/latency.py --gaussians 100000 --rate 72 --seconds 5 --encoding f16 --json out.json
+
+Starts a server in a subprocess serving a procedural avatar of --gaussians Gaussians, connects with the
+asyncio client library (ofera.client), and sends the real capture's blendshapes (looped) at --rate Hz.
+Send times are fixed by the schedule, and every bs carries its *scheduled* time in `t`, so a stalled
+sender or server cannot hide latency (no coordinated omission): latency = decoded - scheduled.
+The first --warmup seconds are not counted. Frames skipped = bs sent but never answered (the server's
+newest-wins backpressure drops the older ones).
+
+Runs the fast path (numba head/deform, numba frame writer) and then the straightforward reference
+(numpy lbs + Deformer + codec.encode_frame) the same way, and reports both and their ratio
+(--impl fast|reference to run one). Prints a table, writes --json and a PNG next to it.
+JSON: {"gaussians", "rate_hz", "encoding", "frames", "e2e_ms": {p50, p90, p99, p999, max}, "server_ms":
+{p50, p99}, "stages_ms": {...}, "bytes_per_frame", ..., "reference": {same}, "ratios": {...}}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import re
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _common as C  # noqa: E402
+
+COMPUTE_STAGES = ("layout", "bda", "epm", "head", "deform")
+
+
+def metric_means(http_url: str) -> dict[str, float]:
+    """Means (ms) of the server's encode stage and bs -> socket latency, from /metrics."""
+    try:
+        text = urllib.request.urlopen(f"{http_url}/metrics", timeout=5).read().decode()
+    except OSError:
+        return {}
+
+    def value(pattern: str) -> float | None:
+        m = re.search(pattern + r"\s+([0-9.eE+-]+)", text)
+        return float(m.group(1)) if m else None
+
+    out = {}
+    for name, base in (("encode", r'ofera_stage_seconds_(sum|count)\{stage="encode"\}'),
+                       ("to_socket", r"ofera_server_latency_seconds_(sum|count)")):
+        s, c = value(base.replace("(sum|count)", "sum")), value(base.replace("(sum|count)", "count"))
+        if s is not None and c:
+            out[name] = round(s / c * 1e3, 3)
+    for stage in ("bs", "frame"):
+        v = value(rf'ofera_frames_skipped_total\{{stage="{stage}"\}}')
+        if v is not None:
+            out[f"skipped_{stage}"] = int(v)
+    return out
+
+
+async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, seconds: float, warmup: float,
+                      encoding: str, sparse: bool = False, decode: bool = True) -> dict:
+    """One client: bs on a fixed schedule, frames received and decoded; per-frame records after warm-up."""
+    from ofera.client import connect, now_us
+    from ofera_protocol import Frame
+
+    client = await connect(url, layout=layout, encoding=encoding, sparse=sparse)
+    period_us = 1e6 / rate
+    total = int((warmup + seconds) * rate)
+    first_counted = int(warmup * rate)
+    start = now_us() + 100_000
+    records: list[tuple[int, float, dict, int, float]] = []
+    done = asyncio.Event()
+
+    async def sender() -> None:
+        for k in range(total):
+            due = start + k * period_us
+            delay = (due - now_us()) / 1e6
+            if delay > 0:
+                await asyncio.sleep(delay)
+            await client.send_bs(weights[k % len(weights)], seq=k, t=int(due))
+        done.set()
+
+    async def receiver() -> None:
+        while True:
+            data = await client.ws.recv()
+            t_recv = now_us()
+            if decode:
+                msg = client.conn.receive(data)
+                if not isinstance(msg, Frame):
+                    continue
+                seq, t, timing = msg.seq, msg.t, msg.timing
+            else:  # header only (capacity runs): the arrays are left undecoded
+                seq, t, timing = _frame_header(data)
+                if seq is None:
+                    continue
+            now = now_us()
+            if seq >= first_counted:
+                records.append((seq, (now - t) / 1000.0, timing, len(data), (now - t_recv) / 1000.0))
+            if seq == total - 1:
+                return
+
+    send_task = asyncio.create_task(sender())
+    recv_task = asyncio.create_task(receiver())
+    await send_task
+    try:
+        await asyncio.wait_for(recv_task, timeout=2.0)
+    except asyncio.TimeoutError:
+        recv_task.cancel()
+    await client.close()
+    return {"sent": total - first_counted, "records": records, "count": client.count}
+
+
+def _frame_header(data: bytes) -> tuple[int | None, int, dict]:
+    """seq, t, timing of a frame message, read without touching (or copying) its arrays."""
+    import io
+
+    import msgpack
+
+    u = msgpack.Unpacker(io.BytesIO(data), raw=False, read_size=1024)
+    fields: dict = {}
+    for _ in range(u.read_map_header()):
+        key = u.unpack()
+        fields[key] = u.unpack()
+        if key == "timing":
+            break
+    if fields.get("type") != "frame":
+        return None, 0, {}
+    return fields["seq"], fields["t"], fields.get("timing", {})
+
+
+def summarise(run: dict) -> dict:
+    recs = run["records"]
+    e2e = [r[1] for r in recs]
+    stages: dict[str, list[float]] = {}
+    for r in recs:
+        for k, v in r[2].items():
+            stages.setdefault(k, []).append(v / 1000.0)
+    compute = [sum(r[2].get(s, 0) for s in COMPUTE_STAGES) / 1000.0 for r in recs]
+    e2e_p = C.pct(e2e)
+    return {
+        "frames": len(recs),
+        "frames_sent": run["sent"],
+        "frames_skipped": run["sent"] - len(recs),
+        "e2e_ms": {k: e2e_p[k] for k in ("p50", "p90", "p99", "p999", "max", "mean")},
+        "server_ms": {k: C.pct(stages.get("total", []))[k] for k in ("p50", "p99")},
+        "compute_ms": {k: C.pct(compute)[k] for k in ("p50", "p99", "max")},
+        "stages_ms": {k: {"p50": C.pct(v)["p50"], "p99": C.pct(v)["p99"]} for k, v in stages.items()},
+        "client_decode_ms": {k: C.pct([r[4] for r in recs])[k] for k in ("p50", "p99")},
+        "bytes_per_frame": int(np.median([r[3] for r in recs])) if recs else None,
+        "_e2e": e2e,
+        "_seq": [r[0] for r in recs],
+    }
+
+
+def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
+    with C.ServerProcess(avatars, impl=impl, threads=args.threads) as server:
+        run = asyncio.run(run_session(server.url, weights, layout, args.rate, args.seconds, args.warmup,
+                                      args.encoding, args.sparse))
+        out = summarise(run)
+        out["server_metrics_ms"] = metric_means(f"http://127.0.0.1:{server.port}")
+        out["count"] = run["count"]
+    return out
+
+
+def plot(path: Path, results: dict, title: str) -> None:
+    plt = C.pyplot()
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    colors = {"fast": "tab:blue", "reference": "tab:red"}
+    for impl, r in results.items():
+        e2e = np.sort(np.asarray(r["_e2e"]))
+        if e2e.size:
+            axes[0].plot(e2e, np.arange(1, e2e.size + 1) / e2e.size, label=f"{impl} (p99 {r['e2e_ms']['p99']} ms)",
+                         color=colors[impl])
+            axes[1].plot(np.asarray(r["_seq"]), r["_e2e"], ".", ms=3, color=colors[impl], label=impl)
+    axes[0].set_xscale("log")
+    axes[0].set_xlabel("end-to-end latency (ms, log)")
+    axes[0].set_ylabel("fraction of frames")
+    axes[0].axvline(8.0, color="grey", ls="--", lw=0.8, label="target p99 8 ms")
+    axes[0].legend(fontsize=8)
+    axes[1].set_yscale("log")
+    axes[1].set_xlabel("bs seq")
+    axes[1].set_ylabel("latency (ms, log)")
+    axes[1].legend(fontsize=8)
+    names = ["decode", "queue", "layout", "bda", "epm", "head", "deform"]
+    impls = list(results)
+    bottom = np.zeros(len(impls))
+    for name in names:
+        vals = np.array([results[i]["stages_ms"].get(name, {}).get("p50") or 0.0 for i in impls])
+        axes[2].bar(impls, vals, bottom=bottom, label=name)
+        bottom += vals
+    enc = np.array([results[i]["server_metrics_ms"].get("encode", 0.0) for i in impls])
+    axes[2].bar(impls, enc, bottom=bottom, label="encode (mean)", hatch="//")
+    axes[2].set_yscale("symlog", linthresh=1.0)
+    axes[2].set_ylabel("server stage, median (ms, symlog)")
+    axes[2].legend(fontsize=7, ncol=2)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--gaussians", type=int, default=100_000, help="avatar size (0: the default avatar)")
+    ap.add_argument("--rate", type=float, default=72.0, help="bs per second")
+    ap.add_argument("--seconds", type=float, default=5.0, help="measured duration per implementation")
+    ap.add_argument("--warmup", type=float, default=1.0, help="seconds sent first and not counted")
+    ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13"])
+    ap.add_argument("--sparse", action="store_true", help="ask for sparse frames (movable Gaussians only)")
+    ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
+    ap.add_argument("--threads", type=int, default=2, help="server compute threads")
+    ap.add_argument("--json", type=Path, default=C.RESULTS / "latency.json")
+    args = ap.parse_args(argv)
+
+    weights, layout, fps, notes = C.capture()
+    avatars, epm_notes = C.avatars_dir(args.gaussians or None)
+    notes += epm_notes
+    impls = list(C.IMPLS) if args.impl == "both" else [args.impl]
+    results = {}
+    for impl in impls:
+        print(f"[latency] {impl}: {args.gaussians or 'default'} Gaussians, {args.encoding}, {args.rate:g} Hz, "
+              f"{args.seconds:g} s (+{args.warmup:g} s warm-up) ...", flush=True)
+        results[impl] = run_impl(impl, args, weights, layout, avatars)
+    fast = results.get("fast") or results[impls[0]]
+    report = {
+        "benchmark": "latency",
+        "gaussians": fast["count"],
+        "rate_hz": args.rate,
+        "encoding": args.encoding,
+        "sparse": args.sparse,
+        "frames": fast["frames"],
+        "frames_skipped": fast["frames_skipped"],
+        "e2e_ms": fast["e2e_ms"],
+        "server_ms": fast["server_ms"],
+        "compute_ms": fast["compute_ms"],
+        "stages_ms": fast["stages_ms"],
+        "client_decode_ms": fast["client_decode_ms"],
+        "server_metrics_ms": fast["server_metrics_ms"],
+        "bytes_per_frame": fast["bytes_per_frame"],
+        "impl": impls[0] if len(impls) == 1 else "fast",
+        "input": {"layout": layout, "capture": str(C.CAPTURE) if C.CAPTURE.is_file() else None, "fps": fps},
+        "definitions": {
+            "e2e_ms": "client clock: frame decoded - scheduled send time of its bs (loopback, same machine)",
+            "server_ms": "frame timing 'total': bs received -> frame computed (includes queueing)",
+            "compute_ms": "sum of layout, bda, epm, head, deform of the frame's timing",
+            "server_metrics_ms": "means from /metrics: encode stage, bs received -> frame handed to the socket",
+        },
+        "targets": {"e2e_p99_ms": 8.0, "compute_p50_ms": 2.0, "compute_p99_ms": 4.0},
+        "machine": C.machine(),
+        "notes": notes,
+    }
+    if "reference" in results and "fast" in results:
+        ref = {k: v for k, v in results["reference"].items() if not k.startswith("_")}
+        report["reference"] = ref
+        report["ratios"] = {"e2e_p50": C.ratio(fast["e2e_ms"]["p50"], ref["e2e_ms"]["p50"]),
+                            "e2e_p99": C.ratio(fast["e2e_ms"]["p99"], ref["e2e_ms"]["p99"]),
+                            "compute_p50": C.ratio(fast["compute_ms"]["p50"], ref["compute_ms"]["p50"]),
+                            "compute_p99": C.ratio(fast["compute_ms"]["p99"], ref["compute_ms"]["p99"]),
+                            "encode_mean": C.ratio(fast["server_metrics_ms"].get("encode"),
+                                                   ref["server_metrics_ms"].get("encode"))}
+    rows = []
+    for impl, r in results.items():
+        e, st = r["e2e_ms"], r["stages_ms"]
+        rows.append([impl, r["frames"], r["frames_skipped"], e["p50"], e["p90"], e["p99"], e["p999"], e["max"],
+                     r["compute_ms"]["p50"], r["compute_ms"]["p99"], (st.get("head") or {}).get("p50"),
+                     (st.get("deform") or {}).get("p50"), r["server_metrics_ms"].get("encode"),
+                     r["bytes_per_frame"]])
+    print(C.table(rows, ["impl", "frames", "skipped", "e2e p50", "p90", "p99", "p99.9", "max", "compute p50",
+                         "p99", "head p50", "deform p50", "encode mean", "bytes/frame"]))
+    if "ratios" in report:
+        print("reference / fast:", report["ratios"])
+    for n in notes:
+        print("note:", n)
+    out = C.write_json(args.json, report)
+    png = C.png_path(out)
+    plot(png, results, f"{report['gaussians']} Gaussians, {args.encoding}{' sparse' if args.sparse else ''}, "
+         f"{args.rate:g} Hz, {args.seconds:g} s, loopback WebSocket ({C.machine()['cpus']} CPUs)")
+    print(f"wrote {out} and {png}")
+    return report
+
+
+if __name__ == "__main__":
+    main()

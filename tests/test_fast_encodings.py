@@ -1,0 +1,223 @@
+"""Fast frame encoding (ofera_protocol.fast_encodings + ofera.streaming.encode_fast): byte-identical to the
+reference codec for every encoding, coordinates and sparse selection; round trips within each encoding's
+documented bound; the q13 "moved since last sent" delta stream keeps the client within its thresholds."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from ofera.streaming.encode_fast import (
+    DeltaQ13,
+    DeltaThresholds,
+    f16_flat_kernel,
+    numba_kernels,
+    scale_table,
+)
+from ofera_protocol import ClientConnection, Frame, FrameFormat, decode_server_message, encode_frame, to_coords
+from ofera_protocol.encodings import (
+    F16_ROTATION_ERROR,
+    Q13_ROTATION_ERROR,
+    log_scale_error_bound,
+    make_quant,
+    position_error_bound,
+    quantize_log_scale,
+)
+from ofera_protocol.fast_encodings import BufferPool, FrameWriter, NumpyKernels, scale_thresholds
+
+N = 20_000
+TIMING = {"decode": 3, "epm": 40, "total": 900}
+
+
+@pytest.fixture(scope="module")
+def kernels():
+    return numba_kernels()
+
+
+def state(rng, n=N, edge_cases=True):
+    pos = (rng.standard_normal((n, 3)) * 0.05).astype(np.float32)
+    rot = rng.standard_normal((n, 4)).astype(np.float32)
+    rot /= np.linalg.norm(rot, axis=1, keepdims=True)
+    scale = np.exp(rng.uniform(-9, -2, (n, 3))).astype(np.float32)
+    if edge_cases:
+        s2 = np.float32(math.sqrt(0.5))
+        rot[:12] = [[1, 0, 0, 0], [0, 0, 0, 0], [0.5, 0.5, 0.5, 0.5], [-0.5, 0.5, 0.5, -0.5], [0, 0, 1, 0],
+                    [0, 0, 0, -1], [np.nan, 0, 0, 1], [1e-30, 0, 0, 0], [s2, s2, 0, 0], [-s2, s2, 0, 0],
+                    [0, -s2, 0, s2], [np.inf, 1, 0, 0]]
+        rot[12:20] *= 3  # not unit
+        pos[:4] = [[10, -10, 0], [-0.0, 0.0, 1e-9], [np.float32(1e-30), 0, 0], [0.3, 0.3, 0.3]]  # outside the box
+    return pos, rot, scale
+
+
+def finite_for(enc, pos, rot, scale):
+    """The reference refuses non-finite f32/f16 input; q13 defines an encoding for it."""
+    if enc == "q13":
+        return pos, rot, scale
+    return pos, np.nan_to_num(rot, posinf=1.0), np.clip(np.nan_to_num(scale), 0, 100)
+
+
+@pytest.mark.parametrize("enc", ["f32", "f16", "q13"])
+@pytest.mark.parametrize("coords", ["flame", "unity"])
+@pytest.mark.parametrize("sparse", [False, True])
+@pytest.mark.parametrize("impl", ["numpy", "numba"])
+def test_writer_bytes_equal_reference_codec(kernels, enc, coords, sparse, impl) -> None:
+    rng = np.random.default_rng(1)
+    pos, rot, scale = state(rng)
+    scale[:5] = [[0, 1e-30, np.inf], [1e-4, 1e-4, 1e-4], [-1, 2, 3], [np.nan, 1, 1], [1e-12, 1e9, 1]]
+    quant = make_quant(pos[100:], scale[100:])
+    pos, rot, scale = finite_for(enc, pos, rot, scale)
+    fmt = FrameFormat(enc, N, sparse, quant if enc == "q13" else None)
+    gather = np.sort(rng.choice(N, N // 3, replace=False)).astype(np.int64) if sparse else None
+    index = gather.astype(np.uint32) if sparse else None
+    sel = (lambda a: a[gather]) if sparse else (lambda a: a)
+    p, r = to_coords(sel(pos), sel(rot), coords)
+    ref = encode_frame(Frame(seq=7, t=-5, timing=TIMING, position=p, rotation=r, scale=sel(scale), index=index),
+                       fmt)
+    writer = FrameWriter(fmt, coords, gather, index, kernels=NumpyKernels() if impl == "numpy" else kernels)
+    for _ in range(2):  # the second time from a recycled buffer
+        out = writer.encode(7, -5, TIMING, pos, rot, scale)
+        assert bytes(out) == ref
+        del out
+
+
+@pytest.mark.parametrize("enc", ["f32", "f16"])
+def test_writer_refuses_non_finite_like_the_codec(kernels, enc) -> None:
+    rng = np.random.default_rng(2)
+    pos, rot, scale = finite_for(enc, *state(rng, 100, edge_cases=False))
+    writer = FrameWriter(FrameFormat(enc, 100), kernels=kernels)
+    bad = pos.copy()
+    bad[5, 1] = np.nan
+    with pytest.raises(ValueError, match="position"):
+        writer.encode(0, 0, {}, bad, rot, scale)
+    if enc == "f16":
+        big = scale.copy()
+        big[3, 0] = 70000.0
+        with pytest.raises(ValueError, match="scale"):
+            writer.encode(0, 0, {}, pos, rot, big)
+
+
+def test_f16_conversion_is_numpys_rounding() -> None:
+    rng = np.random.default_rng(3)
+    bits = rng.integers(0, 2**32, 2_000_000, dtype=np.uint64).astype(np.uint32)
+    x = bits.view(np.float32)
+    x = x[np.abs(x) <= 65504]  # finite, in the half range (others are refused before conversion)
+    special = np.float32([0.0, -0.0, 65504, 65503.99, 6.1035156e-05, 6.0975552e-05, 5.9604645e-08,
+                          2.9802322e-08, 2.9802326e-08, 1.0009765625, 1.00048828125, 1.00146484375])
+    x = np.concatenate([x, special, -special, (rng.random(100_000).astype(np.float32) - 0.5) * 1e-3])
+    out = np.empty(x.size, np.uint16)
+    assert f16_flat_kernel(x, out)
+    np.testing.assert_array_equal(out, x.astype(np.float16).view(np.uint16))
+    assert not f16_flat_kernel(np.float32([1.0, 65504.01]), out[:2])  # beyond the half range: refused
+
+
+def test_scale_thresholds_reproduce_the_reference_quantiser() -> None:
+    rng = np.random.default_rng(4)
+    quant = make_quant(rng.normal(0, 0.05, (100, 3)), np.exp(rng.uniform(-9, -3, (100, 3))))
+    thr = scale_thresholds(quant)
+    assert np.all(np.diff(thr) > 0)
+    near = np.concatenate([thr, np.nextafter(thr, np.float32(0)), np.nextafter(thr, np.float32(np.inf))])
+    s = np.concatenate([near, np.exp(rng.uniform(-14, 1, 300_000)).astype(np.float32),
+                        np.float32([0, -0.0, -1, np.inf, np.nan, 1e-45, 3e38])]).astype(np.float32)
+    s = s[: s.size // 3 * 3].reshape(-1, 3)
+    ref = quantize_log_scale(s, quant)
+    got = np.empty(s.size, np.uint8)
+    NumpyKernels().q13_scale(s, None, thr, got)
+    np.testing.assert_array_equal(got.reshape(-1, 3), ref)
+    numba_kernels().q13_scale(s, None, thr, got)
+    np.testing.assert_array_equal(got.reshape(-1, 3), ref)
+    table = scale_table(thr)
+    assert table.shape[1] == 2
+
+
+@pytest.mark.parametrize("enc", ["f32", "f16", "q13"])
+def test_round_trip_within_documented_bounds(kernels, enc) -> None:
+    rng = np.random.default_rng(5)
+    pos, rot, scale = state(rng, edge_cases=False)
+    quant = make_quant(pos, scale)
+    fmt = FrameFormat(enc, N, False, quant if enc == "q13" else None)
+    data = FrameWriter(fmt, "flame", kernels=kernels).encode(1, 2, TIMING, pos, rot, scale)
+    frame = decode_server_message(bytes(data), fmt)
+    assert isinstance(frame, Frame) and frame.timing == TIMING
+    bound = position_error_bound(enc, quant if enc == "q13" else None, np.abs(pos))
+    assert np.all(np.abs(frame.position - pos) <= bound * (1 + 1e-6))
+    dot = np.abs(np.sum(frame.rotation.astype(np.float64) * rot, axis=1))
+    dist = np.sqrt(np.maximum(0.0, 2 - 2 * dot))  # Euclidean distance up to sign, unit quaternions
+    if enc == "f32":
+        assert np.array_equal(frame.rotation, rot) and np.array_equal(frame.scale, scale)
+    elif enc == "f16":
+        assert np.abs(frame.rotation - rot).max() <= F16_ROTATION_ERROR
+        assert np.all(np.abs(frame.scale - scale) <= np.maximum(scale * 2.0**-11, 2.0**-25))
+    else:
+        assert dist.max() <= Q13_ROTATION_ERROR
+        assert np.abs(np.log(frame.scale) - np.log(scale)).max() <= log_scale_error_bound(quant)
+
+
+def test_buffer_pool_reuses_only_unreferenced_buffers() -> None:
+    pool = BufferPool(size=2)
+    a = pool.get(100)
+    view = memoryview(a)[:10]
+    b = pool.get(100)
+    c = pool.get(100)
+    assert a is not b and c is not a and c is not b and pool.unpooled == 1
+    del a
+    assert pool.get(50) is not view.obj  # still referenced through the view
+    del view
+    d = pool.get(50)
+    assert len(d) >= 50
+
+
+def run_delta(thresholds: DeltaThresholds, frames: int = 12):
+    """A client that applies sparse q13 delta frames; returns max errors per frame and bytes."""
+    rng = np.random.default_rng(6)
+    n = 3000
+    neutral_p, neutral_r, neutral_s = state(rng, n, edge_cases=False)
+    quant = make_quant(neutral_p, neutral_s)
+    cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
+    delta = DeltaQ13(quant, cand, neutral_p, neutral_r, neutral_s, "flame", thresholds)
+    fmt = FrameFormat("q13", n, True, quant)
+    held_p, held_r, held_s = neutral_p.copy(), neutral_r.copy(), neutral_s.copy()
+    p, r, s = neutral_p.copy(), neutral_r.copy(), neutral_s.copy()
+    out = []
+    for f in range(frames):
+        # smooth motion of the candidates: some move a lot, most a little
+        amp = np.where(np.arange(cand.size) % 7 == 0, 2e-4, 1e-5)
+        p[cand] += (rng.normal(0, 1, (cand.size, 3)) * amp[:, None]).astype(np.float32)
+        r[cand] += rng.normal(0, 2e-3, (cand.size, 4)).astype(np.float32)
+        r[cand] /= np.linalg.norm(r[cand], axis=1, keepdims=True)
+        s[cand] *= np.exp(rng.normal(0, 0.01, (cand.size, 3))).astype(np.float32)
+        data = delta.message(f, 0, {}, p, r, s, force=False)
+        msg = decode_server_message(data, fmt)
+        held_p[msg.index], held_r[msg.index], held_s[msg.index] = msg.position, msg.rotation, msg.scale
+        perr = np.linalg.norm(held_p.astype(np.float64) - p, axis=1).max()
+        dot = np.clip(np.abs(np.sum(held_r.astype(np.float64) * r, axis=1)), 0, 1)
+        rerr = np.degrees(2 * np.arccos(dot)).max()
+        serr = np.abs(np.log(held_s.astype(np.float64)) - np.log(s)).max()
+        out.append((perr, rerr, serr, msg.n, len(data)))
+    return out, quant
+
+
+def test_delta_stream_keeps_the_client_within_thresholds() -> None:
+    th = DeltaThresholds(position_m=4.5e-5, rotation_deg=0.5, log_scale=0.02)
+    out, quant = run_delta(th)
+    q13_pos = float(position_error_bound("q13", quant, 0.2).max()) * math.sqrt(3)
+    for perr, rerr, serr, n, size in out:
+        assert perr <= max(th.position_m, q13_pos) + 1e-8
+        assert rerr <= max(th.rotation_deg, math.degrees(2 * math.asin(Q13_ROTATION_ERROR / 2) * 2)) + 1e-3
+        assert serr <= max(th.log_scale, log_scale_error_bound(quant)) + 1e-6
+        assert 0 < n < 2000 and size > 0
+    # Tighter thresholds send more.
+    tight, _ = run_delta(DeltaThresholds(position_m=5e-6, rotation_deg=0.2, log_scale=0.005))
+    assert sum(o[3] for o in tight) > sum(o[3] for o in out)
+
+
+def test_delta_messages_decode_with_the_client_connection() -> None:
+    rng = np.random.default_rng(7)
+    n = 500
+    p, r, s = state(rng, n, edge_cases=False)
+    quant = make_quant(p, s)
+    delta = DeltaQ13(quant, np.arange(0, n, 2), p, r, s)
+    data = delta.message(3, 9, TIMING, p, r, s, force=True)
+    msg = decode_server_message(data, FrameFormat("q13", n, True, quant))
+    assert msg.n == n // 2 and np.array_equal(msg.index, np.arange(0, n, 2))
+    assert ClientConnection is not None  # the same codec a client uses
