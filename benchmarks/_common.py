@@ -119,7 +119,12 @@ def epm() -> tuple[Path | None, list[str]]:
         return None, []
     path = cache_dir() / "standin_epm.onnx"
     if not path.is_file():
-        standin_epm(path)
+        try:
+            standin_epm(path)
+        except ImportError:
+            raise SystemExit("the default EPM (server/ofera/assets/epm_default.onnx) is missing and the `onnx` "
+                             "package needed for a stand-in is not installed: run `ofera mapping make-default` "
+                             "or `pip install onnx`") from None
     return path, ["the shipped default EPM is missing: a stand-in EPM (same architecture, fixed random weights) "
                   "maps the blendshapes; timings are representative, the motion is not a trained mapping"]
 
@@ -256,12 +261,73 @@ def use_fast_encoder() -> bool:
     return True
 
 
+def _echo_server(port: int, size: int) -> None:
+    """A bare websockets server answering every message with `size` random bytes (transport floor)."""
+    import asyncio
+
+    from websockets.asyncio.server import serve
+
+    payload = os.urandom(size)
+
+    async def handler(ws) -> None:  # noqa: ANN001
+        async for _ in ws:
+            await ws.send(payload)
+
+    async def main() -> None:
+        async with serve(handler, "127.0.0.1", port, compression=None, max_size=2**26):
+            await asyncio.Future()
+
+    asyncio.run(main())
+
+
+def transport_floor(size: int, rate: float = 72.0, seconds: float = 3.0) -> dict:
+    """Round trips (ms) of a tiny request answered by a `size`-byte message between two Python processes
+    over loopback WebSocket (the websockets library on both ends, no compute): the floor under any frame
+    of that size on this machine."""
+    import asyncio
+
+    from websockets.asyncio.client import connect
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "echo", str(port), str(size)])
+
+    async def run() -> list[float]:
+        for _ in range(100):
+            try:
+                ws = await connect(f"ws://127.0.0.1:{port}", compression=None, max_size=2**26, ping_interval=None)
+                break
+            except OSError:
+                await asyncio.sleep(0.1)
+        else:
+            raise RuntimeError("echo server did not start")
+        lat = []
+        async with ws:
+            for _ in range(int(rate * seconds)):
+                t = time.perf_counter()
+                await ws.send(b"x")
+                await ws.recv()
+                lat.append((time.perf_counter() - t) * 1e3)
+                await asyncio.sleep(max(0.0, 1 / rate - (time.perf_counter() - t)))
+        return lat[int(rate * 0.3):]
+
+    try:
+        lat = asyncio.run(run())
+    finally:
+        proc.terminate()
+        proc.wait()
+    p = pct(lat)
+    return {"bytes": size, "p50": p["p50"], "p99": p["p99"], "min": round(float(np.min(lat)), 3)}
+
+
 def _serve(settings_json: str, impl: str) -> None:
     from ofera.streaming import Settings
     from ofera.streaming.server import serve
 
     if impl == "fast":
         use_fast_encoder()
+    interval = os.environ.get("OFERA_BENCH_SWITCH_INTERVAL")  # experiment: the GIL hand-off interval (s)
+    if interval:
+        sys.setswitchinterval(float(interval))
     serve(Settings(**json.loads(settings_json)))
 
 
@@ -323,3 +389,5 @@ def pyplot():
 
 if __name__ == "__main__" and len(sys.argv) >= 3 and sys.argv[1] == "serve":
     _serve(sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else "fast")
+elif __name__ == "__main__" and len(sys.argv) >= 4 and sys.argv[1] == "echo":
+    _echo_server(int(sys.argv[2]), int(sys.argv[3]))

@@ -6,7 +6,8 @@ One server (subprocess, fast path) and K clients in one asyncio process, each se
 blendshapes on its own fixed schedule (offset so the K streams interleave) and stamping the scheduled
 time (no coordinated omission). Latency = frame received - scheduled send time. By default clients read
 each frame's header only (``--decode header``: a renderer decodes on its own machine; here K decoders
-would compete with the server for the same 2 cores); ``--decode full`` decodes the arrays too.
+would compete with the server for the same 2 cores); ``--decode full`` decodes the arrays too (numba
+decoder, the codec's checks and values).
 The result: p50/p99 per K, frames skipped, and the largest K whose p99 stays below --budget-ms (13.9 ms,
 one 72 Hz frame). The reference server (numpy) is run the same way for --reference-sessions.
 """
@@ -29,6 +30,7 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
                 seq0: int) -> dict:
     """Clients[:k] stream for warmup + seconds; returns latencies (ms) after warm-up and counts."""
     from ofera.client import now_us
+    from ofera.streaming.encode_fast import FastFrameDecoder
     from ofera_protocol import Frame
 
     period = 1e6 / rate
@@ -41,6 +43,7 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
 
     async def one(i: int, client) -> None:
         offset = i * period / k
+        decoder = FastFrameDecoder(client.conn.format) if decode else None
 
         async def sender() -> None:
             for j in range(total):
@@ -53,8 +56,8 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
         async def receiver() -> None:
             while True:
                 data = await client.ws.recv()
-                if decode:
-                    msg = client.conn.receive(data)
+                if decoder is not None:
+                    msg = decoder.decode(data)
                     if not isinstance(msg, Frame):
                         continue
                     seq, t = msg.seq, msg.t

@@ -11,7 +11,9 @@ newest-wins backpressure drops the older ones).
 
 Runs the fast path (numba head/deform, numba frame writer) and then the straightforward reference
 (numpy lbs + Deformer + codec.encode_frame) the same way, and reports both and their ratio
-(--impl fast|reference to run one). Prints a table, writes --json and a PNG next to it.
+(--impl fast|reference to run one). The client decodes every frame with the numba decoder
+(--client-decode fast: the codec's checks and values, ~5x faster for f16; a Unity client decodes natively)
+or the reference codec. Prints a table, writes --json and a PNG next to it.
 JSON: {"gaussians", "rate_hz", "encoding", "frames", "e2e_ms": {p50, p90, p99, p999, max}, "server_ms":
 {p50, p99}, "stages_ms": {...}, "bytes_per_frame", ..., "reference": {same}, "ratios": {...}}.
 """
@@ -22,7 +24,6 @@ import argparse
 import asyncio
 import re
 import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -59,12 +60,16 @@ def metric_means(http_url: str) -> dict[str, float]:
 
 
 async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, seconds: float, warmup: float,
-                      encoding: str, sparse: bool = False, decode: bool = True) -> dict:
-    """One client: bs on a fixed schedule, frames received and decoded; per-frame records after warm-up."""
+                      encoding: str, sparse: bool = False, decode: str = "fast") -> dict:
+    """One client: bs on a fixed schedule, frames received and decoded; per-frame records after warm-up.
+    decode: 'fast' (numba FastFrameDecoder, same checks and values as the codec), 'reference'
+    (ofera_protocol's decoder, via the client library's connection), 'header' (arrays left undecoded)."""
     from ofera.client import connect, now_us
+    from ofera.streaming.encode_fast import FastFrameDecoder
     from ofera_protocol import Frame
 
     client = await connect(url, layout=layout, encoding=encoding, sparse=sparse)
+    fast = FastFrameDecoder(client.conn.format) if decode == "fast" else None
     period_us = 1e6 / rate
     total = int((warmup + seconds) * rate)
     first_counted = int(warmup * rate)
@@ -85,12 +90,12 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
         while True:
             data = await client.ws.recv()
             t_recv = now_us()
-            if decode:
-                msg = client.conn.receive(data)
+            if decode != "header":
+                msg = fast.decode(data) if fast is not None else client.conn.receive(data)
                 if not isinstance(msg, Frame):
                     continue
                 seq, t, timing = msg.seq, msg.t, msg.timing
-            else:  # header only (capacity runs): the arrays are left undecoded
+            else:  # header only: the arrays are left undecoded
                 seq, t, timing = _frame_header(data)
                 if seq is None:
                     continue
@@ -156,7 +161,7 @@ def summarise(run: dict) -> dict:
 def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
     with C.ServerProcess(avatars, impl=impl, threads=args.threads) as server:
         run = asyncio.run(run_session(server.url, weights, layout, args.rate, args.seconds, args.warmup,
-                                      args.encoding, args.sparse))
+                                      args.encoding, args.sparse, args.client_decode))
         out = summarise(run)
         out["server_metrics_ms"] = metric_means(f"http://127.0.0.1:{server.port}")
         out["count"] = run["count"]
@@ -210,6 +215,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sparse", action="store_true", help="ask for sparse frames (movable Gaussians only)")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
     ap.add_argument("--threads", type=int, default=2, help="server compute threads")
+    ap.add_argument("--no-floor", action="store_true", help="skip the transport-floor measurement")
+    ap.add_argument("--client-decode", default="fast", choices=["fast", "reference", "header"],
+                    help="how the client decodes frames: numba decoder (same values and checks as the codec), "
+                    "the reference codec, or the header only")
     ap.add_argument("--json", type=Path, default=C.RESULTS / "latency.json")
     args = ap.parse_args(argv)
 
@@ -223,6 +232,10 @@ def main(argv: list[str] | None = None) -> dict:
               f"{args.seconds:g} s (+{args.warmup:g} s warm-up) ...", flush=True)
         results[impl] = run_impl(impl, args, weights, layout, avatars)
     fast = results.get("fast") or results[impls[0]]
+    floor = None
+    if not args.no_floor and fast["bytes_per_frame"]:
+        print(f"[latency] transport floor: {fast['bytes_per_frame']} B messages, no compute ...", flush=True)
+        floor = C.transport_floor(fast["bytes_per_frame"], args.rate, min(args.seconds, 3.0))
     report = {
         "benchmark": "latency",
         "gaussians": fast["count"],
@@ -236,15 +249,20 @@ def main(argv: list[str] | None = None) -> dict:
         "compute_ms": fast["compute_ms"],
         "stages_ms": fast["stages_ms"],
         "client_decode_ms": fast["client_decode_ms"],
+        "client_decode": args.client_decode,
         "server_metrics_ms": fast["server_metrics_ms"],
         "bytes_per_frame": fast["bytes_per_frame"],
+        "transport_floor_ms": floor,
         "impl": impls[0] if len(impls) == 1 else "fast",
         "input": {"layout": layout, "capture": str(C.CAPTURE) if C.CAPTURE.is_file() else None, "fps": fps},
         "definitions": {
             "e2e_ms": "client clock: frame decoded - scheduled send time of its bs (loopback, same machine)",
+            "client_decode_ms": "client: message received -> decoded (--client-decode)",
             "server_ms": "frame timing 'total': bs received -> frame computed (includes queueing)",
             "compute_ms": "sum of layout, bda, epm, head, deform of the frame's timing",
             "server_metrics_ms": "means from /metrics: encode stage, bs received -> frame handed to the socket",
+            "transport_floor_ms": "round trip of a tiny request answered by a message of bytes_per_frame between "
+                                  "two Python processes (websockets library both ends, no compute)",
         },
         "targets": {"e2e_p99_ms": 8.0, "compute_p50_ms": 2.0, "compute_p99_ms": 4.0},
         "machine": C.machine(),
@@ -270,6 +288,9 @@ def main(argv: list[str] | None = None) -> dict:
                          "p99", "head p50", "deform p50", "encode mean", "bytes/frame"]))
     if "ratios" in report:
         print("reference / fast:", report["ratios"])
+    if floor:
+        print(f"transport floor ({floor['bytes']} B, no compute): p50 {floor['p50']} ms, p99 {floor['p99']} ms, "
+              f"min {floor['min']} ms")
     for n in notes:
         print("note:", n)
     out = C.write_json(args.json, report)

@@ -196,3 +196,28 @@ def test_rotation_matrices_from_axis_angle_match(head, subject) -> None:
     rot = np.stack([np.eye(3), np.eye(3), *axis_angle_to_matrix(rng.normal(0, 0.2, (3, 3)))])
     expr = rng.normal(0, 1, 50)
     assert_same_state(fast.session().run(expr, rot), reference_frame(avatar, subject, expr, rot))
+
+
+def test_flame_values_split_matches_reference(head, subject) -> None:
+    rng = np.random.default_rng(10)
+    session = FastAvatar(random_avatar(head, "triangle", rng, n=100), subject).session()
+    for _ in range(20):
+        y = neutral_flame_values(1)[0]
+        y[:50] = rng.normal(0, 1, 50)
+        y[50:] += rng.normal(0, 0.5, 18).astype(np.float32)
+        expr, rot = session.flame(y)
+        ref_expr, ref_rot = split_flame_values(y)
+        np.testing.assert_array_equal(expr, ref_expr)
+        np.testing.assert_allclose(rot, ref_rot, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["triangle", "barycentric"])
+def test_parallel_kernels_match_serial(head, subject, kind) -> None:
+    rng = np.random.default_rng(11)
+    fast = FastAvatar(random_avatar(head, kind, rng, sorted_faces=True), subject)
+    expr, rot = random_flame(rng)
+    a = fast.session(parallel=True).run(expr, rot)
+    b = fast.session().run(expr, rot)
+    np.testing.assert_array_equal(a.position, b.position)
+    np.testing.assert_array_equal(a.rotation, b.rotation)
+    np.testing.assert_array_equal(a.scale, b.scale)

@@ -221,3 +221,43 @@ def test_delta_messages_decode_with_the_client_connection() -> None:
     msg = decode_server_message(data, FrameFormat("q13", n, True, quant))
     assert msg.n == n // 2 and np.array_equal(msg.index, np.arange(0, n, 2))
     assert ClientConnection is not None  # the same codec a client uses
+
+
+@pytest.mark.parametrize("enc", ["f32", "f16", "q13"])
+@pytest.mark.parametrize("sparse", [False, True])
+def test_fast_decoder_equals_codec(kernels, enc, sparse) -> None:
+    from ofera.streaming.encode_fast import FastFrameDecoder
+
+    rng = np.random.default_rng(8)
+    pos, rot, scale = state(rng, edge_cases=False)
+    quant = make_quant(pos, scale)
+    fmt = FrameFormat(enc, N, sparse, quant if enc == "q13" else None)
+    gather = np.arange(0, N, 3) if sparse else None
+    data = bytes(FrameWriter(fmt, "unity", gather, None if gather is None else gather.astype(np.uint32),
+                             kernels=kernels).encode(4, 5, TIMING, pos, rot, scale))
+    ref = decode_server_message(data, fmt)
+    got = FastFrameDecoder(fmt).decode(data)
+    assert (got.seq, got.t, got.timing) == (ref.seq, ref.t, ref.timing)
+    assert (got.index is None) == (ref.index is None)
+    for name in ("position", "rotation", "scale"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+
+
+def test_fast_decoder_checks_like_the_codec(kernels) -> None:
+    from ofera.streaming.encode_fast import FastFrameDecoder
+    from ofera_protocol import ProtocolError
+    from ofera_protocol.codec import pack_map
+
+    fmt = FrameFormat("f16", 2)
+    pos = np.zeros((2, 3), "<f2")
+    pos[1, 2] = np.inf
+    good = {"type": "frame", "seq": 1, "t": 2, "timing": {}, "n": 2, "position": np.zeros((2, 3), "<f2"),
+            "rotation": np.zeros((2, 4), "<f2"), "scale": np.zeros((2, 3), "<f2")}
+    dec = FastFrameDecoder(fmt)
+    assert dec.decode(pack_map(good)).n == 2
+    with pytest.raises(ProtocolError) as e:
+        dec.decode(pack_map({**good, "position": pos}))
+    assert e.value.code == "non_finite"
+    with pytest.raises(ProtocolError) as e:
+        dec.decode(pack_map({**good, "scale": np.zeros((1, 3), "<f2")}))
+    assert e.value.code == "bad_length"

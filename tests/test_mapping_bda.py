@@ -83,3 +83,30 @@ def test_bad_shapes_are_refused():
         BDA(np.eye(50), np.zeros(50))
     with pytest.raises(BDAError):
         BDA.fit(np.zeros((10, 51)), np.zeros((9, 51)))
+
+
+def test_cli_fit_on_paired_npz_reports_errors(tmp_path):
+    from typer.testing import CliRunner
+
+    from ofera.cli.main import app
+    from ofera.mapping.flame_values import neutral_flame_values
+    from ofera.mapping.layouts import to_arkit51
+    from ofera.mapping.paired import PairedData
+
+    rng = np.random.default_rng(4)
+    t = 600
+    headset = rng.random((t, 63)).astype(np.float32) * 0.5
+    w, b = _known(rng)
+    bs = np.clip(to_arkit51("ovr63", headset) @ w.T * 0.8 + b, 0, 1)
+    data = PairedData(bs=bs, flame=neutral_flame_values(t), subject=np.repeat(np.arange(6), 100),
+                      source=np.zeros(t), split=np.repeat([0, 0, 0, 0, 1, 2], 100), frame=np.tile(np.arange(100), 6),
+                      headset=headset)
+    data.save(tmp_path / "pairs.npz")
+    res = CliRunner().invoke(app, ["bda", "fit", str(tmp_path / "pairs.npz"), "-o", str(tmp_path / "bda.npz")])
+    assert res.exit_code == 0, res.output
+    assert "RMSE" in res.output and "held-out 200 frames" in res.output
+    bda = BDA.load(tmp_path / "bda.npz")
+    held = bda.error(to_arkit51("ovr63", headset[400:]), bs[400:])
+    assert held["rmse"] < 0.5 * BDA.identity().error(to_arkit51("ovr63", headset[400:]), bs[400:])["rmse"]
+    res = CliRunner().invoke(app, ["bda", "fit", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "x.npz")])
+    assert res.exit_code == 2 and "error:" in res.output

@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 from ofera.streaming.metrics import Metrics
-from ofera.streaming.roles import LatestSlot, PendingBs, Source, Viewer
+from ofera.streaming.roles import CodecWriter, LatestSlot, PendingBs, Source, Viewer
 from ofera_protocol import Blendshapes, FrameFormat, decode_server_message
 from test_server_support import run
 
@@ -73,7 +73,7 @@ def test_source_computes_only_the_newest_and_fans_out_encoded_once() -> None:
                     sent[name].append(data)
                 return send
 
-            viewers = [Viewer(sender(n), fmt, "flame", None, None, ("f32", "flame", False, None), pool, metrics)
+            viewers = [Viewer(sender(n), CodecWriter(fmt), ("f32", "flame", False, None), pool, metrics)
                        for n in ("a", "b")]
             for v in viewers:
                 source.subscribers.append(v.offer)
@@ -116,7 +116,7 @@ def test_viewer_keeps_only_the_newest_unsent_frame() -> None:
 
             pipeline = FakePipeline()
             source = Source(pipeline, pool, metrics)
-            viewer = Viewer(slow_send, fmt, "flame", None, None, ("k",), pool, metrics)
+            viewer = Viewer(slow_send, CodecWriter(fmt), ("k",), pool, metrics)
             source.subscribers.append(viewer.offer)
             tasks = [asyncio.create_task(source.run()), asyncio.create_task(viewer.run())]
             for seq in range(6):  # each computed while frame 0 is stuck in the socket
@@ -130,3 +130,25 @@ def test_viewer_keeps_only_the_newest_unsent_frame() -> None:
             assert got == [0, 5] and viewer.skipped == 4
 
     run(main())
+
+
+def test_fast_frame_writer_gives_the_codec_bytes() -> None:
+    from ofera.streaming.session import make_writer
+    from ofera_protocol import make_quant
+
+    rng = np.random.default_rng(0)
+    n = 64
+    pos = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
+    rot = rng.normal(0, 1, (n, 4)).astype(np.float32)
+    rot /= np.linalg.norm(rot, axis=1, keepdims=True)
+    scale = rng.uniform(1e-3, 1e-2, (n, 3)).astype(np.float32)
+    index = np.arange(0, n, 3, dtype=np.uint32)
+    timing = {"epm": 5, "total": 900}
+    for encoding in ("f32", "f16", "q13"):
+        quant = make_quant(pos, scale) if encoding == "q13" else None
+        for coords in ("flame", "unity"):
+            for gather, idx in ((None, None), (index.astype(np.int64), index)):
+                fmt = FrameFormat(encoding, n, sparse=idx is not None, quant=quant)
+                fast = make_writer(fmt, coords, gather, idx, fast=True).encode(7, 11, timing, pos, rot, scale)
+                ref = make_writer(fmt, coords, gather, idx, fast=False).encode(7, 11, timing, pos, rot, scale)
+                assert bytes(fast) == ref, (encoding, coords, idx is not None)

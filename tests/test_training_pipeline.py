@@ -197,10 +197,10 @@ def test_a_few_steps_reduce_the_loss_and_checkpoints_resume(tmp_path, tiny):
 
     tr = Trainer(fresh(), cap, cap.tracker, cfg)
     frames = tr.train_idx.tolist()
-    before = sum(float(tr.loss(f, [0, 1])[0]) for f in frames)
+    before = sum(float(tr.loss(f, [0, 1])[0].detach()) for f in frames)
     tr.run(iterations=6, checkpoint=tmp_path / "ck.pt", progress=False)
     tr.run(iterations=12, progress=False)
-    after = sum(float(tr.loss(f, [0, 1])[0]) for f in frames)
+    after = sum(float(tr.loss(f, [0, 1])[0].detach()) for f in frames)
     assert after < 0.9 * before
     # Resume from step 6 and finish: the same parameters as the uninterrupted run.
     state = load_checkpoint(tmp_path / "ck.pt")

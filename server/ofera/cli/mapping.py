@@ -110,9 +110,11 @@ def epm_train(
     max_minutes: Annotated[float, typer.Option(help="Wall-clock cap in minutes (0: none).")] = 8.0,
     patience: Annotated[int, typer.Option(help="Epochs without validation improvement before stopping.")] = 15,
     hidden: Annotated[int, typer.Option(help="Width of the hidden layers.")] = 128,
-    batch_size: Annotated[int, typer.Option(help="Frames per batch.")] = 256,
+    batch_size: Annotated[int, typer.Option(help="Frames per batch.")] = 512,
     lr: Annotated[float, typer.Option(help="Adam learning rate.")] = 1e-3,
-    threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default).")] = 0,
+    dropout: Annotated[float, typer.Option(help="Dropout inside the residual blocks.")] = 0.5,
+    weight_decay: Annotated[float, typer.Option(help="Adam weight decay.")] = 1e-3,
+    threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default; 1 is reproducible).")] = 1,
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
 ) -> None:
     """Train the EPM (L1, Adam, early stopping on the validation subjects, subject-wise sampling)."""
@@ -125,8 +127,8 @@ def epm_train(
 
         torch.set_num_threads(threads)
     paired = load_paired_data(data, progress=not quiet)
-    cfg = EPMConfig(hidden=hidden, batch_size=batch_size, lr=lr, max_epochs=max_epochs, patience=patience,
-                    max_minutes=max_minutes, seed=seed)
+    cfg = EPMConfig(hidden=hidden, batch_size=batch_size, lr=lr, dropout=dropout, weight_decay=weight_decay,
+                    max_epochs=max_epochs, patience=patience, max_minutes=max_minutes, seed=seed)
     result = train_on_paired(paired, cfg, out, progress=not quiet, source=str(data))
     print(f"{result.stopped}; best validation L1 {result.best_val:.4f} at epoch {result.best_epoch} "
           f"({result.seconds:.0f} s)")
@@ -203,6 +205,7 @@ def make_default(
                                                                  "assets/epm_default.onnx).")] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     max_minutes: Annotated[float, typer.Option(help="Training time cap in minutes.")] = 8.0,
+    threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default; 1 is reproducible).")] = 1,
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
 ) -> None:
     """Regenerate the shipped EPM: train on the synthetic benchmark, export to ONNX, check against torch."""
@@ -214,6 +217,10 @@ def make_default(
     from ..mapping.evaluate import load_paired_data
     from ..mapping.export import export_checkpoint
 
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
     target = out or asset_path("epm_default.onnx")
     paired = load_paired_data("synthetic", progress=not quiet)
     cfg = EPMConfig(**{**DEFAULT_EPM_CONFIG, "seed": seed, "max_minutes": max_minutes})

@@ -99,6 +99,48 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
             out[s_, i] = t0 * p0 + t1 * p1 + t2 * p2 + t3
 
 
+@nb.njit(**_NB)
+def flame_values_kernel(y, n_expr, expr, rot):
+    """FLAME values y (68,) -> expr (n_expr,) and rotations (5, 3, 3): root and neck identity; jaw and eyes
+    from their 6D (pytorch3d rows: Gram-Schmidt of the two rows, third = cross), computed in float64."""
+    for j in range(n_expr):
+        expr[j] = y[j]
+    for k in range(2):
+        for i in range(3):
+            for c in range(3):
+                rot[k, i, c] = 1.0 if i == c else 0.0
+    for k in range(3):
+        o = n_expr + 6 * k
+        a1x = np.float64(y[o])
+        a1y = np.float64(y[o + 1])
+        a1z = np.float64(y[o + 2])
+        a2x = np.float64(y[o + 3])
+        a2y = np.float64(y[o + 4])
+        a2z = np.float64(y[o + 5])
+        n = max(np.sqrt(a1x * a1x + a1y * a1y + a1z * a1z), 1e-12)
+        b1x = a1x / n
+        b1y = a1y / n
+        b1z = a1z / n
+        d = b1x * a2x + b1y * a2y + b1z * a2z
+        cx = a2x - d * b1x
+        cy = a2y - d * b1y
+        cz = a2z - d * b1z
+        n = max(np.sqrt(cx * cx + cy * cy + cz * cz), 1e-12)
+        b2x = cx / n
+        b2y = cy / n
+        b2z = cz / n
+        r = rot[k + 2]
+        r[0, 0] = b1x
+        r[0, 1] = b1y
+        r[0, 2] = b1z
+        r[1, 0] = b2x
+        r[1, 1] = b2y
+        r[1, 2] = b2z
+        r[2, 0] = b1y * b2z - b1z * b2y
+        r[2, 1] = b1z * b2x - b1x * b2z
+        r[2, 2] = b1x * b2y - b1y * b2x
+
+
 class SubsetLBS:
     """LBS of a fixed vertex subset of one subject (see the module docstring).
 

@@ -128,16 +128,18 @@ def face_regions(model: HeadModel) -> dict[str, np.ndarray]:
 def generator_version() -> str:
     """Key of the synthetic benchmark's generator: a hash of the code that generates it.
 
-    Any change to the paired-data generator, the procedural head, the layouts or the FLAME values
-    makes a new key, so a stale cached benchmark is never used.
+    Any change to the paired-data package, the procedural head and its LBS, the layouts or the FLAME
+    values makes a new key, so a stale cached benchmark is never used.
     """
     import hashlib
+    import importlib
 
-    from .. import head as head_pkg
-    from . import flame_values, layouts, paired
+    from . import paired
 
-    files = sorted(Path(paired.__file__).parent.glob("*.py")) + sorted(Path(head_pkg.__file__).parent.glob("*.py"))
-    files += [Path(layouts.__file__), Path(flame_values.__file__)]
+    files = sorted(Path(paired.__file__).parent.glob("*.py"))
+    files += [Path(importlib.import_module(f"ofera.{m}").__file__ or "") for m in (
+        "head.io", "head.lbs", "head.model", "head.procedural", "head.rotations", "mapping.layouts",
+        "mapping.flame_values")]
     digest = hashlib.sha256()
     for f in files:
         digest.update(f.name.encode())

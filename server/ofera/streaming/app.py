@@ -71,6 +71,10 @@ def warm_up(hub: Hub) -> None:
     assets.pipeline("arkit52").warm_up()
     assets.wire_avatar("flame")
     assets.selection(sparse=True, max_gaussians=None)
+    if hub.settings.fast:
+        from .encode_fast import numba_kernels
+
+        numba_kernels(warm=True)  # compiles (or loads cached) frame-encoding kernels
     hub.warm = True
 
 

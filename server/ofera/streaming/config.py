@@ -31,8 +31,8 @@ class Settings(BaseSettings):
     compute_threads: int = Field(0, ge=0, description="Threads running pipelines (0: one per CPU core).")
     avatar_chunk_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest avatar message payload.")
     hello_timeout: float = Field(10.0, gt=0, description="Seconds a new connection may take to send hello.")
-    fast: bool = Field(True, description="Deform with the avatar's fast path (numba, moving Gaussians only); "
-                       "false: the numpy reference (lbs + Deformer).")
+    fast: bool = Field(True, description="Fast paths: the avatar's numba deformation (moving Gaussians only) "
+                       "and numba frame encoding; false: the numpy references (lbs + Deformer, codec.encode_frame).")
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     log_level: str = Field("info", description="uvicorn log level.")
 

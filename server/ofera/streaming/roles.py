@@ -34,7 +34,7 @@ from .pipeline import Pipeline
 log = logging.getLogger("ofera.streaming")
 
 T = TypeVar("T")
-SendBytes = Callable[[bytes], Awaitable[None]]
+SendBytes = Callable[[Any], Awaitable[None]]  # bytes-like
 
 
 class LatestSlot(Generic[T]):
@@ -79,7 +79,7 @@ class ComputedFrame:
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
-    def encoded(self, key: tuple, make: Callable[[ComputedFrame], bytes]) -> tuple[bytes, bool]:
+    def encoded(self, key: tuple, make: Callable[[ComputedFrame], Any]) -> tuple[Any, bool]:
         """Bytes for wire format `key` (made once, by whoever asks first); True if made by this call."""
         with self._lock:
             data = self._encoded.get(key)
@@ -142,17 +142,33 @@ class Source:
                 deliver(frame)
 
 
-class Viewer:
-    """Client role 2: receives an avatar's frames in its own wire format (newest unsent frame wins)."""
+class CodecWriter:
+    """The reference frame encoder of one wire format: gather, `to_coords`, `codec.encode_frame`.
+    Same interface as `ofera_protocol.fast_encodings.FrameWriter`, which produces identical bytes."""
 
-    def __init__(self, send: SendBytes, fmt: FrameFormat, coords: str, gather: np.ndarray | None,
-                 index: np.ndarray | None, key: tuple, executor: Executor, metrics: Metrics) -> None:
+    def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
+                 index: np.ndarray | None = None) -> None:
+        self.format, self.coords, self.gather, self.index = fmt, coords, gather, index
+
+    def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
+               scale: np.ndarray) -> bytes:
+        if self.gather is not None:
+            position, rotation, scale = position[self.gather], rotation[self.gather], scale[self.gather]
+        position, rotation = to_coords(position, rotation, self.coords)
+        return encode_frame(Frame(seq=seq, t=t, position=position, rotation=rotation, scale=scale,
+                                  index=self.index, timing=timing), self.format)
+
+
+class Viewer:
+    """Client role 2: receives an avatar's frames in its own wire format (newest unsent frame wins).
+
+    `writer` encodes a frame of this viewer's wire format (CodecWriter, or the numba FrameWriter of
+    `encode_fast`); `key` names that format: viewers with equal keys share one encoding per frame."""
+
+    def __init__(self, send: SendBytes, writer: Any, key: tuple, executor: Executor, metrics: Metrics) -> None:
         self.send = send
-        self.format = fmt
-        self.coords = coords
-        self.gather = gather  # ids (into the avatar) of the Gaussians a frame carries; None: all
-        self.index = index  # sparse: the frame's wire index; None: dense
-        self.key = key  # frames with equal keys have equal bytes (encoded once per key)
+        self.writer = writer
+        self.key = key
         self.executor = executor
         self.metrics = metrics
         self.slot: LatestSlot[ComputedFrame] = LatestSlot()
@@ -166,13 +182,7 @@ class Viewer:
 
     def _make(self, frame: ComputedFrame) -> bytes:
         s = frame.state
-        pos, rot, scale = s.position, s.rotation, s.scale
-        if self.gather is not None:
-            pos, rot, scale = pos[self.gather], rot[self.gather], scale[self.gather]
-        pos, rot = to_coords(pos, rot, self.coords)
-        msg = Frame(seq=frame.seq, t=frame.t, position=pos, rotation=rot, scale=scale, index=self.index,
-                    timing=frame.timing)
-        return encode_frame(msg, self.format)
+        return self.writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale)
 
     def _encode(self, frame: ComputedFrame) -> bytes:
         t0 = time.perf_counter_ns()
@@ -185,7 +195,7 @@ class Viewer:
         loop = asyncio.get_running_loop()
         while True:
             frame = await self.slot.get()
-            try:
+            try:  # bytes, or a pooled memoryview (not reused while referenced)
                 data = await loop.run_in_executor(self.executor, self._encode, frame)
             except Exception as exc:
                 log.exception("encoding frame %d failed", frame.seq)

@@ -13,7 +13,7 @@ from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
-from ofera_protocol import AvatarInfo, Blendshapes, Bye, Hello, Ping, ProtocolError, ServerConnection
+from ofera_protocol import AvatarInfo, Blendshapes, Bye, FrameFormat, Hello, Ping, ProtocolError, ServerConnection
 from ofera_protocol import errors as E
 
 from .. import __version__
@@ -21,7 +21,7 @@ from .config import Settings
 from .metrics import Metrics
 from .pipeline import AvatarAssets
 from .registry import AvatarRegistry
-from .roles import PendingBs, SessionFatal, Source, Viewer
+from .roles import CodecWriter, PendingBs, SessionFatal, Source, Viewer
 
 log = logging.getLogger("ofera.streaming")
 
@@ -73,6 +73,16 @@ class Transport:
 
     async def close(self, code: int, reason: str = "") -> None:
         raise NotImplementedError
+
+
+def make_writer(fmt: FrameFormat, coords: str, gather: Any, index: Any, fast: bool) -> Any:
+    """The frame encoder of one wire format: numba kernels writing straight into the message buffer
+    (`encode_fast`, byte-identical to the codec) when `fast`, else the codec's reference encoder."""
+    if fast:
+        from .encode_fast import frame_writer
+
+        return frame_writer(fmt, coords, gather, index)
+    return CodecWriter(fmt, coords, gather, index)
 
 
 class Session:
@@ -194,8 +204,8 @@ class Session:
         self.source = Source(pipeline, self.hub.executor, self.metrics)
         assert self.conn.format is not None
         key = (hello.encoding, hello.coords, hello.sparse, hello.max_gaussians)
-        self.viewer = Viewer(self.t.send, self.conn.format, hello.coords, gather, index, key, self.hub.executor,
-                             self.metrics)
+        self.viewer = Viewer(self.t.send, make_writer(self.conn.format, hello.coords, gather, index, s.fast), key,
+                             self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
         log.info("session %s: avatar %s, layout %s, encoding %s, coords %s%s", self.id, aid, hello.layout,
                  hello.encoding, hello.coords, f", device {hello.device}" if hello.device else "")

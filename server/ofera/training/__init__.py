@@ -1,0 +1,14 @@
+"""Avatar training (torch, CPU): the differentiable rasteriser, losses, the trainer and the MiA experiment.
+
+- ``rasterize``: 3D Gaussian splatting in plain PyTorch (EWA projection, per-pixel front-to-back
+  compositing), cameras in the OpenCV convention; an optional gsplat (CUDA) path.
+- ``losses``: SSIM, PSNR, the mesh Laplacian, GaussianAvatars' regularisers, an optional VGG/LPIPS term
+  from user-supplied weights.
+- ``model``: the trainable avatar: Gaussians bound to the head's triangles (GaussianAvatars' binding) and
+  a FATE-like per-avatar correction of the expression basis.
+- ``data``: the capture folder (``LAYOUT.md``); ``trainer``: the objective, the loop, checkpoints;
+  ``convert``: to and from the server's ``ofera.avatar.GaussianAvatar``.
+- ``synthetic`` and ``experiment``: the MiA experiment on a synthetic capture (``ofera mia experiment``).
+
+Imported only by the training commands: the server never needs torch.
+"""

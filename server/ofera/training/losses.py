@@ -70,7 +70,7 @@ def uniform_laplacian(faces: np.ndarray, num_vertices: int) -> torch.Tensor:
     idx = np.stack([np.concatenate([i, diag]), np.concatenate([j, diag])])
     vals = np.concatenate([val, np.ones(len(diag))])
     return torch.sparse_coo_tensor(torch.as_tensor(idx), torch.as_tensor(vals, dtype=torch.float32),
-                                   (num_vertices, num_vertices)).coalesce()
+                                   (num_vertices, num_vertices), check_invariants=True).coalesce()
 
 
 def laplacian_loss(lap: torch.Tensor, verts: torch.Tensor, reference: torch.Tensor | None = None) -> torch.Tensor:

@@ -145,7 +145,7 @@ class Trainer:
         parts["scale"] = scale_regulariser(av.local_log_scale)
         parts["xyz"] = position_regulariser(av.local_xyz)
         total = total + c.w_scale * parts["scale"] + c.w_xyz * parts["xyz"]
-        return total, {k: float(v) for k, v in parts.items()}
+        return total, {k: float(v.detach()) for k, v in parts.items()}
 
     def step(self) -> dict[str, float]:
         c = self.config
@@ -160,7 +160,7 @@ class Trainer:
         total.backward()
         self.optimizer.step()
         self.iteration += 1
-        rec = {"iteration": self.iteration, "loss": float(total), **parts}
+        rec = {"iteration": self.iteration, "loss": float(total.detach()), **parts}
         self.history.append(rec)
         return rec
 

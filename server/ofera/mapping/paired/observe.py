@@ -1,8 +1,8 @@
 """What the trackers report: camera-style blendshape estimates and a simulated headset (OVR63) stream.
 
 Camera estimates (the ``bs`` of paired data, like MediaPipe's blendshapes next to a FLAME tracker):
-the true rig weights through an estimator with per-source bias, gain and cross-talk between shapes of
-a region, per-subject deviations, estimation lag, temporal jitter (noise and frame slips), dropouts
+the true rig weights through an estimator with per-source bias, gain, a nonlinear response curve per
+shape (dead zone + power), cross-talk between shapes of a region, per-subject deviations, estimation lag, temporal jitter (noise and frame slips), dropouts
 (held or zeroed frames) and occasional saturation, clipped to [0, 1].
 
 Headset stream: Meta's face tracking (OpenXR XR_FB_face_tracking, 63 weights). The true weights are
@@ -39,6 +39,8 @@ class EstimatorNoise:
     slips: float = 0.04  # probability that a frame shows its neighbour
     dropouts: float = 2.0  # dropout episodes per minute (2-10 frames each)
     saturation: float = 2.0  # saturation episodes per minute (one shape pushed to 1 for 0.3-1.5 s)
+    response: float = 0.45  # log-sd of the per-shape response exponent (regressors compress or inflate)
+    knee: float = 0.08  # largest per-shape dead zone: weights below it read as 0
 
 
 def _region_groups() -> list[np.ndarray]:
@@ -54,7 +56,15 @@ def estimator_params(rng: np.random.Generator, noise: EstimatorNoise) -> dict[st
         np.fill_diagonal(leak, 0.0)
         mix[np.ix_(group, group)] += leak
     return {"gain": np.exp(rng.normal(0.0, noise.gain, N_SHAPES)), "bias": rng.normal(0.0, noise.bias, N_SHAPES),
-            "mix": mix}
+            "mix": mix, "gamma": np.exp(rng.normal(0.0, noise.response, N_SHAPES)),
+            "knee": rng.uniform(0.0, noise.knee, N_SHAPES)}
+
+
+def response_curve(u: np.ndarray, gamma: np.ndarray, knee: np.ndarray) -> np.ndarray:
+    """A regressor's monotonic, nonlinear response per shape: a dead zone below ``knee``, then a power
+    curve (gamma < 1 inflates small activations, > 1 compresses them), as camera blendshape estimators
+    do. u (T, 51) in [0, 1] -> (T, 51) in [0, 1]."""
+    return np.clip((np.clip(u, 0.0, 1.0) - knee) / (1.0 - knee), 0.0, 1.0) ** gamma
 
 
 def _episodes(rng: np.random.Generator, frames: int, fps: float, per_minute: float, lo: int, hi: int):
@@ -70,7 +80,7 @@ def observe_camera(rng: np.random.Generator, w: np.ndarray, fps: float, noise: E
     t = len(w)
     gain = source["gain"] * np.exp(rng.normal(0.0, noise.gain * noise.subject, N_SHAPES))
     bias = source["bias"] + rng.normal(0.0, noise.bias * noise.subject, N_SHAPES)
-    x = (w @ source["mix"].T) * gain + bias
+    x = response_curve(w @ source["mix"].T, source["gamma"], source["knee"]) * gain + bias
     if noise.lag > 0:
         x = lfilter([1.0 - noise.lag], [1.0, -noise.lag], x - x[:1], axis=0) + x[:1]
     slip = rng.random(t) < noise.slips

@@ -1,0 +1,73 @@
+"""Every benchmark in benchmarks/ runs end to end at toy size (5k Gaussians, about a second each) and writes
+its JSON and PNG. Performance claims live in the benchmarks' own output, never here: this only keeps them
+working."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+SMALL = "5000"
+
+
+def load(name: str):
+    sys.path.insert(0, str(BENCH))
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", BENCH / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(module)
+    return module
+
+
+def check_outputs(path: Path) -> dict:
+    assert path.is_file() and path.with_suffix(".png").is_file()
+    assert path.with_suffix(".png").stat().st_size > 10_000
+    return json.loads(path.read_text())
+
+
+@pytest.mark.timeout(300)
+def test_latency_smoke(tmp_path) -> None:
+    out = tmp_path / "latency.json"
+    load("latency").main(["--gaussians", SMALL, "--rate", "72", "--seconds", "0.7", "--warmup", "0.3",
+                          "--encoding", "f16", "--json", str(out)])
+    r = check_outputs(out)
+    for key in ("gaussians", "rate_hz", "encoding", "frames", "e2e_ms", "server_ms", "stages_ms", "bytes_per_frame"):
+        assert key in r
+    assert set(r["e2e_ms"]) >= {"p50", "p90", "p99", "p999", "max"} and set(r["server_ms"]) >= {"p50", "p99"}
+    assert r["frames"] > 0 and r["encoding"] == "f16" and 4000 < r["gaussians"] < 6000
+    assert r["reference"]["frames"] > 0 and "ratios" in r
+
+
+@pytest.mark.timeout(300)
+def test_capacity_smoke(tmp_path) -> None:
+    out = tmp_path / "capacity.json"
+    load("capacity").main(["--gaussians", SMALL, "--seconds", "0.5", "--warmup", "0.3", "--sessions", "1,2",
+                           "--reference-sessions", "1", "--json", str(out)])
+    r = check_outputs(out)
+    assert set(r["per_k"]) == {"1", "2"} and r["per_k"]["2"]["frames"] > 0
+    assert "max_sessions_within_budget" in r and "1" in r["reference"]["per_k"]
+
+
+@pytest.mark.timeout(300)
+def test_bandwidth_smoke(tmp_path) -> None:
+    out = tmp_path / "bandwidth.json"
+    load("bandwidth").main(["--gaussians", SMALL, "--frames", "12", "--sweep-mm", "0.02", "--json", str(out)])
+    r = check_outputs(out)
+    assert {"f32", "f16", "q13", "f16+sparse", "q13+sparse"} <= set(r["schemes"])
+    assert all(s.get("identical_to_reference", True) for s in r["schemes"].values())
+    compact = r["compact"]
+    assert compact["position_error_mm_max"] <= 0.05 and compact["bytes_per_gaussian_mean"] < 13
+
+
+@pytest.mark.timeout(300)
+def test_scaling_smoke(tmp_path) -> None:
+    out = tmp_path / "scaling.json"
+    load("scaling").main(["--sizes", "5000,10000", "--frames", "5", "--reference-frames", "2", "--json", str(out)])
+    r = check_outputs(out)
+    assert [s["gaussians"] for s in r["sizes"]][0] < r["sizes"][1]["gaussians"]
+    assert r["sizes"][0]["fast"]["deform"]["p50"] is not None and "ratios_p50" in r["sizes"][0]

@@ -1,0 +1,136 @@
+"""Connection storms and faults: ~200 connect/disconnect cycles of every kind (clean bye, close without
+hello, TCP reset right after the welcome, i.e. in the middle of the avatar transfer, reset while frames
+stream, vanishing without a WebSocket close, half-sent HTTP upgrade), sequential and concurrent. Afterwards
+nothing is left: no session (hub and metrics gauge), no connection, asyncio tasks back to the baseline, RSS
+bounded, and a new session works. The heavy version is benchmarks/storm.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import socket
+import struct
+import threading
+
+from test_reliability_support import (
+    RawWebSocket,
+    bs,
+    health,
+    hello,
+    rel_server,
+    rss_mb,
+    task_count,
+    unpack,
+    wait_idle,
+    wait_until,
+)
+from test_server_support import metric, run
+from websockets.asyncio.client import connect
+
+CYCLES = 200
+
+
+def cycle(server, kind: str, rng: random.Random) -> None:
+    if kind == "bye":
+        async def main() -> None:
+            async with connect(server.url, compression=None, max_size=None) as ws:
+                await ws.send(hello(max_gaussians=200))
+                while True:
+                    m = unpack(await ws.recv())
+                    if m["type"] == "avatar" and m["chunk"] == m["chunks"] - 1:
+                        break
+                await ws.send(bs(1))
+                assert unpack(await ws.recv())["type"] == "frame"
+                await ws.send(b"\x81\xa4type\xa3bye")
+                await ws.wait_closed()
+
+        run(main())
+        return
+    if kind == "half_http":  # TCP reset in the middle of the HTTP upgrade request
+        s = socket.create_connection(("127.0.0.1", server.port), 5)
+        s.sendall(b"GET /v1/stream HTTP/1.1\r\nHost: x\r\nUpgrade: websock")
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        s.close()
+        return
+    c = RawWebSocket(server)
+    assert c.status == 101, c.status
+    if kind == "no_hello":
+        c.close()
+    elif kind == "reset_after_hello":  # before the welcome is even sent
+        c.send(hello())
+        c.abort()
+    elif kind == "reset_after_welcome":  # in the middle of the avatar transfer (32 KiB chunks)
+        c.send(hello())
+        assert c.recv_msg()["type"] == "welcome"
+        c.abort()
+    elif kind == "reset_streaming":
+        c.handshake()
+        for i in range(rng.randrange(1, 5)):
+            c.send(bs(i))
+        c.recv_msg()
+        c.abort()
+    elif kind == "vanish_streaming":  # FIN without a WebSocket close frame
+        c.handshake(max_gaussians=500)
+        c.send(bs(0))
+        c.vanish()
+    elif kind == "vanish_after_hello":
+        c.send(hello())
+        c.vanish()
+    else:
+        raise ValueError(kind)
+
+
+KINDS = ["bye", "half_http", "no_hello", "reset_after_hello", "reset_after_welcome", "reset_streaming",
+         "vanish_streaming", "vanish_after_hello"]
+
+
+def test_connection_storm_leaves_nothing_behind() -> None:
+    server = rel_server()
+    assert wait_idle(server)
+    hub = server.app.state.hub
+    tasks0 = task_count(server)
+    rss0 = rss_mb()
+    rng = random.Random(9)
+
+    kinds = [KINDS[i % len(KINDS)] for i in range(CYCLES)]
+    rng.shuffle(kinds)
+    for kind in kinds[: CYCLES // 2]:  # sequential
+        cycle(server, kind, rng)
+
+    errors: list[BaseException] = []
+
+    def worker(part: list[str], seed: int) -> None:
+        r = random.Random(seed)
+        try:
+            for kind in part:
+                cycle(server, kind, r)
+        except BaseException as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    rest = kinds[CYCLES // 2:]
+    threads = [threading.Thread(target=worker, args=(rest[i::8], i)) for i in range(8)]  # 8 at a time
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not errors, errors
+
+    assert wait_idle(server, 20), (hub.active, list(hub.sessions), len(server.server.connections()))
+    assert metric(server, "ofera_sessions", 'role="source"') == 0
+    assert metric(server, "ofera_sessions", 'role="viewer"') == 0
+    assert wait_until(lambda: task_count(server) <= tasks0, 10), (task_count(server), tasks0)
+    assert health(server)["sessions"] == 0
+    assert rss_mb() - rss0 < 150, f"RSS grew {rss_mb() - rss0:.0f} MB"
+
+    async def good() -> None:
+        async with connect(server.url, compression=None, max_size=None) as ws:
+            await ws.send(hello())
+            while True:
+                m = unpack(await ws.recv())
+                if m["type"] == "avatar" and m["chunk"] == m["chunks"] - 1:
+                    break
+            await ws.send(bs(5))
+            assert unpack(await asyncio.wait_for(ws.recv(), 10))["seq"] == 5
+
+    run(good())
