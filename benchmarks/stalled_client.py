@@ -4,11 +4,13 @@ server's memory grow?
     python benchmarks/stalled_client.py --gaussians 100000 --seconds 20 --stalled 2 --json out.json
 
 Starts a server in a subprocess (benchmarks/_common.py) serving a procedural avatar of --gaussians
-Gaussians. Phase "alone": one measured session sends bs at --rate Hz for --seconds and records its round
-trips (frame decoded - *scheduled* send time, so a stalled sender cannot hide latency). Phase "beside":
---stalled clients (plain sockets with a --rcvbuf byte TCP receive buffer) finish the handshake, then keep
-sending bs at --rate Hz and never read again; the measured session runs again for --seconds. The server's
-RSS (/proc/PID/status) is sampled every 0.25 s throughout.
+Gaussians. One measured session sends bs at --rate Hz throughout and records its round trips (frame
+decoded - *scheduled* send time, so a stalled sender cannot hide latency). The run alternates --rounds times
+between an "alone" segment and a "beside" segment, each --seconds / --rounds long (alternating, so that load
+from other processes on a shared machine hits both phases alike): for a "beside" segment, --stalled clients
+(plain sockets with a --rcvbuf byte TCP receive buffer) finish the handshake, then keep sending bs at --rate
+Hz and never read again; they are reset at the end of the segment. The first --settle seconds of each
+segment are not counted. The server's RSS (/proc/PID/status) is sampled every 0.25 s throughout.
 
 Targets: p99 beside the stalled clients within 2x of p99 alone; RSS growth < 300 MB.
 JSON: {"alone": {rtt_ms percentiles, frames}, "beside": {...}, "p99_ratio", "rss_mb": {start, end, peak,
@@ -56,9 +58,10 @@ def bs_bytes(seq: int, t: int, w: np.ndarray) -> bytes:
 
 
 async def measured_session(url: str, weights: np.ndarray, layout: str, rate: float, seconds: float, encoding: str,
-                           stalled: list | None, t_origin: float) -> list[tuple[float, float]]:
-    """(time since t_origin, round trip ms) of each frame of a session sending bs on a fixed schedule;
-    `stalled` raw sockets get the same bs (written without blocking; never read)."""
+                           stalled: list, t_origin: float) -> list[tuple[float, float]]:
+    """(send time since t_origin, round trip ms) of each frame of a session sending bs on a fixed schedule
+    for `seconds`; the raw sockets in `stalled` (changed by the caller as it goes) get the same bs, written
+    without blocking and never read."""
     from test_reliability_support import ws_frame
     from websockets.asyncio.client import connect
 
@@ -77,7 +80,7 @@ async def measured_session(url: str, weights: np.ndarray, layout: str, rate: flo
                 now = time.monotonic_ns() // 1000
                 m = msgpack.unpackb(data, raw=False)
                 if m["type"] == "frame":
-                    out.append((time.monotonic() - t_origin, (now - m["t"]) / 1000))
+                    out.append((m["t"] / 1e6 - t_origin, (now - m["t"]) / 1000))
 
         task = asyncio.create_task(reader())
         period = 1.0 / rate
@@ -89,26 +92,29 @@ async def measured_session(url: str, weights: np.ndarray, layout: str, rate: flo
             w = weights[i % len(weights)]
             t_sched = int(due * 1e6)  # the *scheduled* time, on the monotonic clock the reader uses
             await ws.send(bs_bytes(i, t_sched, w))
-            for s in stalled or ():
+            for s in list(stalled):
                 try:
                     s.sock.send(ws_frame(bs_bytes(i, t_sched, w)))
                 except (BlockingIOError, OSError):
                     pass  # its send buffer is full as well: the server is not reading it faster than we write
         await asyncio.sleep(0.5)
         task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
         return out
 
 
-def stats(samples: list[tuple[float, float]], warmup: float, t0: float) -> dict:
-    rtts = [r for t, r in samples if t - t0 >= warmup]
-    return {"frames": len(rtts), "rtt_ms": C.pct(rtts)}
+def in_phase(samples: list[tuple[float, float]], segments: list[tuple[float, float]], settle: float) -> list[float]:
+    """Round trips of frames whose bs was sent inside a segment, `settle` seconds after its start."""
+    return [r for t, r in samples if any(a + settle <= t < b for a, b in segments)]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--gaussians", type=int, default=100_000)
-    ap.add_argument("--seconds", type=float, default=20.0, help="Length of each phase.")
-    ap.add_argument("--warmup", type=float, default=2.0, help="Seconds of each phase not counted.")
+    ap.add_argument("--seconds", type=float, default=20.0, help="Total length of each phase.")
+    ap.add_argument("--rounds", type=int, default=4, help="Alone / beside segments alternate this many times.")
+    ap.add_argument("--warmup", type=float, default=3.0, help="Seconds before the first segment.")
+    ap.add_argument("--settle", type=float, default=0.5, help="Seconds at the start of each segment not counted.")
     ap.add_argument("--rate", type=float, default=72.0)
     ap.add_argument("--stalled", type=int, default=2, help="Stalled clients beside the measured session.")
     ap.add_argument("--rcvbuf", type=int, default=4096, help="Stalled clients' TCP receive buffer (bytes).")
@@ -127,54 +133,76 @@ def main() -> None:
           f"{args.seconds:g} s per phase", flush=True)
     with C.ServerProcess(avatars, threads=args.threads) as server:
         pid = server.proc.pid
+        http = f"http://127.0.0.1:{server.port}"
         t_origin = time.monotonic()
-        stop = False
+        seg = args.seconds / args.rounds
+        alone_segs: list[tuple[float, float]] = []
+        beside_segs: list[tuple[float, float]] = []
+        stalled: list = []
+        skipped0 = skipped(http)
 
-        async def sampler() -> None:
-            while not stop:
+        async def sampler(stop: asyncio.Event) -> None:
+            while not stop.is_set():
                 rss.append((time.monotonic() - t_origin, rss_mb(pid)))
                 await asyncio.sleep(0.25)
 
-        async def run_all() -> tuple[list, list, list, dict, dict]:
-            nonlocal stop
-            task = asyncio.create_task(sampler())
-            alone = await measured_session(server.url, weights, layout, args.rate, args.seconds, args.encoding,
-                                           None, t_origin)
-            t_beside = time.monotonic() - t_origin
-            sk0 = skipped(f"http://127.0.0.1:{server.port}")
-            stalled = []
+        def open_stalled() -> list:
+            out = []
             for _ in range(args.stalled):
                 s = RawWebSocket(server, rcvbuf=args.rcvbuf, timeout=120)
                 s.handshake(layout=layout, encoding=args.encoding)  # reads the avatar, then never reads again
                 s.sock.setblocking(False)
-                stalled.append(s)
-            beside = await measured_session(server.url, weights, layout, args.rate, args.seconds, args.encoding,
-                                            stalled, t_origin)
-            sk1 = skipped(f"http://127.0.0.1:{server.port}")
-            stop = True
+                out.append(s)
+            return out
+
+        async def controller() -> None:
+            """Alternates alone / beside segments, so that load from outside hits both phases alike."""
+            await asyncio.sleep(args.warmup)
+            for _ in range(args.rounds):
+                t = time.monotonic() - t_origin
+                alone_segs.append((t, t + seg))
+                await asyncio.sleep(seg)
+                stalled.extend(await asyncio.to_thread(open_stalled))
+                t = time.monotonic() - t_origin
+                beside_segs.append((t, t + seg))
+                await asyncio.sleep(seg)
+                for s in stalled:
+                    s.abort()
+                stalled.clear()
+
+        async def run_all() -> list:
+            stop = asyncio.Event()
+            task = asyncio.create_task(sampler(stop))
+            total = args.warmup + 2 * args.seconds + args.rounds * 6.0
+            measure = asyncio.create_task(measured_session(server.url, weights, layout, args.rate, total,
+                                                           args.encoding, stalled, t_origin))
+            await controller()
+            samples = await measure
+            stop.set()
             await task
-            for s in stalled:
-                s.abort()
-            return alone, beside, [t_beside], sk0, sk1
+            return samples
 
-        alone, beside, (t_beside,), sk0, sk1 = asyncio.run(run_all())
+        samples = asyncio.run(run_all())
+        skipped1 = skipped(http)
 
-    a0 = alone[0][0] if alone else 0.0
-    b0 = beside[0][0] if beside else t_beside
-    alone_s, beside_s = stats(alone, args.warmup, a0), stats(beside, args.warmup, b0)
+    alone = in_phase(samples, alone_segs, args.settle)
+    beside = in_phase(samples, beside_segs, args.settle)
+    alone_s = {"frames": len(alone), "rtt_ms": C.pct(alone)}
+    beside_s = {"frames": len(beside), "rtt_ms": C.pct(beside)}
     rss_v = [v for _, v in rss]
-    before = [v for t, v in rss if t < t_beside] or rss_v[:1]
-    after = [v for t, v in rss if t >= t_beside] or rss_v[-1:]
+    first_beside = beside_segs[0][0] if beside_segs else rss[-1][0]
+    before = [v for t, v in rss if t < first_beside] or rss_v[:1]
     rss_start = float(np.median(before[-8:]))
-    growth = max(after) - rss_start
+    growth = max(rss_v) - rss_start
     ratio = C.ratio(alone_s["rtt_ms"]["p99"], beside_s["rtt_ms"]["p99"])
     report = {
         "benchmark": "stalled_client", "gaussians": args.gaussians, "encoding": args.encoding, "rate_hz": args.rate,
-        "seconds_per_phase": args.seconds, "stalled_clients": args.stalled, "stalled_rcvbuf": args.rcvbuf,
+        "seconds_per_phase": args.seconds, "rounds": args.rounds, "settle_s": args.settle,
+        "stalled_clients": args.stalled, "stalled_rcvbuf": args.rcvbuf,
         "server_threads": args.threads, "alone": alone_s, "beside": beside_s, "p99_ratio": ratio,
         "rss_mb": {"start": round(rss_start, 1), "end": round(rss_v[-1], 1), "peak": round(max(rss_v), 1),
                    "growth": round(growth, 1)},
-        "skipped_during_beside": {k: sk1[k] - sk0[k] for k in sk0},
+        "skipped": {k: skipped1[k] - skipped0[k] for k in skipped0},
         "pass": {"p99_within_2x": ratio is not None and ratio <= 2.0, "rss_growth_below_300mb": growth < 300},
         "machine": C.machine(), "notes": notes,
     }
@@ -183,22 +211,22 @@ def main() -> None:
                    ["beside stalled", beside_s["frames"], beside_s["rtt_ms"]["p50"], beside_s["rtt_ms"]["p99"]]],
                   ["phase", "frames", "p50 ms", "p99 ms"]))
     print(f"p99 ratio {ratio}  RSS start {rss_start:.0f} MB, peak {max(rss_v):.0f} MB, growth {growth:.0f} MB; "
-          f"dropped (newest wins): {report['skipped_during_beside']}")
+          f"dropped (newest wins): {report['skipped']}")
     print(f"pass: {report['pass']}  ->  {args.json}")
 
     plt = C.pyplot()
-    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
-    for data, label in ((alone, "alone"), (beside, f"beside {args.stalled} stalled")):
-        if data:
-            ax1.plot([t for t, _ in data], [r for _, r in data], ".", ms=2, label=label)
-    ax1.axvline(t_beside, color="k", lw=0.8, ls="--")
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(10, 6), sharex=True)
+    for segs, color, label in ((alone_segs, "C0", "alone"), (beside_segs, "C1", f"beside {args.stalled} stalled")):
+        for i, (a, b) in enumerate(segs):
+            ax1.axvspan(a, b, color=color, alpha=0.12, label=label if i == 0 else None)
+            ax2.axvspan(a, b, color=color, alpha=0.12)
+    ax1.plot([t for t, _ in samples], [r for _, r in samples], ".", ms=2, color="k")
     ax1.set_ylabel("round trip, ms")
     ax1.set_yscale("log")
     ax1.legend(loc="upper left")
-    ax1.set_title(f"Stalled clients: p99 {alone_s['rtt_ms']['p99']} -> {beside_s['rtt_ms']['p99']} ms "
+    ax1.set_title(f"Stalled clients: p99 {alone_s['rtt_ms']['p99']} ms alone, {beside_s['rtt_ms']['p99']} ms beside "
                   f"({args.gaussians} Gaussians, {args.encoding}, {args.rate:g} Hz)")
     ax2.plot([t for t, _ in rss], rss_v, color="C3")
-    ax2.axvline(t_beside, color="k", lw=0.8, ls="--")
     ax2.set_ylabel("server RSS, MB")
     ax2.set_xlabel("seconds")
     fig.tight_layout()

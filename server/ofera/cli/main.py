@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from . import avatar
-from . import head, replay
+from . import avatar, head, replay
 from . import mapping as mapping_cmd
 from . import serve as serve_cmd
 from .train import mia_app
