@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-
 from ofera.mapping import evaluate as ev
 from ofera.mapping.flame_values import neutral_flame_values
 from ofera.mapping.paired import make_benchmark, region_masks, vertices_from_flame
@@ -22,7 +21,6 @@ def tiny():
 def epm_path(tmp_path_factory):
     try:
         import torch
-
         from ofera.mapping.epm import EPM
         from ofera.mapping.export import export_onnx
     except ImportError:
@@ -82,3 +80,25 @@ def test_synthetic_data_is_cached_by_generator_version(tiny, tmp_path, monkeypat
     assert len(calls) == 1 and len(a) == len(b) == len(tiny)
     assert (tmp_path / "paired" / f"benchmark-{ev.generator_version()}.npz").is_file()
     np.testing.assert_array_equal(b.flame, tiny.flame)
+
+
+def test_cli_train_export_eval_on_tiny_data(tiny, tmp_path):
+    pytest.importorskip("torch")
+    from ofera.cli.main import app
+    from typer.testing import CliRunner
+
+    data = tmp_path / "tiny.npz"
+    tiny.save(data)
+    run = CliRunner().invoke
+    res = run(app, ["epm", "train", str(data), "-o", str(tmp_path / "epm.pt"), "--max-epochs", "3", "--quiet"])
+    assert res.exit_code == 0, res.output
+    res = run(app, ["epm", "export", str(tmp_path / "epm.pt"), "-o", str(tmp_path / "epm.onnx")])
+    assert res.exit_code == 0, res.output
+    assert "max abs difference" in res.output
+    res = run(app, ["mapping", "eval", "--data", str(data), "--epm", str(tmp_path / "epm.onnx"),
+                    "--json", str(tmp_path / "out.json"), "--heatmap", str(tmp_path / "heat.png")])
+    assert res.exit_code == 0, res.output
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert set(out) == {"methods", "bda", "test_subjects"} and (tmp_path / "heat.png").is_file()
+    res = run(app, ["mapping", "eval", "--data", str(tmp_path / "missing.npz")])
+    assert res.exit_code == 2 and "error:" in res.output

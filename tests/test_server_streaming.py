@@ -109,7 +109,7 @@ def test_sparse_frames_carry_the_movable_gaussians() -> None:
     np.testing.assert_allclose(c.avatar.position[still], dense.position[still], rtol=0, atol=1e-6)
 
 
-def test_max_gaussians_streams_the_most_opaque() -> None:
+def test_max_gaussians_streams_a_spread_subset() -> None:
     server = main_server()
     w = weights(seed=7)
     _, dense = run(one_frame(server.url, w))
@@ -117,10 +117,14 @@ def test_max_gaussians_streams_the_most_opaque() -> None:
     assert c.count == 500 == small.n == c.avatar.count
     from ofera.streaming.registry import registry_for
 
-    opacity = registry_for(settings()).get(SMALL).avatar.opacity
-    keep = np.sort(np.argsort(-opacity, kind="stable")[:500])
+    assets = registry_for(settings()).get(SMALL)
+    keep, opacity = assets.subset(500), assets.avatar.opacity
+    assert len(np.unique(keep)) == 500 and np.all(np.diff(keep) > 0)
     np.testing.assert_array_equal(c.avatar.opacity, opacity[keep])
     np.testing.assert_array_equal(small.position, dense.position[keep])
+    # spread over the head, not only the most opaque (eyes): the subset spans most of the avatar's extent
+    span = np.ptp(small.position, axis=0) / np.ptp(dense.position, axis=0)
+    assert (span > 0.8).all()
 
 
 def test_two_concurrent_sessions() -> None:

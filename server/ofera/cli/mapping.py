@@ -166,19 +166,26 @@ def mapping_eval(
     epm: Annotated[str, typer.Option("--epm", help="EPM ONNX file, or 'default' (the shipped one).")] = "default",
     matrix: Annotated[str, typer.Option("--matrix", help="A 51x103 matrix file (EMAGE layout), or 'default' "
                                                          "(built from per-shape correspondences).")] = "default",
+    head: Annotated[str, typer.Option("--head", help="Head model of the data's FLAME values: 'default' (the "
+                                                     "procedural head), a FLAME .pkl or an OFERA head .npz.")]
+    = "default",
     max_test_frames: Annotated[int, typer.Option(help="Subsample test frames evenly (0: all).")] = 0,
 ) -> None:
     """Matrix vs ridge vs EPM on the held-out test subjects, and the BDA ablation (the paper's Table 1)."""
     from rich.console import Console
 
+    from ..head import HeadModelError
     from ..mapping.baselines import MatrixMapper
-    from ..mapping.evaluate import default_matrix, draw_heatmaps, evaluate, load_paired_data, print_table
+    from ..mapping.evaluate import default_matrix, draw_heatmaps, evaluate, head_of, load_paired_data, print_table
     from ..mapping.runtime import Mapper
 
     console = Console(stderr=True)
     paired = load_paired_data(data, progress=True)
     mapper = Mapper.default() if epm == "default" else Mapper.load(epm)
-    model = paired_head(paired)
+    try:
+        model = head_of(paired, head)
+    except HeadModelError as exc:
+        raise CliError(str(exc)) from None
     mat = default_matrix(model) if matrix == "default" else MatrixMapper.load(matrix)
     with console.status("evaluating") as status:
         result = evaluate(paired, mapper, mat, model, max_test_frames=max_test_frames,
@@ -190,12 +197,6 @@ def mapping_eval(
     if heatmap:
         draw_heatmaps(result, model, heatmap)
         print(f"wrote {heatmap}")
-
-
-def paired_head(paired):
-    from ..mapping.evaluate import head_of
-
-    return head_of(paired)
 
 
 @mapping_app.command("make-default")

@@ -21,6 +21,13 @@ def serve(
     default_avatar: Annotated[str | None, typer.Option(help="Avatar id that 'default' means "
                                                         "[env OFERA_DEFAULT_AVATAR].")] = None,
     token: Annotated[str | None, typer.Option(help="Require this token in hello [env OFERA_TOKEN].")] = None,
+    allowed_origins: Annotated[str | None, typer.Option(help="Comma-separated browser origins allowed to connect; "
+                                                         "others get HTTP 403, clients without Origin are "
+                                                         "allowed [env OFERA_ALLOWED_ORIGINS].")] = None,
+    ssl_keyfile: Annotated[Path | None, typer.Option(help="TLS private key (PEM), with --ssl-certfile: serve "
+                                                       "wss:// [env OFERA_SSL_KEYFILE].")] = None,
+    ssl_certfile: Annotated[Path | None, typer.Option(help="TLS certificate chain (PEM) [env "
+                                                        "OFERA_SSL_CERTFILE].")] = None,
     max_sessions: Annotated[int | None, typer.Option(help="Most concurrent sessions [env OFERA_MAX_SESSIONS].")] = None,
     max_message_bytes: Annotated[int | None, typer.Option(help="Largest client message "
                                                            "[env OFERA_MAX_MESSAGE_BYTES].")] = None,
@@ -36,7 +43,8 @@ def serve(
     from ..streaming.server import serve as run
 
     given = {k: v for k, v in dict(host=host, port=port, avatars=avatars, devices=devices,
-                                   default_avatar=default_avatar, token=token, max_sessions=max_sessions,
+                                   default_avatar=default_avatar, token=token, allowed_origins=allowed_origins,
+                                   ssl_keyfile=ssl_keyfile, ssl_certfile=ssl_certfile, max_sessions=max_sessions,
                                    max_message_bytes=max_message_bytes, bs_rate=bs_rate,
                                    compute_threads=compute_threads, log_level=log_level).items() if v is not None}
     try:

@@ -15,7 +15,7 @@ from ofera_protocol import COORDS, ENCODINGS, ENDPOINT, LAYOUTS, PROTOCOL_VERSIO
 from starlette.websockets import WebSocketDisconnect
 
 from .. import __version__, web
-from .config import Settings
+from .config import Settings, normalize_origin
 from .metrics import CONTENT_TYPE, Metrics
 from .registry import registry_for
 from .session import ConnectionGone, Hub, Session, Transport
@@ -94,15 +94,25 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(title="OFERA server", version=__version__, lifespan=lifespan)
     app.state.hub = hub
 
+    origins = settings.origins
+
     @app.websocket(ENDPOINT)
     async def stream(ws: WebSocket) -> None:
+        origin = ws.headers.get("origin")
+        if origins is not None and origin is not None and normalize_origin(origin) not in origins:
+            # A page from a site not in allowed_origins (cross-site WebSocket hijacking). Closing before accept
+            # makes uvicorn answer the handshake with HTTP 403.
+            log.info("refused a WebSocket handshake from origin %r (not in allowed_origins)", origin[:256])
+            await ws.close(1008)
+            return
         await ws.accept()
         await Session(WebSocketTransport(ws), hub).run()
 
     @app.get("/healthz")
     async def healthz() -> JSONResponse:
         return JSONResponse({"status": "ok", "version": __version__, "protocol": PROTOCOL_VERSION,
-                             "sessions": hub.active, "max_sessions": settings.max_sessions})
+                             "sessions": hub.active, "max_sessions": settings.max_sessions,
+                             "tasks": len(asyncio.all_tasks())})
 
     @app.get("/metrics")
     async def metrics() -> Response:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ofera_protocol.constants import MAX_CLIENT_MESSAGE
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -23,6 +23,12 @@ class Settings(BaseSettings):
         None, description="Directory of device BDA profiles <device>.npz; hello.device selects one.")
     default_avatar: str = Field("default", description="Avatar id that hello.avatar 'default' resolves to.")
     token: str | None = Field(None, description="If set, every hello must carry this token.")
+    allowed_origins: str | None = Field(
+        None, description="Comma-separated browser origins allowed to open a stream (e.g. https://app.example.com; "
+        "'*': any). A WebSocket handshake with an Origin header not in the list is refused with HTTP 403; "
+        "clients that send no Origin (native apps, Unity, the Python client) are always allowed. Unset: any.")
+    ssl_keyfile: Path | None = Field(None, description="TLS private key (PEM): serve wss:// and https://.")
+    ssl_certfile: Path | None = Field(None, description="TLS certificate chain (PEM), with ssl_keyfile.")
     max_message_bytes: int = Field(MAX_CLIENT_MESSAGE, ge=256, description="Largest client message accepted.")
     max_sessions: int = Field(64, ge=1, description="Most concurrent WebSocket sessions.")
     bs_rate: float = Field(240.0, gt=0, description="Most bs (and ping) messages per second per session.")
@@ -36,11 +42,41 @@ class Settings(BaseSettings):
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     log_level: str = Field("info", description="uvicorn log level.")
 
-    @field_validator("token", "avatars", "devices", mode="before")
+    @field_validator("token", "avatars", "devices", "ssl_keyfile", "ssl_certfile", mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
 
+    @field_validator("allowed_origins", mode="before")
+    @classmethod
+    def _origin_list(cls, v: object) -> object:
+        if isinstance(v, (list, tuple, set, frozenset)):
+            v = ",".join(str(o) for o in v)
+        return None if v is None or (isinstance(v, str) and not v.strip()) else v
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> Settings:
+        if (self.ssl_keyfile is None) != (self.ssl_certfile is None):
+            raise ValueError("give both ssl_keyfile and ssl_certfile (or neither)")
+        return self
+
+    @property
+    def origins(self) -> frozenset[str] | None:
+        """Allowed browser origins, normalised (lower case, no trailing slash); None: any."""
+        if self.allowed_origins is None:
+            return None
+        found = frozenset(normalize_origin(o) for o in self.allowed_origins.split(",") if o.strip())
+        return None if not found or "*" in found else found
+
+    @property
+    def tls(self) -> bool:
+        return self.ssl_certfile is not None
+
     @property
     def burst(self) -> float:
         return self.bs_burst if self.bs_burst is not None else max(1.0, self.bs_rate)
+
+
+def normalize_origin(origin: str) -> str:
+    """An Origin header or a configured origin, compared case-insensitively and without a trailing slash."""
+    return origin.strip().rstrip("/").lower()

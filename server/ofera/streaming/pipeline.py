@@ -61,14 +61,22 @@ class AvatarAssets:
         return int(self.avatar.sh_degree)
 
     def subset(self, max_gaussians: int | None) -> np.ndarray | None:
-        """For a client that renders at most `max_gaussians`: the ids (ascending, int64) of the most opaque
-        ones, or None when the whole avatar fits."""
+        """For a client that renders at most `max_gaussians`: the ids (ascending, int64) of a subset spread
+        over the whole surface, or None when the whole avatar fits.
+
+        A deterministic weighted sample without replacement (Efraimidis-Spirakis keys u^(1/w), fixed
+        seed) with weight = opacity x footprint (product of the two largest neutral scales): big, opaque
+        splats are kept preferentially, yet every region keeps its share, unlike a plain top-k by
+        opacity, which would keep mostly the (fully opaque) eyes."""
         if max_gaussians is None or max_gaussians >= self.count:
             return None
         key = ("subset", max_gaussians)
         if key not in self._cache:
-            order = np.argsort(-np.asarray(self.avatar.opacity, np.float32), kind="stable")
-            self._cache[key] = np.sort(order[:max_gaussians])
+            scale = np.sort(np.asarray(self.avatar.neutral().scale, np.float64), axis=1)
+            weight = np.asarray(self.avatar.opacity, np.float64) * scale[:, 1] * scale[:, 2] + 1e-30
+            u = np.random.default_rng(0x0FE7A).random(self.count)
+            keys = np.log(u) / weight  # log of u^(1/w): monotonic, no underflow
+            self._cache[key] = np.sort(np.argpartition(-keys, max_gaussians - 1)[:max_gaussians]).astype(np.int64)
         return self._cache[key]
 
     def wire_avatar(self, coords: str, max_gaussians: int | None = None) -> WireAvatar:

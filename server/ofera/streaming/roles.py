@@ -52,6 +52,10 @@ class LatestSlot(Generic[T]):
         self._event.set()
         return replaced
 
+    @property
+    def full(self) -> bool:
+        return self._full
+
     async def get(self) -> T:
         while not self._full:
             self._event.clear()
@@ -106,8 +110,16 @@ class Source:
         self.metrics = metrics
         self.slot: LatestSlot[PendingBs] = LatestSlot()
         self.subscribers: list[Callable[[ComputedFrame], None]] = []
+        # Demand: None computes every bs it can; otherwise the next bs is computed only once demand() is true
+        # (some viewer has no unsent frame), so that a client that stopped reading costs no computation: its
+        # bs replace each other in the slot. Viewers call wake() when they take a frame.
+        self.demand: Callable[[], bool] | None = None
+        self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
+
+    def wake(self) -> None:
+        self._wake.set()
 
     def offer(self, pending: PendingBs) -> None:
         if self.slot.put(pending):
@@ -128,6 +140,9 @@ class Source:
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
         while True:
+            while self.demand is not None and not self.demand():
+                self._wake.clear()
+                await self._wake.wait()
             pending = await self.slot.get()
             try:
                 frame = await loop.run_in_executor(self.executor, self._compute, pending)
@@ -165,6 +180,8 @@ class Viewer:
     `writer` encodes a frame of this viewer's wire format (CodecWriter, or the numba FrameWriter of
     `encode_fast`); `key` names that format: viewers with equal keys share one encoding per frame."""
 
+    USES_FRAME_WRITER = True  # encodes through `writer` (benchmarks/_common.py must not patch _make)
+
     def __init__(self, send: SendBytes, writer: Any, key: tuple, executor: Executor, metrics: Metrics) -> None:
         self.send = send
         self.writer = writer
@@ -172,6 +189,7 @@ class Viewer:
         self.executor = executor
         self.metrics = metrics
         self.slot: LatestSlot[ComputedFrame] = LatestSlot()
+        self.on_ready: Callable[[], None] | None = None  # called when the slot empties (Source.wake)
         self.sent = 0
         self.skipped = 0
 
@@ -195,6 +213,8 @@ class Viewer:
         loop = asyncio.get_running_loop()
         while True:
             frame = await self.slot.get()
+            if self.on_ready is not None:
+                self.on_ready()
             try:  # bytes, or a pooled memoryview (not reused while referenced)
                 data = await loop.run_in_executor(self.executor, self._encode, frame)
             except Exception as exc:

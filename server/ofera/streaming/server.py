@@ -35,6 +35,13 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
     transport's buffer is back under its low-water mark: an awaited send means "handed to the kernel",
     so a session's newest-wins slot, not an ever-growing buffer, absorbs a slow client."""
 
+    close_timeout_s = 10.0
+    """Seconds a client has to answer our close frame before the connection is aborted."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.close_timeout = self.close_timeout_s
+
     def connection_made(self, transport: Any) -> None:
         set_nodelay(transport)
         super().connection_made(transport)
@@ -43,6 +50,18 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
         await super().send(message)
         if message["type"] == "websocket.send":
             await self.writable.wait()  # set again by resume_writing() or connection_lost()
+        elif message["type"] == "websocket.close" and self.close_timer is not None:
+            # uvicorn's timer calls transport.close(), which waits for the write buffer to drain: never, for a
+            # client that stopped reading. Abort instead (RST): the connection and its buffer go away.
+            self.close_timer.cancel()
+            self.close_timer = self.loop.call_later(self.close_timeout, self.transport.abort)
+
+    def keepalive_timeout(self) -> None:
+        """No pong within ws_ping_timeout. uvicorn sends a close and closes the transport gracefully, which
+        never completes while a client that stopped reading leaves the write buffer full: the session (and
+        its buffered frame) would stay forever. Abort the connection: connection_lost ends the session."""
+        super().keepalive_timeout()
+        self.transport.abort()
 
     def shutdown(self) -> None:
         """Server shutdown: close open sessions with 1001 "going away" (PROTOCOL.md section 10;
@@ -78,6 +97,8 @@ def uvicorn_config(settings: Settings, app: Any = None) -> uvicorn.Config:
         lifespan="on",
         log_level=settings.log_level,
         timeout_graceful_shutdown=5,
+        ssl_keyfile=str(settings.ssl_keyfile) if settings.ssl_keyfile else None,
+        ssl_certfile=str(settings.ssl_certfile) if settings.ssl_certfile else None,
     )
 
 
@@ -94,23 +115,24 @@ class StreamingServer(uvicorn.Server):
         if self.servers:
             self.port = self.servers[0].sockets[0].getsockname()[1]
         if self.banner and self.started:
-            for line in connect_lines(self.config.host, self.port or self.config.port):
+            for line in connect_lines(self.config.host, self.port or self.config.port, self.config.is_ssl):
                 print(line, flush=True)
 
     def connections(self) -> list[Any]:
         return list(self.server_state.connections)
 
 
-def connect_lines(host: str, port: int) -> list[str]:
+def connect_lines(host: str, port: int, tls: bool = False) -> list[str]:
     shown = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
     if ":" in shown:
         shown = f"[{shown}]"
+    ws, http = ("wss", "https") if tls else ("ws", "http")
     return [
         "OFERA server ready:",
-        f"  stream   ws://{shown}:{port}{ENDPOINT}",
-        f"  health   http://{shown}:{port}/healthz",
-        f"  metrics  http://{shown}:{port}/metrics",
-        f"  avatars  http://{shown}:{port}/v1/avatars",
+        f"  stream   {ws}://{shown}:{port}{ENDPOINT}",
+        f"  health   {http}://{shown}:{port}/healthz",
+        f"  metrics  {http}://{shown}:{port}/metrics",
+        f"  avatars  {http}://{shown}:{port}/v1/avatars",
         "  Ctrl-C to stop",
     ]
 
@@ -171,11 +193,11 @@ class ServerThread:
 
     @property
     def http_url(self) -> str:
-        return f"http://{self.settings.host}:{self.port}"
+        return f"{'https' if self.settings.tls else 'http'}://{self.settings.host}:{self.port}"
 
     @property
     def url(self) -> str:
-        return f"ws://{self.settings.host}:{self.port}{ENDPOINT}"
+        return f"{'wss' if self.settings.tls else 'ws'}://{self.settings.host}:{self.port}{ENDPOINT}"
 
     @property
     def app(self) -> Any:

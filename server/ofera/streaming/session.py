@@ -10,9 +10,10 @@ import logging
 import secrets
 import time
 from concurrent.futures import Executor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
 from ofera_protocol import AvatarInfo, Blendshapes, Bye, FrameFormat, Hello, Ping, ProtocolError, ServerConnection
 from ofera_protocol import errors as E
 
@@ -24,6 +25,11 @@ from .registry import AvatarRegistry
 from .roles import CodecWriter, PendingBs, SessionFatal, Source, Viewer
 
 log = logging.getLogger("ofera.streaming")
+
+WEIGHT_LIMIT = 1000.0
+"""bs weights are limited to +-WEIGHT_LIMIT before the pipeline (PROTOCOL.md 4.2: the server clamps them).
+The layout adapter clamps the arkit weights it computes to [0, 1], but an arkit weight of an ovr layout is a
+sum of several ovr weights: finite inputs near float32's limit (+-3.4e38) overflow there to inf - inf = NaN."""
 
 
 class TokenBucket:
@@ -207,8 +213,11 @@ class Session:
         self.viewer = Viewer(self.t.send, make_writer(self.conn.format, hello.coords, gather, index, s.fast), key,
                              self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
+        viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
+        self.source.demand = lambda: not viewer.slot.full
+        self.viewer.on_ready = self.source.wake
         log.info("session %s: avatar %s, layout %s, encoding %s, coords %s%s", self.id, aid, hello.layout,
-                 hello.encoding, hello.coords, f", device {hello.device}" if hello.device else "")
+                 hello.encoding, hello.coords, f", device {hello.device!r}" if hello.device else "")
         return hello
 
     async def _stream(self) -> None:
@@ -249,12 +258,15 @@ class Session:
             except ProtocolError as e:
                 if e.fatal:
                     raise SessionFatal(e) from None
-                await self._send_error(e)
+                if await self._allow(None):  # a flood of bad messages shares the bs/ping budget
+                    await self._send_error(e)
                 continue
             if isinstance(msg, Blendshapes):
                 self.metrics.bs_in.inc()
                 if not await self._allow(msg.seq):
                     continue
+                if not (np.abs(msg.w) <= WEIGHT_LIMIT).all():  # finite but huge: see WEIGHT_LIMIT
+                    msg = replace(msg, w=np.clip(msg.w, -WEIGHT_LIMIT, WEIGHT_LIMIT))
                 decode_us = (time.monotonic_ns() - received) // 1000
                 self.source.offer(PendingBs(msg, received, decode_us))
             elif isinstance(msg, Ping):
@@ -273,6 +285,7 @@ class Session:
         if now - self._last_rate_error >= 1.0:
             self._last_rate_error = now
             await self._send_error(ProtocolError(
-                E.RATE_LIMITED, f"more than {self.settings.bs_rate:g} bs/ping per second; the excess is dropped",
+                E.RATE_LIMITED, f"more than {self.settings.bs_rate:g} messages (bs, ping or invalid ones) per "
+                "second; the excess is dropped",
                 False), seq=seq)
         return False

@@ -43,7 +43,7 @@ def to_gaussian_avatar(trained: TrainableAvatar, name: str = "trained"):
     v_id = trained.head.v_id.detach().double().numpy()
     exprdirs = head.exprdirs.astype(np.float64)
     if trained.head.delta_exprdirs is not None:
-        exprdirs = exprdirs + trained.head.delta_exprdirs.detach().double().numpy()
+        exprdirs = exprdirs + trained.head.correction().detach().double().numpy()
     baked = replace(head, v_template=v_id, exprdirs=exprdirs, name=f"{head.name}+{name}")
     a = trained.attributes()
     binding = TriangleBinding(a["binding"].numpy().astype(np.int64), a["local_xyz"].numpy(),

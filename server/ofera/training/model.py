@@ -21,6 +21,7 @@ from ..head.lbs_torch import TorchHead, rot6d_to_matrix
 from ..head.model import HeadModel
 
 SH_C0 = 0.28209479177387814
+BASIS_TOL = 1e-7  # m per unit coefficient: a vertex the expression basis moves (as ofera.avatar.movable)
 
 
 def face_frames(verts: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -86,6 +87,14 @@ class CorrectedHead(TorchHead):
                  dtype: torch.dtype = torch.float32):
         super().__init__(model, shape=shape, dtype=dtype)
         self.delta_exprdirs = torch.nn.Parameter(torch.zeros_like(self.exprdirs)) if correct_basis else None
+        # Corrections only where the basis already moves the surface: Gaussians that no expression moves stay
+        # static (the server sends them once), and the correction cannot drift into the scalp or the neck.
+        moving = torch.as_tensor(np.abs(model.exprdirs).reshape(model.num_vertices, -1).max(axis=1) > BASIS_TOL)
+        self.register_buffer("basis_mask", moving.to(dtype)[:, None, None], persistent=False)
+
+    def correction(self) -> torch.Tensor | None:
+        """The effective basis correction (V, 3, E): ``delta_exprdirs`` on the vertices the basis moves."""
+        return None if self.delta_exprdirs is None else self.delta_exprdirs * self.basis_mask
 
     def forward(self, expr: torch.Tensor, rotations: torch.Tensor, corrected: bool = True) -> torch.Tensor:
         """Same maths as TorchHead.forward (tested equal when the correction is zero)."""
@@ -93,7 +102,7 @@ class CorrectedHead(TorchHead):
         k = len(self.parents)
         basis = self.exprdirs[:, :, :n]
         if corrected and self.delta_exprdirs is not None:
-            basis = basis + self.delta_exprdirs[:, :, :n]
+            basis = basis + self.correction()[:, :, :n]
         v_sh = self.v_id + torch.einsum("vce,be->bvc", basis, expr)
         joints = torch.einsum("kv,bvc->bkc", self.j_regressor, v_sh)
         eye = torch.eye(3, dtype=expr.dtype, device=expr.device)
@@ -191,7 +200,7 @@ class TrainableAvatar(torch.nn.Module):
         out = {k: getattr(self, k).detach().clone() for k in self.PARAMS}
         out["binding"] = self.binding.clone()
         if self.head.delta_exprdirs is not None:
-            out["delta_exprdirs"] = self.head.delta_exprdirs.detach().clone()
+            out["delta_exprdirs"] = self.head.correction().detach().clone()
         if self.shape is not None:
             out["shape"] = self.shape.clone()
         return out

@@ -134,7 +134,7 @@ class Trainer:
             parts["ssim"] = s
             total = total + c.w_ssim * (1.0 - s)
         if c.correct_basis:
-            d_e = av.head.delta_exprdirs
+            d_e = av.head.correction()
             disp = torch.einsum("vce,e->vc", d_e[:, :, :50], y[0, :50]) * MM
             parts["laplacian"] = laplacian_loss(self.lap, disp)
             parts["basis"] = (d_e * MM).square().mean()
