@@ -37,14 +37,13 @@ def test_serve_starts_prints_urls_and_stops_on_ctrl_c() -> None:
         lines: list[str] = []
         deadline = time.monotonic() + 120
         url = None
-        while url is None and time.monotonic() < deadline:
+        while "/metrics" not in "".join(lines) and time.monotonic() < deadline:
             line = proc.stdout.readline()
             if not line:
                 break
             lines.append(line)
             m = re.search(r"health\s+(http://\S+/healthz)", line)
-            if m:
-                url = m.group(1)
+            url = m.group(1) if m else url
         assert url, "".join(lines) + proc.stderr.read() if proc.poll() is not None else "".join(lines)
         text = "".join(lines)
         assert re.search(r"stream\s+ws://127\.0\.0\.1:\d+/v1/stream", text)
