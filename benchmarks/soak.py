@@ -10,9 +10,10 @@ Every --churn seconds one session is closed and a new one opened in its place (s
 real deployment). The server's RSS (/proc/PID/status) is sampled every second.
 
 Reports, as JSON and a PNG next to it: RSS over time and its linear-fit slope in MB/min (after --warmup
-seconds), round-trip p50/p99 per --bucket seconds (default: per minute) and the drift of p99 (last bucket
-vs first), errors (error messages, unexpected closes), bs sent vs frames received (the rest were dropped by
-newest-wins backpressure), and the final /healthz.
+seconds; also over the second half alone: growth that levels off is not a leak), round-trip p50/p99 per
+--bucket seconds (default: per minute) and the drift of p99 (last bucket vs first), errors (error
+messages, unexpected closes), bs sent vs frames received (the rest were dropped by newest-wins
+backpressure), and the final /healthz.
 """
 
 from __future__ import annotations
@@ -193,6 +194,7 @@ def main() -> None:
 
     fit = [p for p in rss if p[0] >= args.warmup] or rss
     slope = linear_slope(fit)
+    late = linear_slope([p for p in fit if p[0] >= (fit[0][0] + fit[-1][0]) / 2])  # levelling off: not a leak
     buckets = []
     n_buckets = max(1, int(np.ceil(args.seconds / args.bucket)))
     for b in range(n_buckets):
@@ -205,7 +207,8 @@ def main() -> None:
         "benchmark": "soak", "seconds": args.seconds, "sessions": args.sessions, "gaussians": args.gaussians,
         "rate_hz": args.rate, "encoding": args.encoding, "churn_s": args.churn, "server_threads": args.threads,
         "rss_mb": {"start": round(rss[0][1], 1), "after_warmup": round(fit[0][1], 1), "end": round(rss[-1][1], 1),
-                   "peak": round(max(v for _, v in rss), 1), "slope_mb_per_min": slope},
+                   "peak": round(max(v for _, v in rss), 1), "slope_mb_per_min": slope,
+                   "slope_second_half_mb_per_min": late},
         "latency_ms": {"all": C.pct([v for _, v in totals.samples]), "per_bucket": buckets,
                        "p99_drift_ms": round(p99s[-1] - p99s[0], 3) if len(p99s) >= 2 else None},
         "bs_sent": totals.sent, "frames_received": totals.frames, "pongs": totals.pongs,
@@ -214,7 +217,7 @@ def main() -> None:
         "server_log_tail": server_output[-1500:] if (totals.errors or totals.closes) else "",
     }
     C.write_json(args.json, report)
-    print(f"RSS {report['rss_mb']}  slope {slope} MB/min")
+    print(f"RSS {report['rss_mb']}  slope {slope} MB/min (second half {late} MB/min)")
     print(C.table([[f"{b['from_s']:.0f}-{b['to_s']:.0f}", b["frames"], b["p50_ms"], b["p99_ms"]] for b in buckets],
                   ["seconds", "frames", "p50 ms", "p99 ms"]))
     print(f"bs sent {totals.sent}, frames {totals.frames}, errors {totals.errors}, unexpected closes "

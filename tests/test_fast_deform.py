@@ -16,8 +16,8 @@ from ofera.head.rotations import axis_angle_to_matrix
 from ofera.mapping.flame_values import neutral_flame_values, split_flame_values
 
 POS_ATOL = 2e-7  # metres: float32 output of positions ~0.1 m (ulp 7e-9) plus the float32 blend basis
-ROT_ATOL = 2e-6  # quaternion components
-SCALE_RTOL = 2e-6
+ROT_ATOL = 3e-5  # quaternion components (float32 face frames of small triangles; f16 itself is ~5e-4)
+SCALE_RTOL = 1e-5
 
 
 def random_avatar(head, kind: str, rng, n: int = 4000, sorted_faces: bool = False) -> GaussianAvatar:

@@ -495,3 +495,27 @@ def test_static_files_cannot_escape(path: str) -> None:
             data += chunk
     assert b"root:" not in data and b"import" not in data, path
     assert int(data.split(b" ", 2)[1]) in (400, 404), (path, data[:200])
+
+
+def test_max_gaussians_cannot_grow_the_server_without_bound() -> None:
+    """Each reduced avatar a server streams is cached: sizes are rounded down to a few levels per avatar, so
+    hellos that ask for many different max_gaussians add at most a couple of cache entries."""
+    server = rel_server()
+    assets = server.app.state.hub.registry.get("small")
+
+    async def main() -> list[int]:
+        counts = []
+        for asked in [*range(1001, 1013), *range(2001, 2005), 2**32 - 1, 1999, 1681]:
+            ws, welcome = await open_streaming(server.url, max_gaussians=asked, coords="unity")
+            count = welcome["avatar"]["count"]
+            assert count <= asked and (asked < 2000 or count == 2000), (asked, count)
+            assert count >= 0.84 * min(asked, 2000)
+            counts.append(count)
+            await ws.close()
+        return counts
+
+    before = {k for k in assets._cache if k[0] == "wire"}
+    counts = run(main())
+    added = {k for k in assets._cache if k[0] == "wire"} - before
+    assert len(added) <= 3, added
+    assert set(counts) <= {1000, 1681, 2000}, set(counts)

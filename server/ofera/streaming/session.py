@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import logging
+import math
 import secrets
 import time
 from concurrent.futures import Executor
@@ -89,6 +90,19 @@ def make_writer(fmt: FrameFormat, coords: str, gather: Any, index: Any, fast: bo
 
         return frame_writer(fmt, coords, gather, index)
     return CodecWriter(fmt, coords, gather, index)
+
+
+def reduced_size(asked: int | None, count: int) -> int | None:
+    """How many Gaussians to stream to a client that renders at most `asked` (hello.max_gaussians): None (the
+    whole avatar) when it fits, else the largest count x 2^(-k/4), k >= 1, not above `asked` (at most 16 %
+    fewer than asked). Avatars cache each reduction they serve, so arbitrary sizes chosen by clients would
+    grow the server's memory without bound; these sizes are at most 4 log2(count) + 1 per avatar."""
+    if asked is None or asked >= count:
+        return None
+    k = max(1, math.floor(-4 * math.log2(asked / count)))
+    while int(count * 2.0 ** (-k / 4)) > asked:
+        k += 1
+    return max(1, int(count * 2.0 ** (-k / 4)))
 
 
 class Session:
@@ -184,17 +198,18 @@ class Session:
             raise refuse(E.UNKNOWN_AVATAR, f"no avatar {hello.avatar!r} on this server; available: "
                          f"{', '.join(reg.sources)} (GET /v1/avatars lists them)")
 
-        def prepare() -> tuple[AvatarAssets, Any, Any, tuple, Any]:
+        def prepare() -> tuple[AvatarAssets, Any, Any, tuple, Any, int | None]:
             # An unknown device falls back to the avatar's own BDA (PROTOCOL.md 4.1: no error).
             device_bda = reg.device_bda(hello.device) if hello.device is not None else None
             assets = reg.get(aid)
-            wire = assets.wire_avatar(hello.coords, hello.max_gaussians)
-            quant = assets.quant(hello.coords, hello.max_gaussians) if hello.encoding == "q13" else None
-            return assets, wire, quant, assets.selection(hello.sparse, hello.max_gaussians), device_bda
+            size = reduced_size(hello.max_gaussians, assets.count)
+            wire = assets.wire_avatar(hello.coords, size)
+            quant = assets.quant(hello.coords, size) if hello.encoding == "q13" else None
+            return assets, wire, quant, assets.selection(hello.sparse, size), device_bda, size
 
         try:
-            assets, wire, quant, (gather, index), device_bda = await asyncio.get_running_loop().run_in_executor(
-                self.hub.executor, prepare)
+            assets, wire, quant, (gather, index), device_bda, size = \
+                await asyncio.get_running_loop().run_in_executor(self.hub.executor, prepare)
         except Exception as exc:
             log.exception("loading avatar %s failed", aid)
             raise refuse(E.INTERNAL, f"the server could not load avatar {aid!r}: {type(exc).__name__}: {exc}") from exc
@@ -209,7 +224,7 @@ class Session:
         pipeline = assets.pipeline(hello.layout, device_bda)
         self.source = Source(pipeline, self.hub.executor, self.metrics)
         assert self.conn.format is not None
-        key = (hello.encoding, hello.coords, hello.sparse, hello.max_gaussians)
+        key = (hello.encoding, hello.coords, hello.sparse, size)
         self.viewer = Viewer(self.t.send, make_writer(self.conn.format, hello.coords, gather, index, s.fast), key,
                              self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
