@@ -130,6 +130,7 @@ def connect_lines(host: str, port: int, tls: bool = False) -> list[str]:
     return [
         "OFERA server ready:",
         f"  stream   {ws}://{shown}:{port}{ENDPOINT}",
+        f"  preview  {http}://{shown}:{port}/",
         f"  health   {http}://{shown}:{port}/healthz",
         f"  metrics  {http}://{shown}:{port}/metrics",
         f"  avatars  {http}://{shown}:{port}/v1/avatars",
