@@ -205,7 +205,8 @@ def test_reduced_stream_forced_and_automatic(browser, server) -> None:
     page = open_page(browser, f"{server}/?max=20000")
     try:
         info = page.evaluate("({count: __ofera.count, max: __ofera.maxGaussians, full: __ofera.fullCount})")
-        assert info["max"] == 20000 and info["count"] == 20000 < info["full"], info
+        # The server serves a few fixed reduction sizes (count x 2^(-k/4)): at most 16 % fewer than asked.
+        assert info["max"] == 20000 and 0.84 * 20000 <= info["count"] <= 20000 < info["full"], info
         check_camera_and_presets(page)
     finally:
         page.close()

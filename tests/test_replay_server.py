@@ -233,33 +233,41 @@ def test_livelink_csv_at_speed_4_through_ofera_serve(tmp_path, tmp_path_factory)
     write_livelink_csv(csv, 8.0, seed=11)
     log = read_facelog(csv)
     assert log.layout.name == "livelink61" and len(log) == 481
-    serve = subprocess.Popen(_ofera("serve", "--host", "127.0.0.1", "--port", "0", "--log-level", "warning",
-                                    *serve_args(tmp_path_factory.getbasetemp() / "small-avatar")),
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        url = None
-        deadline = time.monotonic() + 90
-        lines = []
-        while time.monotonic() < deadline:
-            line = serve.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
-            if line.strip().startswith("stream"):
-                url = line.split()[-1]
-                break
-        assert url, "ofera serve did not start:\n" + "".join(lines)
-        out = tmp_path / "summary.json"
-        done = subprocess.run(_ofera("replay", str(csv), "--url", url, "--speed", "4", "--json", str(out), "-q"),
-                              capture_output=True, text=True, timeout=60)
-        assert done.returncode == 0, done.stderr
-    finally:
-        serve.terminate()
+
+    def attempt(n: int) -> dict:
+        serve = subprocess.Popen(_ofera("serve", "--host", "127.0.0.1", "--port", "0", "--log-level", "warning",
+                                        *serve_args(tmp_path_factory.getbasetemp() / "small-avatar")),
+                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         try:
-            serve.wait(15)
-        except subprocess.TimeoutExpired:
-            serve.kill()
-    s = json.loads(out.read_text())
+            url = None
+            deadline = time.monotonic() + 90
+            lines = []
+            while time.monotonic() < deadline:
+                line = serve.stdout.readline()
+                if not line:
+                    break
+                lines.append(line)
+                if line.strip().startswith("stream"):
+                    url = line.split()[-1]
+                    break
+            assert url, "ofera serve did not start:\n" + "".join(lines)
+            out = tmp_path / f"summary{n}.json"
+            done = subprocess.run(_ofera("replay", str(csv), "--url", url, "--speed", "4", "--json", str(out), "-q"),
+                                  capture_output=True, text=True, timeout=60)
+            assert done.returncode == 0, done.stderr
+        finally:
+            serve.terminate()
+            try:
+                serve.wait(15)
+            except subprocess.TimeoutExpired:
+                serve.kill()
+        return json.loads(out.read_text())
+
+    # A 2-core CI machine can stall a process for tens of ms; one retry keeps a scheduling hiccup from
+    # failing the run while a server that cannot keep up still fails both attempts.
+    s = attempt(0)
+    if s["received"] < 0.9 * s["sent"]:
+        s = attempt(1)
     expected = log.duration / 4
     print(f"--speed 4: sent {s['sent']}, received {s['received']}, errors {s['errors']}, sending "
           f"{s['duration_s']:.3f} s, wall {s['wall_s']:.3f} s, expected {expected:.3f} s, "
