@@ -52,15 +52,19 @@ def train(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT/checkpoint.pt.")] = False,
     checkpoint_every: Annotated[int, typer.Option(help="Save a checkpoint every N steps.")] = 500,
+    threads: Annotated[int, typer.Option(help="torch CPU threads (0: torch's default).")] = 1,
 ) -> None:
     """Train a Gaussian avatar on a multi-view capture (with the mapper in the loop for --mode mia)."""
     _need_torch()
     import numpy as np
+    import torch
 
     from ..head import HeadModelError, load_head
     from ..training.data import CaptureError, read_capture
     from ..training.trainer import TrainConfig, Trainer, load_checkpoint
 
+    if threads:
+        torch.set_num_threads(threads)
     if mode not in ("mia", "tracker"):
         raise CliError(f"--mode {mode!r}: use 'mia' or 'tracker'")
     try:
@@ -174,6 +178,8 @@ def experiment(
                                           "stand-in when it is missing).")] = "default",
     iterations: Annotated[int | None, typer.Option(help="Override the number of training steps.")] = None,
     seed: Annotated[int, typer.Option(help="Subject and training seed.")] = 0,
+    threads: Annotated[int, typer.Option(help="torch CPU threads (1 is fastest for these small tensors, and "
+                                               "reproducible).")] = 1,
 ) -> None:
     """Train one avatar without MiA (tracker values) and one with MiA (EPM values) on a synthetic capture, drive
     both with the EPM on held-out frames, and compare PSNR / SSIM against the ground truth."""
@@ -184,7 +190,7 @@ def experiment(
 
     from ..training.experiment import FULL, QUICK, run_experiment, write_json
 
-    torch.set_num_threads(max(1, min(torch.get_num_threads(), 4)))
+    torch.set_num_threads(max(1, threads))
     cfg = QUICK if quick else FULL
     cfg = replace(cfg, seed=seed, **({"iterations": iterations} if iterations else {}))
     res = run_experiment(cfg, epm=None if epm == "default" else epm, grid=grid)

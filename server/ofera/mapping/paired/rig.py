@@ -48,6 +48,36 @@ CORRECTIVES: tuple[tuple[str, str], ...] = (
 )
 
 
+def _shared_gamma() -> np.ndarray:
+    """(51,) response exponent that every subject shares: how ARKit's shape weights map onto anatomy.
+
+    The soft tissue of the mouth, brows, cheeks and nose moves most in the first part of a shape's range
+    and then stiffens (exponent < 1: an early response that flattens). Per-subject exponents are small
+    deviations around these.
+    """
+    g = np.ones(N_SHAPES)
+    mouth = ("mouthSmile", "mouthFrown", "mouthStretch", "mouthPucker", "mouthFunnel", "mouthDimple",
+            "mouthLowerDown", "mouthUpperUp", "mouthPress", "mouthShrug", "cheekPuff")
+    upper = ("browDown", "browInnerUp", "browOuterUp", "cheekSquint", "noseSneer", "eyeSquint", "eyeWide")
+    for name, i in IDX.items():
+        if name.startswith(mouth):
+            g[i] = 0.5
+        elif name.startswith(upper):
+            g[i] = 0.5
+    return g
+
+
+SHARED_GAMMA = _shared_gamma()
+JAW_CURVE = 2.5  # jaw angle = saturate(jawOpen, 2.5): the hinge turns early, then reaches its limit
+
+
+def _lid_closure(x: np.ndarray, k: float = 14.0, mid: float = 0.5) -> np.ndarray:
+    """Steep sigmoid: eyeBlink -> lid closure (0 -> 0, 1 -> 1); the lid drops over a short range of weights."""
+    x = np.clip(x, 0.0, 1.3)
+    lo, hi = 1.0 / (1.0 + np.exp(k * mid)), 1.0 / (1.0 + np.exp(-k * (1.0 - mid)))
+    return np.clip((1.0 / (1.0 + np.exp(-k * (x - mid))) - lo) / (hi - lo), 0.0, 1.05)
+
+
 def _smoothstep(x: np.ndarray) -> np.ndarray:
     t = np.clip(x, 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
@@ -200,14 +230,14 @@ def _build_basis(head: HeadModel) -> RigBasis:
         at_corner = bump(corner, 0.0085)
         add(f"mouthSmile{side}", at_corner, (s * 0.55, 1, -0.35), 0.0080)
         add(f"mouthSmile{side}", bump(cheek + [0, -0.02, -0.002], 0.010), (s * 0.3, 0.5, 0.5), 0.0020)
-        quad[IDX[f"mouthSmile{side}"]] += field(at_corner, (s * 0.2, 0.3, -0.6), 0.0030)
+        quad[IDX[f"mouthSmile{side}"]] += field(at_corner, (s * 0.2, 0.3, -0.6), 0.0060)
         add(f"mouthFrown{side}", at_corner, (s * 0.15, -1, -0.1), 0.0060)
         add(f"mouthFrown{side}", bump(corner + [0, -0.012, -0.004], 0.008), (0, -1, 0), 0.0020)
-        quad[IDX[f"mouthFrown{side}"]] += field(at_corner, (0, -0.3, -0.4), 0.0020)
+        quad[IDX[f"mouthFrown{side}"]] += field(at_corner, (0, -0.3, -0.4), 0.0040)
         add(f"mouthDimple{side}", bump(corner, 0.007), (s * 0.3, 0.1, -1), 0.0050)
         add(f"mouthStretch{side}", bump(corner, 0.010), (s, -0.35, -0.25), 0.0060)
         add(f"mouthStretch{side}", bump(ll + [s * 0.012, 0, 0], 0.007) * lower, (s, -0.3, 0), 0.0015)
-        quad[IDX[f"mouthStretch{side}"]] += field(at_corner, (s * 0.3, -0.2, -0.5), 0.0020)
+        quad[IDX[f"mouthStretch{side}"]] += field(at_corner, (s * 0.3, -0.2, -0.5), 0.0040)
         # --- one-sided lip shapes -----------------------------------------------------------------
         add(f"mouthPress{side}", bump(ll + [s * 0.010, 0.001, 0], 0.007, (1.4, 1, 1)) * lower, (0, 0.8, -0.3), 0.0030)
         add(f"mouthPress{side}", bump(ul + [s * 0.010, -0.001, 0], 0.007, (1.4, 1, 1)) * upper, (0, -0.5, -0.3),
@@ -217,13 +247,13 @@ def _build_basis(head: HeadModel) -> RigBasis:
         add(f"mouthUpperUp{side}", bump(ala + [0, -0.006, 0.004], 0.006), (0, 1, 0.3), 0.0015)
         # --- correctives that have a side ----------------------------------------------------------
         ci = CORRECTIVES.index((f"mouthSmile{side}", "jawOpen"))
-        corr[ci] = field(at_corner, (s * 0.45, -0.6, -0.3), 0.0040)  # the open jaw pulls the corner down/out
+        corr[ci] = field(at_corner, (s * 0.45, -0.6, -0.3), 0.0130)  # the open jaw pulls the corner down/out
         ci = CORRECTIVES.index((f"eyeBlink{side}", f"eyeSquint{side}"))
-        corr[ci] = field(bump(eye + [0, -0.011, 0.002], 0.005, (1.8, 1, 1)), (0, -0.6, 0.8), 0.0015)
+        corr[ci] = field(bump(eye + [0, -0.011, 0.002], 0.005, (1.8, 1, 1)), (0, -0.6, 0.8), 0.0060)
         ci = CORRECTIVES.index((f"browDown{side}", "browInnerUp"))
-        corr[ci] = field(bump(b_in, 0.007), (-s, 0.8, 0.2), 0.0030)  # grief brows: inner ends up and in
+        corr[ci] = field(bump(b_in, 0.007), (-s, 0.8, 0.2), 0.0050)  # grief brows: inner ends up and in
         ci = CORRECTIVES.index((f"mouthSmile{side}", f"cheekSquint{side}"))
-        corr[ci] = field(bump(cheek + [0, -0.012, 0.002], 0.009), (s * 0.2, 0.6, 0.8), 0.0020)
+        corr[ci] = field(bump(cheek + [0, -0.012, 0.002], 0.009), (s * 0.2, 0.6, 0.8), 0.0045)
 
     # --- symmetric mouth shapes ---------------------------------------------------------------------
     towards_mid = np.stack([-np.sign(x) * np.clip(np.abs(x) / width, 0, 1.2), np.zeros(nv), np.zeros(nv)], 1)
@@ -254,9 +284,9 @@ def _build_basis(head: HeadModel) -> RigBasis:
     corr[ci] = field(bump(ll, 0.010, (2.2, 1.4, 1.0)) * lower, (0, 1, -0.15), 0.9 * close_lift)
     corr[ci] += field(bump(ul, 0.009, (2.2, 1.2, 1.0)) * upper, (0, -1, 0), 0.20 * close_lift)
     ci = CORRECTIVES.index(("mouthPucker", "mouthFunnel"))
-    corr[ci] = field(lips, (0, 0, 1), 0.0020)
+    corr[ci] = field(lips, (0, 0, 1), 0.0090)
     ci = CORRECTIVES.index(("jawOpen", "mouthFunnel"))
-    corr[ci] = lip_zone[:, None] * towards_mid * 0.0030 + field(lip_zone * upper, (0, 1, 0.5), 0.0020)
+    corr[ci] = lip_zone[:, None] * towards_mid * 0.0090 + field(lip_zone * upper, (0, 1, 0.5), 0.0065)
 
     # --- lip roll rotation shares and axes ------------------------------------------------------------
     roll = np.stack([bump(ll, 0.006, (2.4, 1.0, 1.0)) * lower, bump(ul, 0.006, (2.4, 1.0, 1.0)) * upper])
@@ -301,31 +331,31 @@ class RigStyle:
 
     @classmethod
     def random(cls, rng: np.random.Generator, n_shape: int, expressiveness: float = 1.0) -> RigStyle:
-        gain = np.exp(rng.normal(0.0, 0.18, N_SHAPES)) * expressiveness
+        gain = np.exp(rng.normal(0.0, 0.09, N_SHAPES)) * expressiveness
         for name in ARKIT51_NAMES:  # left/right asymmetry
             if name.endswith("Left"):
-                a = rng.normal(0.0, 0.10)
+                a = rng.normal(0.0, 0.05)
                 gain[IDX[name]] *= 1.0 + a
                 gain[IDX[name[:-4] + "Right"]] *= 1.0 - a
         return cls(
             gain=gain,
-            gamma=np.exp(rng.normal(0.0, 0.15, N_SHAPES)),
-            arc=rng.uniform(0.5, 1.5, N_SHAPES),
-            corrective=rng.uniform(0.7, 1.3, len(CORRECTIVES)),
-            jaw_open=float(rng.uniform(0.30, 0.42)),
-            jaw_side=float(rng.uniform(0.08, 0.13)),
+            gamma=SHARED_GAMMA * np.exp(rng.normal(0.0, 0.075, N_SHAPES)),
+            arc=rng.uniform(0.75, 1.25, N_SHAPES),
+            corrective=rng.uniform(0.85, 1.15, len(CORRECTIVES)),
+            jaw_open=float(rng.uniform(0.33, 0.39)),
+            jaw_side=float(rng.uniform(0.09, 0.115)),
             jaw_forward=float(rng.uniform(0.003, 0.006)),
-            pivot_offset=np.array([0.0, *rng.normal(0.0, 0.002, 2)]),
+            pivot_offset=np.array([0.0, *rng.normal(0.0, 0.001, 2)]),
             gaze_yaw=float(rng.uniform(0.50, 0.62)),
             gaze_pitch=float(rng.uniform(0.38, 0.48)),
-            lid_close=float(rng.uniform(0.58, 0.68)),
+            lid_close=float(rng.uniform(0.60, 0.66)),
             shape=rng.normal(0.0, 1.0, n_shape),
         )
 
     @classmethod
     def neutral(cls, n_shape: int) -> RigStyle:
-        """Unit gains and exponents, mean identity: the rig as designed."""
-        return cls(np.ones(N_SHAPES), np.ones(N_SHAPES), np.ones(N_SHAPES), np.ones(len(CORRECTIVES)), 0.36, 0.10,
+        """Unit gains, the shared exponents, mean identity: the rig as designed."""
+        return cls(np.ones(N_SHAPES), SHARED_GAMMA.copy(), np.ones(N_SHAPES), np.ones(len(CORRECTIVES)), 0.36, 0.10,
                    0.0045, np.zeros(3), 0.55, 0.42, 0.62, np.zeros(n_shape))
 
 
@@ -378,7 +408,7 @@ class Rig:
         """Rig jaw rotation (T, 3, 3) about its pivot and jaw translation (T, 3) from effective weights."""
         st = self.style
         o = np.clip(e[:, IDX["jawOpen"]], 0.0, 1.3)
-        pitch = st.jaw_open * (1.15 * o - 0.15 * o**2)  # the jaw slows near its limit
+        pitch = st.jaw_open * saturate(o, JAW_CURVE)  # shared curve: early rotation, then the limit
         yaw = st.jaw_side * (e[:, IDX["jawLeft"]] - e[:, IDX["jawRight"]])
         aa = np.stack([pitch, yaw, 0.15 * yaw], axis=1)
         trans = np.stack([0.002 * yaw / st.jaw_side, np.zeros_like(o), st.jaw_forward * e[:, IDX["jawForward"]]], 1)
@@ -404,7 +434,7 @@ class Rig:
             blink, squint = e[:, IDX[f"eyeBlink{side}"]], e[:, IDX[f"eyeSquint{side}"]]
             wide = e[:, IDX[f"eyeWide{side}"]]
             down, up = e[:, IDX[f"eyeLookDown{side}"]], e[:, IDX[f"eyeLookUp{side}"]]
-            closure = saturate(blink + 0.25 * squint)
+            closure = _lid_closure(blink + 0.25 * squint)
             out[:, k, 0] = np.minimum(st.lid_close * closure + 0.30 * down - 0.15 * up - 0.22 * wide * (1 - closure),
                                       st.lid_close * 1.05)
             out[:, k, 1] = -(0.10 * closure + 0.22 * saturate(squint) + 0.08 * e[:, IDX[f"cheekSquint{side}"]]) \
@@ -423,7 +453,7 @@ class Rig:
         products = e[:, self._corr_pairs[:, 0]] * e[:, self._corr_pairs[:, 1]]
         ci = CORRECTIVES.index(("jawOpen", "mouthClose"))
         # mouthClose acts only while the jaw is open (lips together), at most as far as the jaw opened.
-        products[:, ci] = np.minimum(e[:, IDX["mouthClose"]], e[:, IDX["jawOpen"]]) \
+        products[:, ci] = saturate(np.minimum(e[:, IDX["mouthClose"]], e[:, IDX["jawOpen"]]), JAW_CURVE) \
             * _smoothstep(e[:, IDX["jawOpen"]] / 0.15) * self._close_gain
         p = (np.concatenate([e, e * e, products], axis=1) @ self._fields).reshape(t, n, 3)
         p += self.rest
