@@ -59,7 +59,8 @@ def write_flame_pickle(path, n_expr=100, rng=None):
         raw = pickle.dumps(data, protocol=2)
     finally:
         del sys.modules["chumpy"], sys.modules["chumpy.ch"]
-    for new, old in ((b"numpy._core.multiarray", b"numpy.core.multiarray"), (b"scipy.sparse._csc", b"scipy.sparse.csc")):
+    renames = ((b"numpy._core.multiarray", b"numpy.core.multiarray"), (b"scipy.sparse._csc", b"scipy.sparse.csc"))
+    for new, old in renames:
         raw = raw.replace(new, old)
     assert b"chumpy.ch" in raw and b"numpy.core.multiarray" in raw and b"scipy.sparse.csc" in raw
     path.write_bytes(raw)
