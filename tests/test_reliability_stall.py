@@ -89,12 +89,12 @@ def test_stalled_client_is_bounded_and_does_not_slow_others() -> None:
     stalled.sock.setblocking(False)
     session = viewer_of(server, before)
     assert session is not None
+    source, viewer = session.source, session.viewer  # (the session lets go of them when it ends)
     beside = run(measure(server.url, 2.5, stalled))
 
     # At most one pending frame: newer work replaced older (bs before computing or frames before sending),
     # the socket's buffer holds about one frame, and the stalled client's pipeline has stopped computing.
-    source, viewer = session.source, session.viewer
-    assert source is not None and viewer is not None
+    assert source is not None and viewer is not None and session.id in hub.sessions
     assert source.skipped + viewer.skipped > 0, "nothing was dropped for the stalled client"
     frame_bytes = 40 * 2000 + 1024
     conns = server.server.connections()

@@ -134,3 +134,46 @@ def test_connection_storm_leaves_nothing_behind() -> None:
             assert unpack(await asyncio.wait_for(ws.recv(), 10))["seq"] == 5
 
     run(good())
+
+
+def test_sessions_are_freed_without_the_cycle_collector() -> None:
+    """A finished session's source, viewer and pipeline (MBs of buffers each) are freed by reference counting
+    alone: a reference cycle would keep them until the next full garbage collection, rare in a long-running
+    server, so memory would grow with every session (benchmarks/soak.py showed it)."""
+    import gc
+    import weakref
+
+    server = rel_server()
+    assert wait_idle(server)
+    hub = server.app.state.hub
+    refs: list = []
+
+    async def session(kind: str) -> None:
+        async with connect(server.url, compression=None, max_size=None) as ws:
+            await ws.send(hello())
+            while True:
+                m = unpack(await ws.recv())
+                if m["type"] == "avatar" and m["chunk"] == m["chunks"] - 1:
+                    break
+            for i in range(3):
+                await ws.send(bs(i))
+                assert unpack(await ws.recv())["type"] == "frame"
+            s = next(iter(hub.sessions.values()))
+            refs.extend(weakref.ref(x) for x in (s, s.source, s.viewer, s.source.pipeline))
+            if kind == "bye":
+                await ws.send(b"\x81\xa4type\xa3bye")
+            elif kind == "fatal":
+                await ws.send("text")
+            await ws.wait_closed() if kind != "close" else None
+
+    gc.collect()
+    gc.disable()
+    try:
+        for kind in ("bye", "close", "fatal"):
+            run(session(kind))
+            assert wait_idle(server)
+            assert wait_until(lambda: all(r() is None for r in refs), 5), \
+                (kind, [type(r()).__name__ for r in refs if r() is not None])
+            refs.clear()
+    finally:
+        gc.enable()

@@ -148,12 +148,16 @@ class Session:
                 await self._send_error(f.err)
             except ConnectionGone:
                 pass
-        except ConnectionGone:
-            pass
+            # Its traceback holds _stream's frame, whose tasks hold it: drop it, so that reference counting
+            # alone frees the session (see _stream's finally).
+            f.__traceback__ = None
+        except ConnectionGone as g:
+            g.__traceback__ = None
         finally:
             if not full:
                 hub.active -= 1
                 hub.sessions.pop(self.id, None)
+            self.source = self.viewer = None
 
     async def _receive_hello(self) -> Hello | None:
         """Wait for hello (answering ping, honouring bye); None if the client left or took too long."""
@@ -253,6 +257,11 @@ class Session:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
+            # The source and the viewer reference each other (offer, wake): break the cycle so that their
+            # buffers (MBs per session) are freed now, not at the next full garbage collection.
+            self.source.subscribers.clear()
+            self.source.demand = None
+            self.viewer.on_ready = None
             m.sessions.labels("source").dec()
             m.sessions.labels("viewer").dec()
 

@@ -39,7 +39,7 @@ class EstimatorNoise:
     slips: float = 0.04  # probability that a frame shows its neighbour
     dropouts: float = 2.0  # dropout episodes per minute (2-10 frames each)
     saturation: float = 2.0  # saturation episodes per minute (one shape pushed to 1 for 0.3-1.5 s)
-    response: float = 0.45  # log-sd of the per-shape response exponent (regressors compress or inflate)
+    response: float = 0.20  # log-sd of the per-shape response exponent (regressors compress or inflate)
     knee: float = 0.08  # largest per-shape dead zone: weights below it read as 0
 
 

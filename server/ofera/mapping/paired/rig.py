@@ -5,7 +5,10 @@ the meaning of each shape (REFERENCE.md section 1) and is deliberately NOT the h
 
 - its displacement fields are its own local fields (centres, radii and directions of its own), so the
   head's 50-component expression basis can represent them only approximately, like FLAME and a face;
-- it is nonlinear in w: per-subject response curves (gain * w^gamma), quadratic "arc" terms (a corner
+- it is nonlinear in w, mostly in ways every subject shares (ARKit weights map nonlinearly onto anatomy):
+  a shared early-and-flattening response per shape (:data:`SHARED_GAMMA`), a saturating jaw hinge
+  (:data:`JAW_CURVE`), a steeply saturating eyeBlink -> lid closure, strong correctives; per-subject
+  style varies these only a little (gain * w^gamma around the shared exponents), quadratic "arc" terms (a corner
   that moves up, then back along the cheek), corrective shapes on products of weights (jawOpen x
   mouthClose, mouthSmile x jawOpen, eyeBlink x eyeSquint, ...), and rotations: the jaw joint rotates
   about the rig's own pivot (jawOpen, jawLeft/Right), the upper and lower lids rotate about the eyeball
@@ -61,21 +64,20 @@ def _shared_gamma() -> np.ndarray:
     upper = ("browDown", "browInnerUp", "browOuterUp", "cheekSquint", "noseSneer", "eyeSquint", "eyeWide")
     for name, i in IDX.items():
         if name.startswith(mouth):
-            g[i] = 0.5
+            g[i] = 0.4
         elif name.startswith(upper):
             g[i] = 0.5
     return g
 
 
 SHARED_GAMMA = _shared_gamma()
-JAW_CURVE = 2.5  # jaw angle = saturate(jawOpen, 2.5): the hinge turns early, then reaches its limit
+JAW_CURVE = 4.0  # jaw angle = saturate(jawOpen, 4): the hinge turns early, then reaches its limit
 
 
-def _lid_closure(x: np.ndarray, k: float = 14.0, mid: float = 0.5) -> np.ndarray:
-    """Steep sigmoid: eyeBlink -> lid closure (0 -> 0, 1 -> 1); the lid drops over a short range of weights."""
-    x = np.clip(x, 0.0, 1.3)
-    lo, hi = 1.0 / (1.0 + np.exp(k * mid)), 1.0 / (1.0 + np.exp(-k * (1.0 - mid)))
-    return np.clip((1.0 / (1.0 + np.exp(-k * (x - mid))) - lo) / (hi - lo), 0.0, 1.05)
+def _lid_closure(x: np.ndarray, k: float = 3.5) -> np.ndarray:
+    """eyeBlink -> lid closure (0 -> 0, 1 -> 1): steep, the lid drops over the first part of the range
+    and then rests on the lower lid (a strongly saturating curve, the same for everyone)."""
+    return saturate(np.clip(x, 0.0, 1.3), k)
 
 
 def _smoothstep(x: np.ndarray) -> np.ndarray:
