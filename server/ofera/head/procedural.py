@@ -312,7 +312,8 @@ def _expression_fields(v: np.ndarray, lm: dict[str, np.ndarray], movable: np.nda
     pucker = _bump(((x - mouth[0]) / 1.6) ** 2 + (y - mouth[1]) ** 2, 0.010) * front
     fields.append((towards_centre * 0.004 + np.array([0, 0, 0.006])) * pucker[:, None])
     funnel = pucker * np.sign(y - MOUTH_Y + 1e-9)
-    fields.append(np.array([0, 0.003, 0.004]) * np.abs(funnel)[:, None] * np.stack([np.ones_like(x), np.sign(funnel), np.ones_like(x)], 1))
+    funnel_dir = np.stack([np.ones_like(x), np.sign(funnel), np.ones_like(x)], 1)
+    fields.append(np.array([0, 0.003, 0.004]) * np.abs(funnel)[:, None] * funnel_dir)
     add(lm["upper_lip"], 0.006, (0, -0.5, -1), 0.004, (2.2, 1.0), upper_lip_mask)
     add(lm["lower_lip"], 0.006, (0, 0.5, -1), 0.004, (2.2, 1.0), lower_lip_mask)
     add(lm["upper_lip"], 0.007, (0, 0.2, 1), 0.003, (2.2, 1.0), upper_lip_mask)
@@ -389,7 +390,8 @@ def _pose_correctives(v: np.ndarray, lm: dict[str, np.ndarray], movable: np.ndar
     nv = len(v)
     p = np.zeros((36, nv, 3))
     front = _smoothstep(z / 0.03)
-    cheek = sum(_bump((x - lm[f"mouth_corner_{s}"][0] * 1.6) ** 2 + (y - MOUTH_Y - 0.004) ** 2, 0.012) for s in ("left", "right"))
+    cheek = sum(_bump((x - lm[f"mouth_corner_{s}"][0] * 1.6) ** 2 + (y - MOUTH_Y - 0.004) ** 2, 0.012)
+                for s in ("left", "right"))
     hollow = np.stack([-np.sign(x) * 0.006, np.zeros(nv), -0.002 * np.ones(nv)], 1) * (cheek * front * movable)[:, None]
     # Jaw is joint 2 -> rows 9..17 of the feature; about x, (R - I)[2, 1] = sin(a), (R - I)[1, 2] = -sin(a).
     p[9 + 7] = hollow / 2
@@ -493,7 +495,8 @@ def _labels(v: np.ndarray, parts: dict[str, np.ndarray], skin: np.ndarray, lower
     brow_y = 0.047 + 0.002 * np.cos(np.abs(x) / 0.05 * np.pi)
     labels["brows"] = skin & (z > 0.03) & (np.abs(y - brow_y) < 0.0045) & (np.abs(x) > 0.008) & (np.abs(x) < 0.058)
     # Hairline: above the forehead at the front, over the ears at the side, down to the nape at the back.
-    hairline = np.where(z > 0.0, 0.085 - 0.25 * np.clip(np.abs(x) - 0.03, 0, None), 0.02 + 0.6 * z.clip(-0.12, 0) + 0.04)
+    hairline = np.where(z > 0.0, 0.085 - 0.25 * np.clip(np.abs(x) - 0.03, 0, None),
+                        0.02 + 0.6 * z.clip(-0.12, 0) + 0.04)
     labels["scalp"] = skin & (y > np.minimum(hairline, 0.085)) & ~((np.abs(x) > 0.06) & (y < 0.03))
     labels["neck"] = skin & (y < -0.09)
     return labels

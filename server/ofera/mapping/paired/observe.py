@@ -2,8 +2,9 @@
 
 Camera estimates (the ``bs`` of paired data, like MediaPipe's blendshapes next to a FLAME tracker):
 the true rig weights through an estimator with per-source bias, gain, a nonlinear response curve per
-shape (dead zone + power), cross-talk between shapes of a region, per-subject deviations, estimation lag, temporal jitter (noise and frame slips), dropouts
-(held or zeroed frames) and occasional saturation, clipped to [0, 1].
+shape (dead zone + power), cross-talk between shapes of a region, per-subject deviations, estimation
+lag, temporal jitter (noise and frame slips), dropouts (held or zeroed frames) and occasional saturation,
+clipped to [0, 1].
 
 Headset stream: Meta's face tracking (OpenXR XR_FB_face_tracking, 63 weights). The true weights are
 turned into OVR weights by inverting Meta's coarse v10 retargeting channel by channel
