@@ -478,9 +478,7 @@ def test_tls_serves_wss(tmp_path) -> None:
 STATIC_PATHS = ["/static/../../../../etc/passwd", "/static/%2e%2e/%2e%2e/%2e%2e/%2e%2e/etc/passwd",
                 "/static/..%2f..%2f__init__.py", "/static//etc/passwd", "/static/%2fetc%2fpasswd",
                 "/static/..\\..\\__init__.py",
-                pytest.param("/static/app.js%00.png", marks=pytest.mark.xfail(
-                    reason="ofera/web: a NUL byte makes Path.resolve raise ValueError -> HTTP 500 (no file served)",
-                    strict=False))]
+                "/static/app.js%00.png"]
 
 
 @pytest.mark.parametrize("path", STATIC_PATHS)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -156,7 +157,7 @@ def load_avatar_npz(path: str | Path) -> GaussianAvatar:
             )
     except AvatarError as exc:
         raise AvatarError(f"{path}: {exc}") from None
-    except (OSError, ValueError, KeyError, EOFError, HeadModelError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, HeadModelError) as exc:
         raise AvatarError(f"{path}: cannot read avatar ({type(exc).__name__}: {exc})") from None
 
 

@@ -71,7 +71,10 @@ async def layouts_json() -> JSONResponse:
 @router.api_route("/static/{name:path}", methods=["GET", "HEAD"], include_in_schema=False)
 async def static(name: str) -> FileResponse:
     """A file of the page (only files inside ``static/``, with a known type)."""
-    path = (STATIC / name).resolve()
+    try:
+        path = (STATIC / name).resolve()
+    except (ValueError, OSError):  # e.g. a NUL byte in the name
+        raise HTTPException(404, "no such file") from None
     kind = _TYPES.get(path.suffix)
     if kind is None or not path.is_relative_to(STATIC) or not path.is_file():
         raise HTTPException(404, f"no such file: /static/{name}")
