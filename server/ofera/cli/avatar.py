@@ -12,15 +12,12 @@ import typer
 from ..avatar import AvatarError, load_avatar
 from ..head import HeadModelError
 from .errors import user_errors
-from .expression import ExpressionArgs
+from .expression import ExpressionArgs, ExprOpt, EyesOpt, JawOpt
 
 app = typer.Typer(help="Gaussian avatars: the built-in default, OFERA .npz, GaussianAvatars / FATE imports.",
                   no_args_is_help=True)
 
 SourceArg = Annotated[str, typer.Argument(help="'default' or an OFERA avatar .npz")]
-ExprOpt = Annotated[list[str] | None, typer.Option("--expr", help="Expression coefficient INDEX=VALUE (repeatable).")]
-JawOpt = Annotated[float, typer.Option("--jaw", help="Jaw opening in degrees.")]
-EyesOpt = Annotated[str | None, typer.Option("--eyes", help="Gaze YAW,PITCH in degrees.")]
 
 
 class ImportKind(str, Enum):

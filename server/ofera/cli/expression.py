@@ -3,12 +3,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+import typer
 
 from ..head.model import HeadModel
 from ..head.rotations import euler_xy_to_matrix
 from .errors import CliError
+
+# The options of every command that poses a head: `head render`, `avatar render`, `avatar export`.
+ExprOpt = Annotated[list[str] | None, typer.Option("--expr", help="Expression coefficient INDEX=VALUE (repeatable).")]
+JawOpt = Annotated[float, typer.Option("--jaw", help="Jaw opening in degrees.")]
+EyesOpt = Annotated[str | None, typer.Option("--eyes", help="Gaze YAW,PITCH in degrees.")]
 
 
 @dataclass(frozen=True)

@@ -10,13 +10,10 @@ import typer
 
 from ..head import HeadModelError, load_head
 from .errors import user_errors
-from .expression import ExpressionArgs
+from .expression import ExpressionArgs, ExprOpt, EyesOpt, JawOpt
 
 app = typer.Typer(help="Head models: the built-in procedural head, FLAME files, OFERA .npz.", no_args_is_help=True)
 
-ExprOpt = Annotated[list[str] | None, typer.Option("--expr", help="Expression coefficient INDEX=VALUE (repeatable).")]
-JawOpt = Annotated[float, typer.Option("--jaw", help="Jaw opening in degrees.")]
-EyesOpt = Annotated[str | None, typer.Option("--eyes", help="Gaze YAW,PITCH in degrees.")]
 
 
 @app.command()
