@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from enum import Enum
 from pathlib import Path
 from typing import Annotated
@@ -13,6 +12,7 @@ from ..avatar import AvatarError, load_avatar
 from ..head import HeadModelError
 from .errors import user_errors
 from .expression import ExpressionArgs, ExprOpt, EyesOpt, JawOpt
+from .summary import print_summary
 
 app = typer.Typer(help="Gaussian avatars: the built-in default, OFERA .npz, GaussianAvatars / FATE imports.",
                   no_args_is_help=True)
@@ -37,12 +37,7 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """Gaussian count, SH degree, binding type, movable Gaussians and the head they bind to."""
-    summary = load_avatar(source).info()
-    if as_json:
-        print(json.dumps(summary))
-    else:
-        for k, v in summary.items():
-            print(f"{k:>12}: {v}")
+    print_summary(load_avatar(source).info(), as_json)
 
 
 @app.command()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -11,6 +10,7 @@ import typer
 from ..head import HeadModelError, load_head
 from .errors import user_errors
 from .expression import ExpressionArgs, ExprOpt, EyesOpt, JawOpt
+from .summary import print_summary
 
 app = typer.Typer(help="Head models: the built-in procedural head, FLAME files, OFERA .npz.", no_args_is_help=True)
 
@@ -23,12 +23,7 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
     """Vertices, faces, basis sizes and joints of a head model."""
-    summary = load_head(source).info()
-    if as_json:
-        print(json.dumps(summary))
-    else:
-        for k, v in summary.items():
-            print(f"{k:>12}: {v}")
+    print_summary(load_head(source).info(), as_json)
 
 
 @app.command()

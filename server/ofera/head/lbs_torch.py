@@ -52,11 +52,15 @@ class TorchHead(torch.nn.Module):
             v_id = v_id + torch.einsum("vcs,s->vc", self.shapedirs[:, :, : shape.shape[-1]], shape.to(dtype))
         self.register_buffer("v_id", v_id, persistent=False)
 
-    def forward(self, expr: torch.Tensor, rotations: torch.Tensor, transl: torch.Tensor | None = None) -> torch.Tensor:
-        """expr (B, n); rotations (B, K, 3, 3) in joint order; transl (B, 3) -> vertices (B, V, 3)."""
+    def forward(self, expr: torch.Tensor, rotations: torch.Tensor, transl: torch.Tensor | None = None,
+                exprdirs: torch.Tensor | None = None) -> torch.Tensor:
+        """expr (B, n); rotations (B, K, 3, 3) in joint order; transl (B, 3) -> vertices (B, V, 3).
+
+        ``exprdirs`` (V, 3, >=n) replaces the model's expression basis (e.g. a trained, corrected one)."""
         b, n = expr.shape
         k = len(self.parents)
-        v_sh = self.v_id + torch.einsum("vce,be->bvc", self.exprdirs[:, :, :n], expr)
+        basis = self.exprdirs if exprdirs is None else exprdirs
+        v_sh = self.v_id + torch.einsum("vce,be->bvc", basis[:, :, :n], expr)
         joints = torch.einsum("kv,bvc->bkc", self.j_regressor, v_sh)
         eye = torch.eye(3, dtype=expr.dtype, device=expr.device)
         feat = (rotations[:, 1:] - eye).reshape(b, (k - 1) * 9)

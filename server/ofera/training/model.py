@@ -97,28 +97,11 @@ class CorrectedHead(TorchHead):
         return None if self.delta_exprdirs is None else self.delta_exprdirs * self.basis_mask
 
     def forward(self, expr: torch.Tensor, rotations: torch.Tensor, corrected: bool = True) -> torch.Tensor:
-        """Same maths as TorchHead.forward (tested equal when the correction is zero)."""
-        b, n = expr.shape
-        k = len(self.parents)
-        basis = self.exprdirs[:, :, :n]
+        """TorchHead.forward with the corrected basis (the plain one when ``corrected`` is False)."""
+        basis = None
         if corrected and self.delta_exprdirs is not None:
-            basis = basis + self.correction()[:, :, :n]
-        v_sh = self.v_id + torch.einsum("vce,be->bvc", basis, expr)
-        joints = torch.einsum("kv,bvc->bkc", self.j_regressor, v_sh)
-        eye = torch.eye(3, dtype=expr.dtype, device=expr.device)
-        feat = (rotations[:, 1:] - eye).reshape(b, (k - 1) * 9)
-        v_po = v_sh + (feat @ self.posedirs).reshape(b, -1, 3)
-        rel = torch.cat([joints[:, :1], joints[:, 1:] - joints[:, self.parents[1:]]], dim=1)
-        rot_chain, trans_chain = [rotations[:, 0]], [rel[:, 0]]
-        for i in range(1, k):
-            p = self.parents[i]
-            rot_chain.append(rot_chain[p] @ rotations[:, i])
-            trans_chain.append(trans_chain[p] + (rot_chain[p] @ rel[:, i, :, None])[..., 0])
-        g_rot = torch.stack(rot_chain, dim=1)
-        g_t = torch.stack(trans_chain, dim=1) - (g_rot @ joints[..., None])[..., 0]
-        t_rot = torch.einsum("vk,bkij->bvij", self.weights, g_rot)
-        t_t = torch.einsum("vk,bki->bvi", self.weights, g_t)
-        return (t_rot @ v_po[..., None])[..., 0] + t_t
+            basis = self.exprdirs + self.correction()
+        return super().forward(expr, rotations, exprdirs=basis)
 
 
 class TrainableAvatar(torch.nn.Module):
