@@ -52,18 +52,28 @@ def test_evaluate_tiny_benchmark(tiny, epm_path, head, tmp_path):
     assert matrix.matrix.shape == (51, 103)
     result = ev.evaluate(tiny, Mapper.load(epm_path), matrix, head)
     out = result.as_json()
-    assert set(out) == {"methods", "bda", "test_subjects"}
-    assert set(out["methods"]) == {"matrix", "ridge", "epm"}
-    for row in out["methods"].values():
-        assert set(row) == {"param_rmse", "vertex_rmse_mm", "regions"}
-        assert set(row["regions"]) == {"eyes", "brows", "mouth_and_jaw"}
-        assert np.isfinite([row["param_rmse"], row["vertex_rmse_mm"], *row["regions"].values()]).all()
-        assert row["vertex_rmse_mm"] > 0
-    assert set(out["bda"]) == {"without", "with"}
-    assert set(out["bda"]["with"]) == {"vertex_rmse_mm"}
-    test_subjects = sorted(set(tiny.subject[tiny.split_mask("test")].tolist()))
-    assert out["test_subjects"] == test_subjects
+    assert set(out) == {"methods", "bda", "test_subjects", "sources", "frames", "holdout_source"}
+    held = out["holdout_source"]
+    for part in (out, held):
+        assert set(part["methods"]) == {"matrix", "ridge", "epm"}
+        for row in part["methods"].values():
+            assert set(row) == {"param_rmse", "vertex_rmse_mm", "regions"}
+            assert set(row["regions"]) == {"eyes", "brows", "mouth_and_jaw"}
+            assert np.isfinite([row["param_rmse"], row["vertex_rmse_mm"], *row["regions"].values()]).all()
+            assert row["vertex_rmse_mm"] > 0
+        assert set(part["bda"]) == {"without", "with"}
+        assert set(part["bda"]["with"]) == {"vertex_rmse_mm", "param_rmse"}
+    # The two splits: test subjects of the training sources, and every subject of the held-out source.
+    test = tiny.split_mask("test")
+    holdout = np.isin(tiny.source, [tiny.source_names.index(n) for n in tiny.meta["holdout_sources"]])
+    assert held["sources"] == ["handheld"] and "handheld" not in out["sources"]
+    assert out["test_subjects"] == sorted(set(tiny.subject[test & ~holdout].tolist()))
+    assert held["test_subjects"] == sorted(set(tiny.subject[holdout].tolist()))
+    assert out["frames"] == int((test & ~holdout).sum()) and held["frames"] == int(holdout.sum())
+    assert not (holdout & ~test).any()  # nothing of the held-out source is trained or validated on
     json.dumps(out)  # plain JSON types
+    table = ev.markdown_table(result)
+    assert table.count("| held-out subjects |") == 5 and table.count("| held-out source |") == 5
     # The matrix knows nothing of the data; ridge is fitted on it: on these frames ridge must do better.
     assert out["methods"]["ridge"]["param_rmse"] < out["methods"]["matrix"]["param_rmse"]
     png = ev.draw_heatmaps(result, head, tmp_path / "heat.png")
@@ -99,6 +109,6 @@ def test_cli_train_export_eval_on_tiny_data(tiny, tmp_path):
                     "--json", str(tmp_path / "out.json"), "--heatmap", str(tmp_path / "heat.png")])
     assert res.exit_code == 0, res.output
     out = json.loads((tmp_path / "out.json").read_text())
-    assert set(out) == {"methods", "bda", "test_subjects"} and (tmp_path / "heat.png").is_file()
+    assert {"methods", "bda", "test_subjects", "holdout_source"} <= set(out) and (tmp_path / "heat.png").is_file()
     res = run(app, ["mapping", "eval", "--data", str(tmp_path / "missing.npz")])
     assert res.exit_code == 2 and "error:" in res.output

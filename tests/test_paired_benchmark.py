@@ -22,13 +22,14 @@ def tiny(head):
 
 
 def test_tiny_benchmark_shapes_and_ranges(tiny):
-    t = 6 * 100
+    t = 8 * 100  # 3 training sources x 2 subjects + 2 subjects of the held-out source, 100 frames each
     assert len(tiny) == t and tiny.fps == 30.0
     assert tiny.bs.shape == (t, 51) and tiny.bs.dtype == np.float32
     assert tiny.flame.shape == (t, 68) and tiny.flame.dtype == np.float32
     assert tiny.headset.shape == (t, 63) and tiny.rig_weights.shape == (t, 51)
-    assert tiny.shape.shape == (6, 20)
-    assert tiny.source_names == ("studio", "conversation", "expressive")
+    assert tiny.shape.shape == (8, 20)
+    assert tiny.source_names == ("studio", "conversation", "expressive", "handheld")
+    assert tiny.meta["holdout_sources"] == ["handheld"]
     for arr in (tiny.bs, tiny.headset, tiny.rig_weights):
         assert arr.min() >= 0.0 and arr.max() <= 1.0
     assert np.all(np.isfinite(tiny.flame))
@@ -36,7 +37,7 @@ def test_tiny_benchmark_shapes_and_ranges(tiny):
     assert np.abs(expr).max() < 15  # a tracker's prior keeps coefficients in FLAME's usual range
     assert tiny.fit_rms.max() < 0.005  # the fit follows the rig's meshes within millimetres
     assert (np.abs(tiny.bs - tiny.rig_weights) > 1e-3).mean() > 0.5  # observations are noisy
-    assert tiny.meta["progress_calls"][-1] == (6, 6)
+    assert tiny.meta["progress_calls"][-1] == (8, 8)
     np.testing.assert_array_equal(tiny.frame[:100], np.arange(100))
 
 
@@ -56,6 +57,30 @@ def test_splits_are_subject_disjoint(tiny):
         assert tiny.subset(name).subjects.size >= 1
     for s in tiny.subjects:  # each subject belongs to one source
         assert len(np.unique(tiny.source[tiny.subject == s])) == 1
+    held = tiny.source == tiny.source_names.index("handheld")  # the held-out source is test only
+    assert held.any() and (tiny.split[held] == SPLITS.index("test")).all()
+
+
+def test_each_source_has_its_own_estimator_and_headset():
+    from ofera.mapping.paired.benchmark import HOLDOUT, SOURCES, source_models
+
+    models = [source_models(0, i, src) for i, src in enumerate(SOURCES + HOLDOUT)]
+    for i in range(len(models)):
+        for j in range(i):
+            assert not np.allclose(models[i][0]["gain"], models[j][0]["gain"])
+            assert not np.allclose(models[i][1].gain, models[j][1].gain)
+
+
+def test_validation_sample_digest_is_stable_and_sensitive():
+    from ofera.mapping.paired.benchmark import SAMPLE_STEP, sample_digest, validation_sample
+
+    sample = validation_sample(frames=10)
+    assert sample["bs"].shape == (10, 51) and sample["flame"].shape == (10, 68)
+    assert sample["source"] == "studio"
+    same = {k: (v + 1e-9 if k in ("bs", "flame") else v) for k, v in sample.items()}
+    assert sample_digest(same) == sample_digest(sample)  # rounding absorbs BLAS-sized differences
+    moved = dict(sample, flame=sample["flame"] + np.where(np.arange(68) == 3, 2 * SAMPLE_STEP, 0.0))
+    assert sample_digest(moved) != sample_digest(sample)
 
 
 def test_full_size_split_is_8_1_1_per_source():
@@ -84,8 +109,9 @@ def test_select_and_concat(tiny):
     test = tiny.subset("test")
     assert set(test.split.tolist()) == {SPLITS.index("test")}
     both = concat([tiny, tiny])
-    assert len(both) == 2 * len(tiny) and len(both.shape) == 12
-    assert set(both.subject[len(tiny):].tolist()) == set((tiny.subject + 6).tolist())
+    n = len(tiny.shape)
+    assert len(both) == 2 * len(tiny) and len(both.shape) == 2 * n
+    assert set(both.subject[len(tiny):].tolist()) == set((tiny.subject + n).tolist())
     with pytest.raises(PairedDataError, match="shape"):
         PairedData(bs=np.zeros((3, 50)), flame=np.zeros((3, 68)), subject=np.zeros(3), source=np.zeros(3),
                    split=np.zeros(3), frame=np.arange(3))

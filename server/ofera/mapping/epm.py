@@ -54,7 +54,8 @@ class EPMConfig:
     patience: int = 15  # epochs without validation improvement before stopping
     lr_patience: int = 5  # epochs without improvement before the learning rate is halved
     min_lr: float = 1e-5
-    max_minutes: float = 0.0  # wall-clock cap (0: none)
+    max_minutes: float = 0.0  # wall-clock cap (0: none); never for a shipped model: it stops at another epoch
+    # on a slower or loaded machine
     seed: int = 0
     loss_weights: list[float] = field(default_factory=list)  # per output (68) L1 weights; empty: all 1
     # Input augmentation (0: off), per frame and shape: x' = clip(x * exp(N(0, gain)) + N(0, bias) + N(0, noise)).
@@ -343,9 +344,10 @@ def load_checkpoint(path: str | Path) -> tuple[EPM, EPMConfig, dict]:
 
 # ----- paired data ---------------------------------------------------------------------------------
 
-DEFAULT_EPM_CONFIG: dict = {"max_minutes": 8.0}
-"""Overrides of :class:`EPMConfig` for the shipped default EPM (``ofera mapping make-default``); the
-same as ``ofera epm train synthetic``'s defaults, so either command reproduces it."""
+DEFAULT_EPM_CONFIG: dict = {}
+"""Overrides of :class:`EPMConfig` for the shipped default EPM (``ofera mapping make-default``): none. It is
+capped by ``max_epochs`` and early stopping only (no wall clock), and ``ofera epm train synthetic``'s
+defaults are the same, so either command trains the same model on one thread."""
 
 
 def train_on_paired(data, config: EPMConfig | None = None, out: str | Path | None = None,

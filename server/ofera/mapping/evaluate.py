@@ -9,7 +9,12 @@ Metrics, over the TEST subjects of a paired data set (subject-disjoint from trai
   any expression, jaw or eye motion moves; the rigid scalp and neck would only dilute the average);
 - ``regions``: the same vertex RMSE on the eyes, brows and mouth-and-jaw vertices;
 - BDA ablation: the EPM on the simulated headset stream (Meta's OVR -> ARKit remapping of ``headset``),
-  without and with a BDA fitted on the training subjects' pairs (headset arkit51, observed arkit51).
+  without and with a BDA of that headset (every source has its own) fitted on other subjects' pairs
+  (headset arkit51, observed arkit51): the source's training subjects, or for a held-out source, its
+  other subjects (a user calibrating a new headset on a few people).
+
+Two test splits: held-out subjects of the training sources, and a held-out source (estimator, headset
+and recording style never seen in training or validation).
 
 numpy + onnxruntime only: the EPM is evaluated through ``runtime.Mapper`` (the shipped ONNX by default).
 """
@@ -82,17 +87,49 @@ class FastVertices:
 
 
 @dataclass
-class Evaluation:
-    """What :func:`evaluate` measured; ``as_json()`` is the documented JSON layout."""
+class Split:
+    """The scores of the mappers on one set of test frames (see :func:`evaluate`)."""
 
+    test_subjects: list[int] = field(default_factory=list)
+    sources: list[str] = field(default_factory=list)
+    frames: int = 0
     methods: dict[str, dict] = field(default_factory=dict)
     bda: dict[str, dict] = field(default_factory=dict)
-    test_subjects: list[int] = field(default_factory=list)
     per_vertex_mm: dict[str, np.ndarray] = field(default_factory=dict)  # method -> (V,) RMSE per vertex
-    extras: dict = field(default_factory=dict)  # ridge alpha, frame counts, timings (printed, not in JSON)
 
     def as_json(self) -> dict:
-        return {"methods": self.methods, "bda": self.bda, "test_subjects": self.test_subjects}
+        return {"methods": self.methods, "bda": self.bda, "test_subjects": self.test_subjects,
+                "sources": self.sources, "frames": self.frames}
+
+
+@dataclass
+class Evaluation:
+    """What :func:`evaluate` measured; ``as_json()`` is the documented JSON layout.
+
+    ``subjects``: test subjects of the training sources (their estimators and headsets were seen in
+    training); ``source``: the held-out source(s), never seen (None when the data has none).
+    """
+
+    subjects: Split
+    source: Split | None = None
+    extras: dict = field(default_factory=dict)  # ridge alpha, frame counts (printed, not in JSON)
+
+    @property
+    def methods(self) -> dict[str, dict]:
+        return self.subjects.methods
+
+    @property
+    def per_vertex_mm(self) -> dict[str, np.ndarray]:
+        return self.subjects.per_vertex_mm
+
+    @property
+    def test_subjects(self) -> list[int]:
+        return self.subjects.test_subjects
+
+    def as_json(self) -> dict:
+        out = self.subjects.as_json()
+        out["holdout_source"] = None if self.source is None else self.source.as_json()
+        return out
 
 
 class _VertexErrors:
@@ -207,9 +244,11 @@ def evaluate(
 ) -> Evaluation:
     """Evaluate matrix, ridge (fitted here, alpha on validation) and the EPM (``mapper``) on TEST subjects.
 
-    ``mapper``'s session is used with an identity BDA for the three mappers, then with identity and
-    with a BDA fitted on the training subjects for the ablation. ``max_test_frames`` > 0 subsamples the
-    test frames evenly (quick runs).
+    Two splits: test subjects of the sources that have training subjects, and the subjects of held-out
+    sources (sources with no training or validation frames). ``mapper``'s session is used with an
+    identity BDA for the three mappers, then, for the ablation on the headset stream, with identity and
+    with a BDA of the subject's headset (each source has its own) fitted on other subjects wearing it.
+    ``max_test_frames`` > 0 subsamples each split's test frames evenly (quick runs).
     """
     say = progress or (lambda _msg: None)
     train, val, test = (data.split_mask(k) for k in ("train", "val", "test"))
@@ -217,22 +256,49 @@ def evaluate(
         raise ValueError("paired data needs train, val and test frames (split)")
     if data.headset is None:
         raise ValueError("paired data has no headset stream: the BDA ablation needs one")
-    test_idx = np.flatnonzero(test)
-    if max_test_frames and len(test_idx) > max_test_frames:
-        test_idx = test_idx[np.linspace(0, len(test_idx) - 1, max_test_frames).astype(np.int64)]
-    bs, flame, subject = data.bs, data.flame, data.subject.astype(np.int64)
-
+    seen = np.isin(data.source, np.unique(data.source[train | val]))
     say("fitting ridge (alpha on validation)")
-    ridge = RidgeMapper.fit(bs[train], flame[train], bs[val], flame[val])
-    epm = Mapper(mapper.session, BDA.identity(), mapper.source)
-    x_test = bs[test_idx]
-    preds = {"matrix": matrix.predict(x_test), "ridge": ridge.predict(x_test), "epm": epm.map_batch(x_test)}
-
-    say("fitting BDA on the training subjects' headset stream")
+    ridge = RidgeMapper.fit(data.bs[train], data.flame[train], data.bs[val], data.flame[val])
     headset = to_arkit51("ovr63", data.headset)
-    bda = BDA.fit(headset[train], bs[train], device="simulated-headset")
-    preds["bda_without"] = epm.map_batch(headset[test_idx])
-    preds["bda_with"] = Mapper(mapper.session, bda, mapper.source).map_batch(headset[test_idx])
+    mappers = {"matrix": matrix.predict, "ridge": ridge.predict,
+               "epm": Mapper(mapper.session, BDA.identity(), mapper.source).map_batch}
+
+    def with_bda(s: int) -> Callable:
+        """The EPM behind a BDA for subject ``s``'s headset, fitted on other subjects wearing it: the source's
+        training subjects, or (a held-out source has none) the source's other subjects."""
+        same = data.source == data.source[data.subject == s][0]
+        rows = same & train if (same & train).any() else same & (data.subject != s)
+        if not rows.any():
+            raise ValueError(f"cannot fit a BDA for the headset of test subject {s}: no other subject wears it "
+                             "(a held-out source needs at least two subjects)")
+        bda = BDA.fit(headset[rows], data.bs[rows], device=f"headset of source {int(data.source[same][0])}")
+        return Mapper(mapper.session, bda, mapper.source).map_batch
+
+    def split(rows: np.ndarray) -> Split:
+        idx = np.flatnonzero(rows)
+        if max_test_frames and len(idx) > max_test_frames:
+            idx = idx[np.linspace(0, len(idx) - 1, max_test_frames).astype(np.int64)]
+        return _score(data, idx, mappers, with_bda, headset, model, say, heatmap_frames)
+
+    subjects = split(test & seen)
+    source = split(test & ~seen) if (test & ~seen).any() else None
+    extras = {"ridge_alpha": ridge.alpha, "test_frames": subjects.frames,
+              "face_vertices": int(face_regions(model)["face"].sum())}
+    return Evaluation(subjects, source, extras)
+
+
+def _score(data: PairedData, test_idx: np.ndarray, mappers: dict[str, Callable],
+           with_bda: Callable[[int], Callable], headset: np.ndarray, model: HeadModel, say: Callable[[str], None],
+           heatmap_frames: int) -> Split:
+    """Vertex and parameter errors of every mapper (and the BDA ablation) on the frames ``test_idx``."""
+    flame, subject = data.flame, data.subject.astype(np.int64)
+    x_test = data.bs[test_idx]
+    preds = {k: f(x_test) for k, f in mappers.items()}
+    preds["bda_without"] = mappers["epm"](headset[test_idx])
+    preds["bda_with"] = np.empty_like(preds["bda_without"])
+    for s in np.unique(subject[test_idx]):
+        rows = subject[test_idx] == s
+        preds["bda_with"][rows] = with_bda(int(s))(headset[test_idx[rows]])
 
     masks = face_regions(model)
     ids = np.flatnonzero(masks["face"])
@@ -260,59 +326,83 @@ def evaluate(
                 for k in METHODS:
                     whole[k].add(fast_all(subj, *split_flame_values(preds[k][pick])), true)
 
-    result = Evaluation(test_subjects=subjects)
+    names = data.source_names
+    sources = sorted({names[int(i)] if int(i) < len(names) else str(int(i)) for i in np.unique(data.source[test_idx])})
+    out = Split(test_subjects=subjects, sources=sources, frames=len(test_idx))
     for k in METHODS:
-        result.methods[k] = {
+        out.methods[k] = {
             "param_rmse": param_rmse(preds[k], flame[test_idx]),
             "vertex_rmse_mm": errors[k].rmse_mm(local["face"]),
             "regions": {r: errors[k].rmse_mm(local[r]) for r in REGIONS},
         }
         if every:
-            result.per_vertex_mm[k] = whole[k].per_vertex_mm()
-    result.bda = {
-        "without": {"vertex_rmse_mm": errors["bda_without"].rmse_mm(local["face"])},
-        "with": {"vertex_rmse_mm": errors["bda_with"].rmse_mm(local["face"])},
-    }
-    result.extras = {
-        "ridge_alpha": ridge.alpha,
-        "test_frames": len(test_idx),
-        "face_vertices": len(ids),
-        "bda_param_rmse": {"without": param_rmse(preds["bda_without"], flame[test_idx]),
-                           "with": param_rmse(preds["bda_with"], flame[test_idx])},
-    }
-    return result
+            out.per_vertex_mm[k] = whole[k].per_vertex_mm()
+    for key in ("without", "with"):
+        out.bda[key] = {"vertex_rmse_mm": errors[f"bda_{key}"].rmse_mm(local["face"]),
+                        "param_rmse": param_rmse(preds[f"bda_{key}"], flame[test_idx])}
+    return out
 
 
 # ----- presentation --------------------------------------------------------------------------------
 
 
 def print_table(result: Evaluation, console=None) -> None:
-    """The paper's Table 1 layout (rich), then the BDA ablation."""
+    """The paper's Table 1 layout (rich) for each split, then the BDA ablation."""
     from rich.console import Console
-    from rich.table import Table
 
     console = console or Console()
-    table = Table(title=f"Mappers on held-out subjects {result.test_subjects} "
-                        f"({result.extras.get('test_frames', '?')} frames); regions: vertex RMSE in mm")
+    for title, part in (("held-out subjects", result.subjects), ("held-out source", result.source)):
+        if part is None:
+            continue
+        console.print(_methods_table(part, f"Mappers on {title} {part.test_subjects} of {', '.join(part.sources)} "
+                                           f"({part.frames} frames); regions: vertex RMSE in mm"))
+        console.print(_bda_table(part, f"BDA ablation on {title}: EPM on the headset stream (Meta's OVR -> ARKit)"))
+
+
+def _methods_table(part: Split, title: str):
+    from rich.table import Table
+
+    table = Table(title=title)
     table.add_column("method")
     table.add_column("param RMSE", justify="right")
     table.add_column("vertex mm", justify="right")
     for r in REGIONS:
         table.add_column(r.replace("_and_", "+"), justify="right")
-    best = {m: min(result.methods[k][m] for k in result.methods) for m in ("param_rmse", "vertex_rmse_mm")}
-    for k, row in result.methods.items():
+    best = {m: min(part.methods[k][m] for k in part.methods) for m in ("param_rmse", "vertex_rmse_mm")}
+    for k, row in part.methods.items():
         cells = [f"{row[m]:.3f}" if row[m] != best[m] else f"[bold]{row[m]:.3f}[/]"
                  for m in ("param_rmse", "vertex_rmse_mm")]
         table.add_row(k, *cells, *(f"{row['regions'][r]:.3f}" for r in REGIONS))
-    console.print(table)
-    bda = Table(title="BDA ablation: EPM on the headset stream (Meta's OVR -> ARKit)")
+    return table
+
+
+def _bda_table(part: Split, title: str):
+    from rich.table import Table
+
+    bda = Table(title=title)
     bda.add_column("")
     bda.add_column("vertex mm", justify="right")
     bda.add_column("param RMSE", justify="right")
     for key in ("without", "with"):
-        bda.add_row(f"{key} BDA", f"{result.bda[key]['vertex_rmse_mm']:.3f}",
-                    f"{result.extras.get('bda_param_rmse', {}).get(key, float('nan')):.3f}")
-    console.print(bda)
+        bda.add_row(f"{key} BDA", f"{part.bda[key]['vertex_rmse_mm']:.3f}", f"{part.bda[key]['param_rmse']:.3f}")
+    return bda
+
+
+def markdown_table(result: Evaluation) -> str:
+    """The README's table: both splits, every method, the BDA ablation (what ``ofera mapping eval`` prints)."""
+    head = "| split | method | param RMSE | vertex RMSE mm | " + " | ".join(r.replace("_and_", "+") for r in REGIONS)
+    lines = [head + " |", "|" + "---|" * (4 + len(REGIONS))]
+    for name, part in (("held-out subjects", result.subjects), ("held-out source", result.source)):
+        if part is None:
+            continue
+        for k, row in part.methods.items():
+            regions = " | ".join(f"{row['regions'][r]:.3f}" for r in REGIONS)
+            lines.append(f"| {name} | {k} | {row['param_rmse']:.3f} | {row['vertex_rmse_mm']:.3f} | {regions} |")
+        for key in ("without", "with"):
+            b = part.bda[key]
+            lines.append(f"| {name} | EPM on headset, {key} BDA | {b['param_rmse']:.3f} | {b['vertex_rmse_mm']:.3f} |"
+                         + " |" * len(REGIONS))
+    return "\n".join(lines)
 
 
 def draw_heatmaps(result: Evaluation, model: HeadModel, out: str | Path,
