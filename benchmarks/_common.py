@@ -7,9 +7,11 @@
   outputs are plausible FLAME values but not a trained mapping: results say so in a ``notes`` entry).
 - A server in a subprocess (its own interpreter and GIL, like a deployment) on a free port, the fast
   path or the numpy reference (``--impl``), reachable when ``/healthz`` answers (after warm-up).
-- The blendshape input: the real capture /work/shared/data/livelink_dao.gesichter (or ``$OFERA_CAPTURE``)
-  when present, else a synthetic smooth log (noted).
-- Percentiles, tables, JSON and the PNG next to it.
+- The blendshape input: the real capture ``livelink_dao.gesichter`` in the shared data folder
+  (``$OFERA_SHARED_DATA``, default ``../shared/data`` next to the repository; ``$OFERA_CAPTURE`` names the
+  file itself) when present, else a synthetic smooth log (noted).
+- Accounting of dropped ``bs`` (``drop_latencies``), server RSS (``rss_mb``), percentiles, tables, JSON and
+  the PNG next to it.
 
 Run as a script, this module is the server process: ``python benchmarks/_common.py serve '<json>'``.
 """
@@ -34,7 +36,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-CAPTURE = Path(os.environ.get("OFERA_CAPTURE", ROOT.parent / "shared" / "data" / "livelink_dao.gesichter"))
+SHARED_DATA = Path(os.environ.get("OFERA_SHARED_DATA") or ROOT.parent / "shared" / "data")
+"""The shared data folder (not in the repository): ``$OFERA_SHARED_DATA``, else ``../shared/data`` from the root."""
+CAPTURE = Path(os.environ.get("OFERA_CAPTURE") or SHARED_DATA / "livelink_dao.gesichter")
 AVATAR_ID = "bench"
 IMPLS = ("fast", "reference")
 
@@ -239,28 +243,6 @@ class ServerProcess:
         self.stop()
 
 
-def use_fast_encoder() -> bool:
-    """Make the server's viewers encode frames with the numba FrameWriter (ofera.streaming.encode_fast)
-    unless roles.py already does. Returns True if it patched."""
-    from ofera.streaming import roles
-
-    if getattr(roles.Viewer, "USES_FRAME_WRITER", False):
-        return False
-    from ofera.streaming.encode_fast import frame_writer, numba_kernels
-
-    numba_kernels()  # compile / load now, not on the first frame
-
-    def _make(self, frame):  # noqa: ANN001 - roles.Viewer._make
-        w = getattr(self, "_frame_writer", None)
-        if w is None:
-            w = self._frame_writer = frame_writer(self.format, self.coords, self.gather, self.index)
-        s = frame.state
-        return w.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale)
-
-    roles.Viewer._make = _make
-    return True
-
-
 def _echo_server(port: int, size: int) -> None:
     """A bare websockets server answering every message with `size` random bytes (transport floor)."""
     import asyncio
@@ -323,8 +305,6 @@ def _serve(settings_json: str, impl: str) -> None:
     from ofera.streaming import Settings
     from ofera.streaming.server import serve
 
-    if impl == "fast":
-        use_fast_encoder()
     interval = os.environ.get("OFERA_BENCH_SWITCH_INTERVAL")  # experiment: the GIL hand-off interval (s)
     if interval:
         sys.setswitchinterval(float(interval))
@@ -343,6 +323,38 @@ def pct(samples, qs=(50, 90, 99, 99.9)) -> dict[str, float | None]:
     out["max"] = round(float(a.max()), 3)
     out["mean"] = round(float(a.mean()), 3)
     return out
+
+
+def drop_latencies(scheduled_us: dict[int, float], arrivals: list[tuple[int, float]],
+                   end_us: float) -> dict[int, float]:
+    """seq -> latency (ms) of each bs that were sent but never answered (newest-wins dropped them).
+
+    A dropped bs counts as answered by the first later frame: latency = arrival of the first frame with a
+    greater seq - the bs's scheduled time; with no later frame, the end of listening (``end_us``) stands in.
+    ``scheduled_us``: seq -> scheduled send time of every counted bs; ``arrivals``: (seq, arrival time) of the
+    frames received, same clock (microseconds)."""
+    answered = {seq for seq, _ in arrivals}
+    order = sorted(arrivals)
+    seqs = np.array([s for s, _ in order], np.int64)
+    later_arrival = np.minimum.accumulate(np.array([t for _, t in order], np.float64)[::-1])[::-1]  # earliest at >= i
+    out = {}
+    for seq, due in sorted(scheduled_us.items()):
+        if seq in answered:
+            continue
+        i = int(np.searchsorted(seqs, seq, side="right"))
+        arrived = later_arrival[i] if i < seqs.size else end_us
+        out[seq] = (float(arrived) - due) / 1000.0
+    return out
+
+
+def rss_mb(pid: int | None = None) -> float:
+    """Resident set size of process ``pid`` (default: this one), MB, from Linux /proc; NaN for a process that
+    has exited but not been reaped (no VmRSS line), so that any comparison with it fails."""
+    with open(f"/proc/{pid or os.getpid()}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
 
 
 def ratio(a: float | None, b: float | None) -> float | None:

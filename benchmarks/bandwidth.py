@@ -3,8 +3,8 @@ with the error a client sees against the exact float32 frame.
 
     python benchmarks/bandwidth.py --gaussians 100000 --json out.json
 
-Replays the capture (/work/shared/data/livelink_dao.gesichter via ofera.sources.read_facelog; a synthetic
-log, noted, if absent) through the server's pipeline, one frame per captured sample, and encodes every
+Replays the capture (_common.CAPTURE, via ofera.sources.read_facelog; a synthetic log, noted, if
+absent) through the server's pipeline, one frame per captured sample, and encodes every
 frame as the server would:
 
 - dense f32 / f16 / q13: every Gaussian, every frame;

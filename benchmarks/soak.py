@@ -34,14 +34,6 @@ sys.path.insert(0, str(HERE))
 import _common as C  # noqa: E402
 
 
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 class Totals:
     def __init__(self) -> None:
         self.sent = 0
@@ -156,7 +148,7 @@ def main() -> None:
                 last_print = 0.0
                 while not done:
                     t = time.monotonic() - t0
-                    rss.append((t, rss_mb(pid)))
+                    rss.append((t, C.rss_mb(pid)))
                     if t - last_print >= 30:
                         last_print = t
                         recent = [r for s, r in totals.samples if s > t - 30]

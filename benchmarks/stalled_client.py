@@ -36,14 +36,6 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 import _common as C  # noqa: E402
 
 
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def skipped(http_url: str) -> dict[str, int]:
     text = urllib.request.urlopen(f"{http_url}/metrics", timeout=10).read().decode()
     out = {}
@@ -143,7 +135,7 @@ def main() -> None:
 
         async def sampler(stop: asyncio.Event) -> None:
             while not stop.is_set():
-                rss.append((time.monotonic() - t_origin, rss_mb(pid)))
+                rss.append((time.monotonic() - t_origin, C.rss_mb(pid)))
                 await asyncio.sleep(0.25)
 
         def open_stalled() -> list:

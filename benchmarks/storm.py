@@ -27,14 +27,6 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 import _common as C  # noqa: E402
 
 
-def rss_mb(pid: int) -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def health(port: int) -> dict:
     return json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10).read())
 
@@ -60,7 +52,7 @@ def main() -> None:
 
         def sampler() -> None:
             while not done.is_set():
-                rss.append((time.monotonic() - t0, rss_mb(pid)))
+                rss.append((time.monotonic() - t0, C.rss_mb(pid)))
                 done.wait(0.25)
 
         threading.Thread(target=sampler, daemon=True).start()
@@ -100,7 +92,7 @@ def main() -> None:
         except Exception:  # noqa: BLE001
             good = False
         done.set()
-        rss_after = rss_mb(pid)
+        rss_after = C.rss_mb(pid)
 
     report = {
         "benchmark": "storm", "cycles": args.cycles, "concurrency": args.concurrency, "gaussians": args.gaussians,

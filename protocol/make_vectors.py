@@ -62,7 +62,7 @@ C2S, S2C = "client_to_server", "server_to_client"
 # dtype and trailing shape of every bin field, per message type and encoding ("*": any encoding).
 _F32 = "float32"
 BIN_SCHEMA: dict[str, dict[str, tuple[str, tuple[int, ...]]]] = {
-    "bs": {"w": (_F32, ())},
+    "bs": {"w": (_F32, ()), "conf": (_F32, ())},
     "avatar": {"opacity": (_F32, ()), "sh": (_F32, (3,)), "position": (_F32, (3,)),
                "rotation": (_F32, (4,)), "scale": (_F32, (3,))},
     "welcome.quant": {"pos_min": (_F32, ()), "pos_max": (_F32, ()), "log_scale": (_F32, ())},
@@ -91,6 +91,8 @@ SPARSE_INDEX = np.array([1, 3], dtype=np.uint32)
 TIMING = {"decode": 12, "map": 9, "epm": 41, "head": 180, "deform": 230, "encode": 95, "total": 597}
 SEQ, T = 42, 1_700_000_000_123_456
 W52 = (np.arange(52, dtype=np.float32) / 64).astype(np.float32)
+W63 = (np.arange(63, dtype=np.float32) / 64).astype(np.float32)
+CONF = np.array([0.75, 0.25], dtype=np.float32)
 
 
 def _frame_format(encoding: str, sparse: bool) -> FrameFormat:
@@ -194,6 +196,8 @@ def build_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
                                                max_gaussians=50000)),
                "hello with every field"),
         _valid("bs", C2S, encode(Blendshapes(seq=SEQ, t=T, w=W52)), "arkit52 weights i/64"),
+        _valid("bs_conf", C2S, encode(Blendshapes(seq=SEQ, t=T, w=W63, conf=CONF)),
+               "ovr63 weights i/64 with the optional face confidence: lower 0.75, upper 0.25"),
         _valid("ping", C2S, encode(Ping(t=T)), "ping"),
         _valid("bye", C2S, encode(Bye()), "bye"),
         _valid("welcome", S2C, encode(Welcome(session="s-0001", avatar=AvatarInfo("default", COUNT, SH_DEGREE),

@@ -41,6 +41,9 @@ def test_latency_smoke(tmp_path) -> None:
     assert set(r["e2e_ms"]) >= {"p50", "p90", "p99", "p999", "max"} and set(r["server_ms"]) >= {"p50", "p99"}
     assert r["frames"] > 0 and r["encoding"] == "f16" and 4000 < r["gaussians"] < 6000
     assert r["reference"]["frames"] > 0 and "ratios" in r
+    for run in (r, r["reference"]):  # every bs sent after warm-up is either answered or counted as skipped
+        assert run["frames"] + run["frames_skipped"] == run["frames_sent"] == int(1.0 * 72) - int(0.3 * 72)
+        assert run["drop_fraction"] == round(run["frames_skipped"] / run["frames_sent"], 4)
 
 
 @pytest.mark.timeout(300)
@@ -51,6 +54,21 @@ def test_capacity_smoke(tmp_path) -> None:
     r = check_outputs(out)
     assert set(r["per_k"]) == {"1", "2"} and r["per_k"]["2"]["frames"] > 0
     assert "max_sessions_within_budget" in r and "1" in r["reference"]["per_k"]
+    for k, run in r["per_k"].items():
+        assert run["frames"] + run["skipped"] == run["sent"] == int(k) * (int(0.8 * 72) - int(0.3 * 72))
+        assert run["passes"] == (run["drop_fraction"] <= r["max_drop"] and run["p99_ms"] < r["budget_ms"])
+    passing = [k for k in (1, 2) if all(r["per_k"][str(j)]["passes"] for j in range(1, k + 1))]
+    assert r["max_sessions_within_budget"] == max(passing, default=0)
+
+
+def test_dropped_bs_take_the_latency_of_the_first_later_frame() -> None:
+    """bs 1, 2 are dropped and answered by frame 3's arrival; bs 4 by nothing (the end of listening)."""
+    sys.path.insert(0, str(BENCH))
+    import _common
+
+    scheduled = {seq: 1000.0 * seq for seq in range(5)}
+    got = _common.drop_latencies(scheduled, [(0, 500.0), (3, 6000.0)], end_us=9000.0)
+    assert got == {1: 5.0, 2: 4.0, 4: 5.0}
 
 
 @pytest.mark.timeout(300)

@@ -3,7 +3,8 @@ WebGL2 through SwiftShader) loading `/` from a real `ofera serve` with the defau
 
 Needs /usr/bin/chromium and the `playwright` Python package (never `playwright install`: the system
 browser is used); without them the tests skip, unless the environment variable CI is set (then they
-fail). Writes the README's screenshot to docs/browser.png.
+fail). Writes docs/images/browser_default.png (the README's docs/browser.png shows the LAM statue:
+test_lam_browser.py).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ CHROMIUM_ARGS = [
     "--disable-component-update", "--disable-sync", "--no-first-run",
 ]
 ROOT = Path(__file__).resolve().parents[1]
-SCREENSHOT = ROOT / "docs" / "browser.png"
+SCREENSHOT = ROOT / "docs" / "images" / "browser_default.png"  # docs/browser.png (README) is test_lam_browser.py's
 VECTORS = ROOT / "protocol" / "vectors"
 BACKGROUND = np.array([32, 35, 42])  # the page's clear colour (renderer.js: 0.125, 0.137, 0.165)
 SERVER_START_S = 300  # the default avatar's warm-up, on a busy machine
@@ -343,7 +344,7 @@ JS_VECTOR_CHECK = """async (vectors) => {
         let b;
         if (F.type === "hello") b = P.helloMessage({ layout: F.layout, avatar: F.avatar, encoding: F.encoding,
           coords: F.coords, sparse: F.sparse, device: F.device, token: F.token, maxGaussians: F.max_gaussians });
-        else if (F.type === "bs") b = P.bsMessage(F.seq, F.t, F.w.values);
+        else if (F.type === "bs") b = P.bsMessage(F.seq, F.t, F.w.values, F.conf?.values);
         else if (F.type === "ping") b = P.pingMessage(F.t);
         else b = P.byeMessage();
         out.push({ name: v.name, ok: hex(b) === hex(bytes), got: hex(b) });

@@ -1,7 +1,8 @@
 """A client that stops reading (never calls recv, small TCP receive buffer): the server keeps at most one
 pending frame for it (write buffer bounded, newer frames replace older ones), another session's latency
 does not suffer, and once the client also stops answering keepalive pings it is dropped (session closed,
-its tasks gone). The measured version (server in a subprocess, p99 and RSS) is benchmarks/stalled_client.py.
+its tasks gone); with the server in its own process, its RSS stays bounded meanwhile. The measured version
+(server in a subprocess, p99 and RSS over time) is benchmarks/stalled_client.py.
 """
 
 from __future__ import annotations
@@ -12,15 +13,19 @@ import time
 
 import numpy as np
 from test_reliability_support import (
+    FRAME_F32_BYTES,
     PING_INTERVAL,
     RawWebSocket,
     bs,
+    health,
     hello,
     rel_server,
+    rel_server_process,
     rss_mb,
     task_count,
     unpack,
     wait_idle,
+    wait_idle_process,
     wait_until,
 )
 from test_server_support import run
@@ -78,7 +83,6 @@ def test_stalled_client_is_bounded_and_does_not_slow_others() -> None:
     server = rel_server()
     assert wait_idle(server)
     tasks0 = task_count(server)
-    rss0 = rss_mb()
 
     alone = run(measure(server.url, 2.0))
 
@@ -125,7 +129,38 @@ def test_stalled_client_is_bounded_and_does_not_slow_others() -> None:
         stalled.sock.close()
     except OSError:
         pass
-    assert rss_mb() - rss0 < 150
+
+
+def test_stalled_client_does_not_grow_the_server_process() -> None:
+    """Server in its own process: a client that stopped reading is fed bs at RATE for 3 s. The server keeps at
+    most one pending frame for it (and computes none while one is unsent), so its RSS grows by less than half
+    of what buffering a frame (the small avatar's float32 state) for every bs would."""
+    server = rel_server_process()
+
+    async def warm_up() -> None:  # first-use allocations of a session, before the baseline
+        await measure(server.url, 0.3)
+
+    run(warm_up())
+    assert wait_idle_process(server)
+    rss0 = rss_mb(server.pid)
+    stalled = RawWebSocket(server, rcvbuf=4096)
+    stalled.handshake()  # reads the welcome and the avatar, then never reads again
+    stalled.sock.setblocking(False)
+    seconds, t0, i = 3.0, time.monotonic(), 0
+    while time.monotonic() - t0 < seconds:
+        try:
+            stalled.sock.send(stalled_frame(i))
+        except OSError:
+            pass
+        i += 1
+        time.sleep(max(0.0, t0 + i / RATE - time.monotonic()))
+    growth = rss_mb(server.pid) - rss0
+    assert health(server)["sessions"] == 1, "the stalled session ended before it was measured"
+    stalled.abort()
+    bound = 0.5 * i * FRAME_F32_BYTES / 2**20
+    print(f"server RSS growth {growth:.2f} MB, bound {bound:.1f} MB")
+    assert growth < bound, f"the server's RSS grew {growth:.1f} MB beside a stalled client (bound {bound:.1f} MB)"
+    assert wait_idle_process(server)
 
 
 def test_stalled_before_reading_the_avatar() -> None:

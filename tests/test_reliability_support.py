@@ -5,9 +5,14 @@
   run in a source tree that has not generated `epm_default.onnx` yet.
 - `rel_server()`: one in-process server (background thread) for the reliability tests, with small avatar
   chunks (so a reset can land in the middle of the avatar transfer) and a short keepalive.
+- `rel_server_process()`: the same server in a subprocess of its own, for what must be measured on the server
+  alone (its RSS, `rss_mb(server.pid)`) while the clients stay in the test process.
 - `RawWebSocket`: a WebSocket client on a plain socket (handshake and masked frames written by hand) for
   what a library will not do: never read, send any bytes as a frame, reset the TCP connection.
-- `rss_mb(pid)`, `loop_call(server, fn)` (run a function on the server's event loop: asyncio task counts).
+- `loop_call(server, fn)` (run a function on the server's event loop: asyncio task counts).
+
+Run as a script, this module is that subprocess: ``python tests/test_reliability_support.py '<settings json>'``
+prints the port, serves until its stdin closes.
 """
 
 from __future__ import annotations
@@ -16,21 +21,33 @@ import asyncio
 import atexit
 import base64
 import functools
+import json
 import os
 import shutil
 import socket
 import struct
+import subprocess
 import sys
+import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
 import msgpack
 import numpy as np
-from test_server_support import SMALL, _tempdir, devices_dir, make_small_avatar, settings
+from test_server_support import SMALL, SMALL_COUNT, _tempdir, devices_dir, make_small_avatar, settings
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+try:
+    from _common import rss_mb  # noqa: F401 - re-exported: the one definition, shared with the benchmarks
+finally:
+    sys.path.remove(str(ROOT / "benchmarks"))
+FRAME_F32_BYTES = SMALL_COUNT * 40
+"""Positions, rotations and scales of the small avatar in float32 (PROTOCOL.md section 6: 40 B a Gaussian):
+what one computed frame's state holds, the least a session that computed a frame and leaked would keep."""
 PING_INTERVAL = 3.0
 """Keepalive ping interval and timeout (seconds) of the reliability server: a client that neither reads nor
 answers pings is dropped after 3 to 6 s instead of uvicorn's 20 to 40 s."""
@@ -65,14 +82,68 @@ def rel_settings(**overrides: Any):
     return settings(**base)
 
 
-def start_server(**overrides: Any):
-    """A ServerThread with `rel_settings(**overrides)` and a PING_INTERVAL keepalive (stopped at exit)."""
+def _server_thread(s):
+    """A started ServerThread with settings `s` and a PING_INTERVAL keepalive."""
     from ofera.streaming.server import ServerThread
 
-    server = ServerThread(rel_settings(**overrides))
+    server = ServerThread(s)
     server.server.config.ws_ping_interval = PING_INTERVAL
     server.server.config.ws_ping_timeout = PING_INTERVAL
-    server.start()
+    return server.start()
+
+
+def start_server(**overrides: Any):
+    """A ServerThread with `rel_settings(**overrides)` and a PING_INTERVAL keepalive (stopped at exit)."""
+    server = _server_thread(rel_settings(**overrides))
+    atexit.register(server.stop)
+    return server
+
+
+@dataclass
+class ServerProcess:
+    """A reliability server in a subprocess: `url`, `port`, `http_url` like a ServerThread, and its `pid`."""
+
+    proc: subprocess.Popen
+    port: int
+    log: Any = None
+    """The server's stdout and stderr (a temporary file)."""
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.port}/v1/stream"
+
+    @property
+    def http_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()  # the server's cue to stop
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+@functools.cache
+def rel_server_process() -> ServerProcess:
+    """`rel_server()`'s settings and keepalive, served by a subprocess (stopped at exit)."""
+    s = rel_settings()
+    log = tempfile.TemporaryFile()
+    proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), s.model_dump_json()],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log, text=True)
+    line = proc.stdout.readline()
+    if not line.strip().isdigit():
+        proc.kill()
+        proc.wait()
+        log.seek(0)
+        raise RuntimeError(f"the reliability server process did not start: {line!r}\n{log.read().decode()[-4000:]}")
+    server = ServerProcess(proc, int(line), log)
     atexit.register(server.stop)
     return server
 
@@ -113,19 +184,15 @@ def wait_until(predicate, timeout: float = 15.0, every: float = 0.05) -> bool:
     return bool(predicate())
 
 
+def wait_idle_process(server: ServerProcess, timeout: float = 15.0) -> bool:
+    """Until a server process reports no session (/healthz)."""
+    return wait_until(lambda: health(server)["sessions"] == 0, timeout)
+
+
 def wait_idle(server, timeout: float = 15.0) -> bool:
     """Until the server has no session (hub) and no open connection (uvicorn)."""
     hub = server.app.state.hub
     return wait_until(lambda: hub.active == 0 and not hub.sessions and not server.server.connections(), timeout)
-
-
-def rss_mb(pid: int | None = None) -> float:
-    """Resident set size of a process (Linux /proc), MB."""
-    with open(f"/proc/{pid or os.getpid()}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    raise RuntimeError("VmRSS not found")
 
 
 # ----------------------------------------------------------------------------- messages
@@ -259,3 +326,12 @@ class RawWebSocket:
         except OSError:
             pass
         self.sock.close()
+
+
+if __name__ == "__main__":  # the server of rel_server_process(): print the port, serve until stdin closes
+    from ofera.streaming import Settings
+
+    _server = _server_thread(Settings(**json.loads(sys.argv[1])))
+    print(_server.port, flush=True)
+    sys.stdin.read()
+    _server.stop()

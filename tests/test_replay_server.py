@@ -1,5 +1,10 @@
 """`ofera replay` against a real server: every log format, layout detection, errors, recording, the real
-Live Link capture, and a Live Link Face CSV through `ofera serve` at --speed 4."""
+Live Link capture, and a Live Link Face CSV through `ofera serve` at --speed 4.
+
+Newest-wins (PROTOCOL.md section 9) lets the server drop a `bs` that a newer one replaced before it was
+computed, or a frame replaced before it was sent; it counts both in /metrics. So the replays that stream
+check the exact accounting (every `bs` sent either answered or counted as dropped), that the last `bs` is
+answered, and an answered fraction bounded from the period at the speed used."""
 
 from __future__ import annotations
 
@@ -11,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from ofera.cli.main import app
@@ -118,6 +124,39 @@ def server(tmp_path_factory):
 
 runner = CliRunner()
 
+COUNTERS = {"bs_in": "ofera_bs_received_total", "frames_out": "ofera_frames_sent_total",
+            "computed": "ofera_frames_computed_total", "skipped_bs": 'ofera_frames_skipped_total{stage="bs"}',
+            "skipped_frame": 'ofera_frames_skipped_total{stage="frame"}',
+            "total_s": 'ofera_stage_seconds_sum{stage="total"}', "queue_s": 'ofera_stage_seconds_sum{stage="queue"}',
+            "encode_s": 'ofera_stage_seconds_sum{stage="encode"}'}
+
+
+def counters(http_url: str) -> dict[str, float]:
+    """The server's newest-wins accounting and stage-time sums, from /metrics."""
+    text = httpx.get(f"{http_url}/metrics", timeout=10).text
+    values = dict(line.rsplit(" ", 1) for line in text.splitlines() if line and not line.startswith("#"))
+    return {k: float(values.get(v, 0.0)) for k, v in COUNTERS.items()}
+
+
+def check_newest_wins(http_url: str, before: dict[str, float], s: dict, period_s: float | None = None) -> float:
+    """Every bs `s` sent reached the server, every frame it sent arrived, and each one not answered was dropped
+    by newest-wins and counted; returns the server's mean cost of a frame (compute + encode, seconds), which
+    must be under `period_s` when given (the precondition of an answered-fraction bound)."""
+    assert s["errors"] == 0, s["error_messages"]  # (a refused bs would be neither computed nor skipped)
+    deadline = time.monotonic() + 5  # the counters are bumped once the socket has taken the message
+    while True:
+        d = {k: v - before[k] for k, v in counters(http_url).items()}
+        if d["bs_in"] == s["sent"] and d["frames_out"] == s["received"] or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    assert d["bs_in"] == s["sent"] and d["frames_out"] == s["received"], (d, s)
+    assert d["skipped_bs"] + d["skipped_frame"] == s["sent"] - s["received"], (d, s)
+    assert d["computed"] == s["sent"] - d["skipped_bs"], (d, s)
+    cost = (d["total_s"] - d["queue_s"] + d["encode_s"]) / d["computed"]
+    if period_s is not None:  # the server keeps up, on average, at this rate
+        assert cost < period_s, f"a frame costs the server {cost * 1e3:.2f} ms, over the {period_s * 1e3:.2f} ms period"
+    return cost
+
 
 def run_replay(*args: str) -> tuple[int, str, dict | None, Path]:
     out = Path(os.environ.get("PYTEST_TMP", "/tmp")) / f"replay-{time.monotonic_ns()}.json"
@@ -143,11 +182,13 @@ def test_layout_detection(logs, name):
                                   "livelink_csv", "gesichter"])
 def test_every_format_replays(server, logs, name):
     path, layout, n = logs[name]
+    before = counters(server.http_url)
     code, text, summary, _ = run_replay(str(path), "--url", server.url, "--speed", "4")
     assert code == 0, text
     assert summary["layout"] == layout
     assert summary["sent"] == n and summary["errors"] == 0 and summary["skipped"] == 0
-    assert summary["received"] >= 1 and summary["last_seq_answered"] == n - 1
+    check_newest_wins(server.http_url, before, summary)
+    assert summary["last_seq_answered"] == n - 1
     assert summary["log_duration_s"] == pytest.approx(0.5, abs=0.02)
 
 
@@ -202,17 +243,29 @@ def test_loop_passes(server, logs):
 @pytest.mark.skipif(not CAPTURE.is_file(), reason=f"real capture not available ({CAPTURE} is absent: the "
                     "shared data folder is not part of the repository)")
 def test_real_capture_replays(server, tmp_path):
-    """The real iPhone capture at its own pace: every frame sent, no errors, frames back (the server
-    computes only the newest bs when it falls behind, so the last one is always answered)."""
+    """The real iPhone capture at its own pace (60 fps): every frame sent on schedule, no errors, and at least
+    90 % answered. Newest-wins drops a bs only when a newer one arrives before the server is free for it: at
+    60 Hz that takes the server (a frame of the 2,000-Gaussian avatar costs about a millisecond, and must cost
+    under the 16.7 ms period) being held up for a whole period; 90 % allows 18 such stalls in 3 s. The last
+    bs is always answered."""
     rec = tmp_path / "capture.npz"
+    before = counters(server.http_url)
     code, text, summary, _ = run_replay(str(CAPTURE), "--url", server.url, "--record", str(rec))
     assert code == 0, text
     assert summary["layout"] == "livelink61" and summary["frames_in_log"] == 180
     assert summary["log_duration_s"] == pytest.approx(3.10, abs=0.01)  # 179 frames at 60 fps and one gap
     assert summary["sent"] == 180 and summary["errors"] == 0 and summary["skipped"] == 0
-    assert summary["received"] >= 1 and summary["latency_ms"]["p50"] is not None
+    period = 1 / 60
+    cost = check_newest_wins(server.http_url, before, summary, period)
+    print(f"real capture: {summary['received']} of {summary['sent']} answered, frame cost {cost * 1e3:.2f} ms, "
+          f"latency {summary['latency_ms']}")
+    assert summary["answered"] >= 0.9, summary
+    assert summary["last_seq_answered"] == 179
+    # The schedule is absolute (replay/core.py): sending spans the log, late by at most the last frame's lag.
+    assert summary["expected_duration_s"] == pytest.approx(summary["log_duration_s"], abs=1e-3)
+    assert abs(summary["duration_s"] - summary["expected_duration_s"]) <= 0.1 * summary["expected_duration_s"]
     z = np.load(rec)
-    assert z["seq"][-1] == 179
+    assert len(z["seq"]) == summary["received"] and z["seq"][-1] == 179
     peak = z["weights"][:, [0, 7, 23, 24, 17]].max(axis=0)  # blinks, smiles, jaw: the capture's peaks
     assert peak.max() > 0.5
 
@@ -225,56 +278,59 @@ def _ofera(*args: str) -> list[str]:
 
 
 def test_livelink_csv_at_speed_4_through_ofera_serve(tmp_path, tmp_path_factory):
-    """8 s of Live Link Face CSV at --speed 4: every frame sent, >= 90 % answered, no errors, sending
-    within 10 % of 2 s."""
+    """8 s of Live Link Face CSV (60 fps) at --speed 4, i.e. a bs every 4.17 ms, to a server in its own process:
+    every frame sent, sending within 10 % of 2 s, no errors, every bs answered or counted as dropped by
+    newest-wins, the last one answered, and at least half answered. A frame of the 2,000-Gaussian avatar costs
+    the server about a millisecond (it must cost under the period), so a bs is dropped only when the server
+    (or the sender) is held up for the rest of a period. On a shared 2-core machine that happened to 2 % of
+    the bs when idle and to up to 23 % while other jobs kept the load average between 2 and 5: hence the margin.
+    Newest-wins answers about one bs per frame cost: a server whose frames cost two periods fails."""
     from ofera.replay.testing import serve_args
 
     csv = tmp_path / "face.csv"
     write_livelink_csv(csv, 8.0, seed=11)
     log = read_facelog(csv)
     assert log.layout.name == "livelink61" and len(log) == 481
+    period = float(np.median(np.diff(log.times))) / 4
 
-    def attempt(n: int) -> dict:
-        serve = subprocess.Popen(_ofera("serve", "--host", "127.0.0.1", "--port", "0", "--log-level", "warning",
-                                        *serve_args(tmp_path_factory.getbasetemp() / "small-avatar")),
-                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    serve = subprocess.Popen(_ofera("serve", "--host", "127.0.0.1", "--port", "0", "--log-level", "warning",
+                                    *serve_args(tmp_path_factory.getbasetemp() / "small-avatar")),
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        url = None
+        deadline = time.monotonic() + 90
+        lines = []
+        while time.monotonic() < deadline:
+            line = serve.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.strip().startswith("stream"):
+                url = line.split()[-1]
+                break
+        assert url, "ofera serve did not start:\n" + "".join(lines)
+        http_url = url.replace("ws://", "http://", 1).split("/v1/", 1)[0]
+        before = counters(http_url)
+        out = tmp_path / "summary.json"
+        done = subprocess.run(_ofera("replay", str(csv), "--url", url, "--speed", "4", "--json", str(out), "-q"),
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        s = json.loads(out.read_text())
+        cost = check_newest_wins(http_url, before, s, period)
+    finally:
+        serve.terminate()
         try:
-            url = None
-            deadline = time.monotonic() + 90
-            lines = []
-            while time.monotonic() < deadline:
-                line = serve.stdout.readline()
-                if not line:
-                    break
-                lines.append(line)
-                if line.strip().startswith("stream"):
-                    url = line.split()[-1]
-                    break
-            assert url, "ofera serve did not start:\n" + "".join(lines)
-            out = tmp_path / f"summary{n}.json"
-            done = subprocess.run(_ofera("replay", str(csv), "--url", url, "--speed", "4", "--json", str(out), "-q"),
-                                  capture_output=True, text=True, timeout=60)
-            assert done.returncode == 0, done.stderr
-        finally:
-            serve.terminate()
-            try:
-                serve.wait(15)
-            except subprocess.TimeoutExpired:
-                serve.kill()
-        return json.loads(out.read_text())
-
-    # A 2-core CI machine can stall a process for tens of ms; one retry keeps a scheduling hiccup from
-    # failing the run while a server that cannot keep up still fails both attempts.
-    s = attempt(0)
-    if s["received"] < 0.9 * s["sent"]:
-        s = attempt(1)
+            serve.wait(15)
+        except subprocess.TimeoutExpired:
+            serve.kill()
     expected = log.duration / 4
     print(f"--speed 4: sent {s['sent']}, received {s['received']}, errors {s['errors']}, sending "
-          f"{s['duration_s']:.3f} s, wall {s['wall_s']:.3f} s, expected {expected:.3f} s, "
-          f"latency p50 {s['latency_ms']['p50']} ms p99 {s['latency_ms']['p99']} ms")
-    assert s["sent"] == len(log) and s["skipped"] == 0
-    assert s["received"] >= 0.9 * s["sent"]
-    assert s["errors"] == 0
+          f"{s['duration_s']:.3f} s, wall {s['wall_s']:.3f} s, expected {expected:.3f} s, frame cost "
+          f"{cost * 1e3:.2f} ms, latency p50 {s['latency_ms']['p50']} ms p99 {s['latency_ms']['p99']} ms, load "
+          f"average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
+    assert s["sent"] == len(log) and s["skipped"] == 0 and s["errors"] == 0
+    assert s["answered"] >= 0.5, s
+    assert s["last_seq_answered"] == len(log) - 1
     assert s["log_duration_s"] == pytest.approx(8.0, abs=0.02)
     assert abs(s["duration_s"] - expected) <= 0.1 * expected
     assert abs(s["wall_s"] - expected) <= 0.1 * expected + 0.5  # plus the handshake and the last answer

@@ -251,7 +251,8 @@ def test_mia_experiment_smoke(tmp_path):
     """The experiment end to end on a tiny configuration (numbers meaningless; keys, files, CLI JSON)."""
     from ofera.training.experiment import ExperimentConfig, run_experiment, write_json
 
-    cfg = ExperimentConfig(size=20, cameras=2, train_frames=3, test_frames=2, iterations=2, grid_frames=2)
+    cfg = ExperimentConfig(size=20, cameras=2, train_frames=3, test_frames=2, val_frames=2, iterations=2, val_every=1,
+                           grid_frames=2)
     calls = {}
 
     class Mapper:  # a stand-in for the EPM (keeps the test fast)
@@ -262,9 +263,9 @@ def test_mia_experiment_smoke(tmp_path):
             y[:, 50:] = np.tile([1, 0, 0, 0, 1, 0], 3)
             return y
 
-    res = run_experiment(cfg, grid=tmp_path / "grid.png", progress=False, log=lambda s: None, mapper=Mapper())
-    assert calls["n"] == 5
-    for key in ("psnr", "ssim"):
+    res = run_experiment(cfg, grid=tmp_path / "grid.png", log=lambda s: None, mapper=Mapper())
+    assert calls["n"] == 7
+    for key in ("psnr", "ssim", "val_psnr"):
         assert set(res[key]) == {"mia", "without_mia"}
         assert all(np.isfinite(v) for v in res[key].values())
     assert (tmp_path / "grid.png").stat().st_size > 1000

@@ -126,13 +126,17 @@ def encode_bs(m: Blendshapes) -> bytes:
     w = np.ascontiguousarray(m.w, dtype="<f4")
     if w.ndim != 1:
         raise ValueError(f"bs.w must be 1-D, got shape {w.shape}")
-    return pack_map({"type": "bs", "seq": m.seq, "t": m.t, "w": w})
+    d: dict[str, Any] = {"type": "bs", "seq": m.seq, "t": m.t, "w": w}
+    if m.conf is not None:
+        d["conf"] = _le(m.conf, "<f4", (2,), "bs.conf")
+    return pack_map(d)
 
 
 def encode_welcome(m: Welcome) -> bytes:
     d: dict[str, Any] = {
         "type": "welcome", "protocol": m.protocol, "session": m.session,
-        "avatar": {"id": m.avatar.id, "count": m.avatar.count, "sh_degree": m.avatar.sh_degree},
+        "avatar": {"id": m.avatar.id, "count": m.avatar.count, "sh_degree": m.avatar.sh_degree,
+                   "expression": m.avatar.expression},
         "layout": m.layout, "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse,
     }
     if m.quant is not None:
@@ -294,7 +298,12 @@ def decode_bs(m: dict[str, Any], layout: str | None) -> Blendshapes:
     if len(buf) != 4 * n:
         raise ProtocolError(BAD_LENGTH, f"bs: field 'w' has {len(buf)} bytes; layout {layout} needs "
                             f"{n} float32 = {4 * n} bytes")
-    return Blendshapes(seq=seq, t=t, w=F.get_array(m, "w", w, "<f4", (n,)))
+    weights = F.get_array(m, "w", w, "<f4", (n,))
+    conf = F.get_array(m, "conf", w, "<f4", (2,), required=False)
+    if conf is not None and not ((conf >= 0.0) & (conf <= 1.0)).all():
+        raise ProtocolError(BAD_FIELD, f"bs: field 'conf' = [{conf[0]:g}, {conf[1]:g}] (lower, upper face "
+                            "confidence) is outside [0, 1]")
+    return Blendshapes(seq=seq, t=t, w=weights, conf=conf)
 
 
 def decode_client_message(data: bytes | bytearray | memoryview, layout: str | None = None,
@@ -333,7 +342,8 @@ def decode_welcome(m: dict[str, Any]) -> Welcome:
     av = F.get_map(m, "avatar", w)
     avatar = AvatarInfo(id=F.get_str(av, "id", "welcome.avatar"),
                         count=F.get_int(av, "count", "welcome.avatar", lo=0, hi=UINT32_MAX),
-                        sh_degree=F.get_int(av, "sh_degree", "welcome.avatar", lo=0, hi=MAX_SH_DEGREE))
+                        sh_degree=F.get_int(av, "sh_degree", "welcome.avatar", lo=0, hi=MAX_SH_DEGREE),
+                        expression=F.get_str(av, "expression", "welcome.avatar", default="flame68"))
     encoding = F.get_choice(m, "encoding", w, ENCODINGS, UNKNOWN_ENCODING)
     qm = F.get_map(m, "quant", w, required=encoding == "q13")
     return Welcome(

@@ -248,8 +248,9 @@ class ClientConnection:
         self.state = ClientState.AWAITING_WELCOME
         return encode(msg)
 
-    def bs(self, seq: int, t: int, w: np.ndarray) -> bytes:
-        """A blendshape sample: `w` (L,) weights of the session's layout, `t` client clock in µs."""
+    def bs(self, seq: int, t: int, w: np.ndarray, conf: np.ndarray | None = None) -> bytes:
+        """A blendshape sample: `w` (L,) weights of the session's layout, `t` client clock in µs, `conf`
+        optional (2,) [lower, upper] face confidence in [0, 1]."""
         if self.state not in (ClientState.RECEIVING_AVATAR, ClientState.STREAMING):
             raise LocalProtocolError(f"bs() needs a welcome first (state {self.state.value})")
         assert self.sent_hello is not None
@@ -257,7 +258,11 @@ class ClientConnection:
         n = LAYOUTS[self.sent_hello.layout]
         if w.shape != (n,):
             raise LocalProtocolError(f"layout {self.sent_hello.layout} needs {n} weights, got {w.shape[0]}")
-        return encode(Blendshapes(seq=seq, t=t, w=w))
+        if conf is not None:
+            conf = np.asarray(conf, dtype=np.float32).reshape(-1)
+            if conf.shape != (2,) or not ((conf >= 0.0) & (conf <= 1.0)).all():
+                raise LocalProtocolError(f"conf must be 2 values [lower, upper] in [0, 1], got {conf.tolist()}")
+        return encode(Blendshapes(seq=seq, t=t, w=w, conf=conf))
 
     def ping(self, t: int) -> bytes:
         if self.state is ClientState.CLOSED:

@@ -55,12 +55,14 @@ class Hello:
 
 @dataclass(eq=False)
 class Blendshapes(_ArrayEq):
-    """`bs`: one face-tracking sample. `w`: (L,) float32 in the session's layout, L = LAYOUTS[layout]."""
+    """`bs`: one face-tracking sample. `w`: (L,) float32 in the session's layout, L = LAYOUTS[layout].
+    `conf`: optional (2,) float32 face-tracking confidence [lower face, upper face], each in [0, 1]."""
 
     TYPE: ClassVar[str] = "bs"
     seq: int
     t: int
     w: np.ndarray
+    conf: np.ndarray | None = None
 
 
 @dataclass
@@ -96,11 +98,13 @@ class Quant(_ArrayEq):
 
 @dataclass
 class AvatarInfo:
-    """`welcome.avatar`: the avatar streamed in this session."""
+    """`welcome.avatar`: the avatar streamed in this session. `expression`: what drives it, "flame68" (the
+    EPM's FLAME values) or "arkit51" (the aligned ARKit weights themselves; an ARKit-bound avatar, e.g. LAM)."""
 
     id: str
     count: int
     sh_degree: int
+    expression: str = "flame68"
 
 
 @dataclass(eq=False)

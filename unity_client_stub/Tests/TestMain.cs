@@ -200,6 +200,8 @@ namespace Ofera.Client.Tests
             if (vectors != null) VectorTests(vectors);
             UnitTests(python);
             if (vectors != null) SessionTests(vectors);
+            RoomTests();
+            if (vectors != null) PayloadTests(vectors);
             if (live != null) LiveTests(live, frames);
             if (Failures.Count > 0)
             {
@@ -329,6 +331,13 @@ namespace Ofera.Client.Tests
                         if (c != null) problems += " w " + c;
                         float[] wf = new float[want.Length];
                         for (int i = 0; i < wf.Length; i++) wf[i] = (float)want[i];
+                        if (J.Has(f, "conf"))
+                        {
+                            // Optional bs.conf (PROTOCOL.md 4.2): this client does not send it yet; its decoder must
+                            // accept the message (unknown keys are ignored) with the weights intact.
+                            Check(problems.Length == 0, "vector " + name + " decodes (conf ignored)", problems);
+                            return;
+                        }
                         ClientMessageEncoder.Bs(w, J.I(f["seq"]), J.I(f["t"]), wf, wf.Length);
                         break;
                     }
@@ -567,6 +576,314 @@ namespace Ofera.Client.Tests
 
         // ============================================================ unit tests
 
+        // ============================================================ rooms (hand-built messages)
+
+        static byte[] Msg(MsgPackWriter w) { byte[] b = new byte[w.Length]; Buffer.BlockCopy(w.Buffer, 0, b, 0, w.Length); return b; }
+
+        static void Member(MsgPackWriter w, object member)
+        {
+            w.WriteString("member");
+            if (member is string) w.WriteString((string)member); else w.WriteInt(Convert.ToInt64(member));
+        }
+
+        static byte[] RoomWelcome(string room, object member)
+        {
+            MsgPackWriter w = new MsgPackWriter();
+            w.WriteMapHeader(room != null ? 10 : 8);
+            w.WriteString("type"); w.WriteString("welcome");
+            w.WriteString("protocol"); w.WriteInt(1);
+            w.WriteString("session"); w.WriteString("room-test");
+            w.WriteString("avatar"); w.WriteMapHeader(3);
+            w.WriteString("id"); w.WriteString("own"); w.WriteString("count"); w.WriteInt(2); w.WriteString("sh_degree"); w.WriteInt(0);
+            w.WriteString("layout"); w.WriteString("ovr63");
+            w.WriteString("encoding"); w.WriteString("f32");
+            w.WriteString("coords"); w.WriteString("unity");
+            w.WriteString("sparse"); w.WriteBool(true);
+            if (room != null) { w.WriteString("room"); w.WriteString(room); Member(w, member); }
+            return Msg(w);
+        }
+
+        static byte[] Join(object member, int count)
+        {
+            MsgPackWriter w = new MsgPackWriter();
+            w.WriteMapHeader(3);
+            w.WriteString("type"); w.WriteString("join");
+            Member(w, member);
+            w.WriteString("avatar"); w.WriteMapHeader(3);
+            w.WriteString("id"); w.WriteString("default"); w.WriteString("count"); w.WriteInt(count); w.WriteString("sh_degree"); w.WriteInt(0);
+            return Msg(w);
+        }
+
+        static byte[] Leave(object member)
+        {
+            MsgPackWriter w = new MsgPackWriter();
+            w.WriteMapHeader(3);
+            w.WriteString("type"); w.WriteString("leave");
+            Member(w, member);
+            w.WriteString("reason"); w.WriteString("bye");
+            return Msg(w);
+        }
+
+        /// <summary>Avatar chunk of Gaussians [offset, offset + n) of count; position x = base + index.</summary>
+        static byte[] Chunk(object member, int count, int chunk, int chunks, int offset, int n, float baseX)
+        {
+            MsgPackWriter w = new MsgPackWriter();
+            w.WriteMapHeader(member != null ? 13 : 12);
+            w.WriteString("type"); w.WriteString("avatar");
+            w.WriteString("count"); w.WriteInt(count);
+            w.WriteString("sh_degree"); w.WriteInt(0);
+            w.WriteString("chunk"); w.WriteInt(chunk);
+            w.WriteString("chunks"); w.WriteInt(chunks);
+            w.WriteString("offset"); w.WriteInt(offset);
+            w.WriteString("n"); w.WriteInt(n);
+            float[] op = new float[n], sh = new float[3 * n], pos = new float[3 * n], rot = new float[4 * n], sc = new float[3 * n];
+            for (int i = 0; i < n; i++) { op[i] = 1f; pos[3 * i] = baseX + offset + i; rot[4 * i + 3] = 1f; sc[3 * i] = sc[3 * i + 1] = sc[3 * i + 2] = 0.01f; }
+            w.WriteString("opacity"); w.WriteFloat32Bin(op, 0, n);
+            w.WriteString("sh"); w.WriteFloat32Bin(sh, 0, 3 * n);
+            w.WriteString("position"); w.WriteFloat32Bin(pos, 0, 3 * n);
+            w.WriteString("rotation"); w.WriteFloat32Bin(rot, 0, 4 * n);
+            w.WriteString("scale"); w.WriteFloat32Bin(sc, 0, 3 * n);
+            if (member != null) Member(w, member);
+            return Msg(w);
+        }
+
+        /// <summary>Dense f32 frame (member null: own) with position x = value for every Gaussian.</summary>
+        static byte[] RoomFrame(object member, int count, long seq, float value)
+        {
+            MsgPackWriter w = new MsgPackWriter();
+            w.WriteMapHeader(member != null ? 9 : 8);
+            w.WriteString("type"); w.WriteString("frame");
+            if (member != null) Member(w, member); // first: decoders accept any key order
+            w.WriteString("seq"); w.WriteInt(seq);
+            w.WriteString("t"); w.WriteInt(1000 + seq);
+            w.WriteString("timing"); w.WriteMapHeader(0);
+            w.WriteString("n"); w.WriteInt(count);
+            float[] pos = new float[3 * count], rot = new float[4 * count], sc = new float[3 * count];
+            for (int i = 0; i < count; i++) { pos[3 * i] = value; rot[4 * i + 3] = 1f; sc[3 * i] = 0.02f; }
+            w.WriteString("position"); w.WriteFloat32Bin(pos, 0, 3 * count);
+            w.WriteString("rotation"); w.WriteFloat32Bin(rot, 0, 4 * count);
+            w.WriteString("scale"); w.WriteFloat32Bin(sc, 0, 3 * count);
+            return Msg(w);
+        }
+
+        static string Feed(ClientConnection c, byte[] b, ServerMessage m)
+        {
+            try { c.Receive(b, 0, b.Length, m); return "ok"; }
+            catch (ProtocolException e) { return e.Code + (e.Fatal ? " fatal" : " non-fatal"); }
+        }
+
+        static void RoomTests()
+        {
+            Run("rooms: join, member avatars, routed frames, leave", delegate
+            {
+                ClientConnection c = new ClientConnection();
+                MsgPackWriter hw = new MsgPackWriter();
+                Hello h = new Hello(); h.Layout = "ovr63"; h.Coords = "unity"; h.Sparse = true; h.Room = "lab"; h.Self = false;
+                c.EncodeHello(h, hw);
+                ClientMessage cm = new ClientMessage();
+                new ClientMessageDecoder().Decode(hw.Buffer, 0, hw.Length, null, cm);
+                Check(cm.Kind == ClientMessageKind.Hello && ToHex(hw.Buffer, 0, hw.Length).Contains(ToHex(Encoding.ASCII.GetBytes("room"), 0, 4)),
+                      "rooms: hello carries room/self (a v1 server ignores unknown keys)");
+                ServerMessage m = new ServerMessage();
+                FrameExchange ex = new FrameExchange();
+                m.Frame = ex.DecodeTarget;
+                Check(Feed(c, RoomWelcome("lab", "me"), m) == "ok" && c.InRoom && c.Welcome.Room == "lab" && c.Welcome.Member == "me",
+                      "rooms: welcome.room and welcome.member decoded");
+                // watch-only start: no own avatar yet; a member joins and streams
+                string r1 = Feed(c, Join("alice", 3), m);
+                string r2 = Feed(c, Chunk("alice", 3, 0, 1, 0, 3, 10f), m);
+                Check(r1 == "ok" && r2 == "ok" && c.CompletedMember != null && c.CompletedMember.Id == "alice" && c.State == ClientState.ReceivingAvatar,
+                      "rooms: a member's avatar completes before the own avatar", r1 + " " + r2 + " " + c.State);
+                Check(c.Member("alice").Avatar.Count == 3 && c.Member("alice").Avatar.Position[3] == 11f, "rooms: member avatar assembled");
+                string r3 = Feed(c, RoomFrame("alice", 3, 5, 0.5f), m);
+                Check(r3 == "ok" && m.Frame.Member == "alice" && m.Frame.N == 3 && m.Frame.Position[0] == 0.5f,
+                      "rooms: a member's frame is accepted before the own avatar, decoded with the member's count", r3);
+                bool dropped = ex.Publish(m.Frame.Member);
+                m.Frame = ex.DecodeTarget;
+                // an int member id, avatar in two chunks
+                Feed(c, Join(7, 2), m);
+                string r4 = Feed(c, Chunk(7, 2, 0, 2, 0, 1, 20f), m);
+                Check(r4 == "ok" && c.CompletedMember == null, "rooms: first of two chunks does not complete the member");
+                Feed(c, Chunk(7, 2, 1, 2, 1, 1, 20f), m);
+                Check(c.CompletedMember != null && c.CompletedMember.Id == "7" && c.Member("7").Avatar.Position[3] == 21f,
+                      "rooms: int member id routed as its decimal string, chunks assembled");
+                string own = Feed(c, RoomFrame(null, 2, 1, 1f), m);
+                Check(own == "not_ready non-fatal" && c.State == ClientState.ReceivingAvatar,
+                      "rooms: an own frame before the own avatar is a non-fatal not_ready in a room", own);
+                Feed(c, Chunk(null, 2, 0, 1, 0, 2, 0f), m);
+                Check(c.State == ClientState.Streaming, "rooms: own avatar (no member) still assembles the session's avatar", c.State.ToString());
+                Feed(c, RoomFrame(null, 2, 2, 2f), m);
+                Check(m.Frame.Member == null && m.Frame.N == 2, "rooms: a frame without member moves the own avatar");
+                ex.Publish(null);
+                m.Frame = ex.DecodeTarget;
+                Feed(c, RoomFrame(7, 2, 9, 7f), m);
+                ex.Publish(m.Frame.Member);
+                m.Frame = ex.DecodeTarget;
+                Feed(c, RoomFrame("alice", 3, 6, 0.75f), m);
+                bool dropped2 = ex.Publish(m.Frame.Member);
+                m.Frame = ex.DecodeTarget;
+                FrameData fa = ex.Take("alice"), f7 = ex.Take("7"), fo = ex.Take(null), none = ex.Take("bob");
+                Check(!dropped && dropped2 && fa != null && fa.Seq == 6 && fa.Position[0] == 0.75f && f7 != null && f7.Position[0] == 7f &&
+                      fo != null && fo.Position[0] == 2f && none == null && ex.Take("alice") == null,
+                      "rooms: newest frame per member (alice's seq 5 replaced by 6), own and members kept apart");
+                string bad = Feed(c, RoomFrame("alice", 2, 7, 1f), m);
+                Check(bad == "bad_length non-fatal", "rooms: a member frame with the wrong count is a non-fatal bad_length", bad);
+                string unknown = Feed(c, RoomFrame("carol", 3, 1, 1f), m);
+                Check(unknown == "not_ready non-fatal" && c.State == ClientState.Streaming, "rooms: a frame for an unknown member is dropped (non-fatal not_ready)", unknown);
+                string orphan = Feed(c, Chunk("carol", 1, 0, 1, 0, 1, 0f), m);
+                Check(orphan == "not_ready non-fatal", "rooms: an avatar chunk before the member's join is dropped", orphan);
+                Feed(c, Leave("alice"), m);
+                Check(c.LeftMember != null && c.LeftMember.Id == "alice" && c.Member("alice") == null && c.MemberCount == 1, "rooms: leave removes the member");
+                ex.Drop("alice");
+                string after = Feed(c, RoomFrame("alice", 3, 8, 1f), m);
+                Check(after == "not_ready non-fatal", "rooms: frames after leave are dropped", after);
+                Feed(c, Leave("nobody"), m);
+                Check(c.LeftMember == null && c.MemberCount == 1, "rooms: leave of an unknown member is ignored");
+                Feed(c, Join(7, 4), m);
+                string early = Feed(c, RoomFrame(7, 4, 1, 1f), m);
+                Check(early == "not_ready non-fatal" && c.Member("7").Avatar.Count == 4, "rooms: a re-join replaces the member; frames wait for its new avatar", early);
+            });
+
+            Run("rooms: v1 sessions are unchanged", delegate
+            {
+                ClientConnection c = new ClientConnection();
+                MsgPackWriter hw = new MsgPackWriter();
+                Hello h = new Hello(); h.Layout = "ovr63"; h.Coords = "unity"; h.Sparse = true;
+                c.EncodeHello(h, hw);
+                ServerMessage m = new ServerMessage();
+                m.Frame = new FrameData();
+                Feed(c, RoomWelcome(null, null), m);
+                Check(!c.InRoom && c.Welcome.Room == null, "rooms: welcome without room is v1");
+                string early = Feed(c, RoomFrame(null, 2, 1, 1f), m);
+                Check(early == "not_ready fatal", "rooms: outside a room a frame before the avatar stays fatal", early);
+            });
+        }
+
+        /// <summary>The payload of bin field `key` in a msgpack message (found by its key; test helper).</summary>
+        static byte[] BinOf(byte[] msg, string key)
+        {
+            byte[] k = Encoding.ASCII.GetBytes(key);
+            for (int i = 0; i + 1 + k.Length + 2 < msg.Length; i++)
+            {
+                if (msg[i] != (byte)(0xa0 | k.Length)) continue;
+                int j = 0;
+                while (j < k.Length && msg[i + 1 + j] == k[j]) j++;
+                if (j < k.Length) continue;
+                int o = i + 1 + k.Length, len, start;
+                if (msg[o] == 0xc4) { len = msg[o + 1]; start = o + 2; }
+                else if (msg[o] == 0xc5) { len = (msg[o + 1] << 8) | msg[o + 2]; start = o + 3; }
+                else continue;
+                byte[] r = new byte[len];
+                Buffer.BlockCopy(msg, start, r, 0, len);
+                return r;
+            }
+            return null;
+        }
+
+        static void PayloadTests(string dir)
+        {
+            Run("gpu payload: wire arrays kept as they arrived", delegate
+            {
+                foreach (string name in new[] { "frame_f32", "frame_f32_sparse", "frame_f16", "frame_f16_sparse", "frame_q13", "frame_q13_sparse" })
+                {
+                    Dictionary<string, object> v = LoadVector(dir, name);
+                    FrameFormat fmt = FormatFromJson(J.O(v["format"]));
+                    byte[] b = VectorBytes(dir, name);
+                    foreach (bool values in new[] { true, false })
+                    {
+                        ServerMessageDecoder d = new ServerMessageDecoder();
+                        d.KeepPayload = true;
+                        d.DecodeValues = values;
+                        ServerMessage m = new ServerMessage();
+                        m.Frame = new FrameData();
+                        d.Decode(b, 0, b.Length, fmt, m);
+                        FramePayload p = m.Frame.Payload;
+                        string problems = "";
+                        if (m.Frame.HasValues != values) problems += " HasValues";
+                        string[] keys = { "index", "position", "rotation", "scale" };
+                        int[] words = { p.IndexWord, p.PositionWord, p.RotationWord, p.ScaleWord };
+                        int end = 0;
+                        for (int k = 0; k < 4; k++)
+                        {
+                            byte[] bin = BinOf(b, keys[k]);
+                            if (bin == null) { if (k == 0 && p.HasIndex) problems += " index missing"; continue; }
+                            if (4 * words[k] != end) problems += " " + keys[k] + " not at the padded end of the previous section";
+                            for (int i = 0; i < bin.Length; i++) if (p.Bytes[4 * words[k] + i] != bin[i]) { problems += " " + keys[k] + " byte " + i; break; }
+                            end = 4 * words[k] + ((bin.Length + 3) & ~3);
+                            for (int i = 4 * words[k] + bin.Length; i < end; i++) if (p.Bytes[i] != 0) problems += " padding";
+                        }
+                        if (p.Length != end || p.Length % 4 != 0) problems += " length " + p.Length + " != " + end;
+                        if (p.N != m.Frame.N || p.Encoding != fmt.Encoding || p.HasIndex != m.Frame.HasIndex) problems += " header";
+                        Check(problems.Length == 0, "gpu payload: " + name + (values ? " (with float decode)" : " (payload only)"), problems);
+                    }
+                }
+                byte[] nan = VectorBytes(dir, "invalid_frame_nan");
+                FrameFormat f32 = FormatFromJson(J.O(J.O(LoadVector(dir, "invalid_frame_nan")["context"])["format"]));
+                ServerMessageDecoder pd = new ServerMessageDecoder();
+                pd.KeepPayload = true; pd.DecodeValues = false;
+                string got = "(none)";
+                try { pd.Decode(nan, 0, nan.Length, f32, new ServerMessage { Frame = new FrameData() }); }
+                catch (ProtocolException e) { got = e.Code; }
+                Check(got == "non_finite", "gpu payload: payload-only decoding still refuses NaN (non_finite)", got);
+                // f16: a half with an all-ones exponent
+                Dictionary<string, object> hv = LoadVector(dir, "frame_f16");
+                FrameFormat f16 = FormatFromJson(J.O(hv["format"]));
+                byte[] hb = VectorBytes(dir, "frame_f16");
+                byte[] pos = BinOf(hb, "position");
+                int at = -1;
+                for (int i = 0; i + pos.Length <= hb.Length && at < 0; i++)
+                {
+                    int j = 0;
+                    while (j < pos.Length && hb[i + j] == pos[j]) j++;
+                    if (j == pos.Length) at = i;
+                }
+                hb[at + 1] = 0x7c; // first half -> +inf
+                got = "(none)";
+                try { pd.Decode(hb, 0, hb.Length, f16, new ServerMessage { Frame = new FrameData() }); }
+                catch (ProtocolException e) { got = e.Code; }
+                Check(got == "non_finite", "gpu payload: payload-only f16 decoding refuses infinity", got);
+            });
+
+            Run("gpu reference: WriteFrame matches the state path; neutral payload", delegate
+            {
+                ClientConnection c = new ClientConnection();
+                MsgPackWriter w = new MsgPackWriter();
+                Hello h = new Hello(); h.Layout = "arkit52";
+                c.EncodeHello(h, w);
+                ServerMessage m = new ServerMessage();
+                m.Frame = new FrameData();
+                foreach (string n in new[] { "welcome", "avatar" }) { byte[] b = VectorBytes(dir, n); c.Receive(b, 0, b.Length, m); }
+                byte[] fb = VectorBytes(dir, "frame_f32");
+                c.Receive(fb, 0, fb.Length, m);
+                GaussianState st = new GaussianState(c.Avatar);
+                st.Apply(m.Frame);
+                int[] map = { 2, -1, 0, 4 }; // splat 1 and 3 unmatched, server 1 has no splat
+                float[] fpos = new float[15]; uint[] fother = new uint[20];
+                int lo, hi;
+                UgsPacking.WriteGpu(st, 0, 3, map, true, fpos, fother, out lo, out hi);
+                uint[] pos = new uint[15], other = new uint[20];
+                UgsPacking.Hide(pos, other, 5);
+                UgsPacking.WriteFrame(m.Frame, map, true, pos, other);
+                bool same = true;
+                foreach (int g in new[] { 0, 2, 4 })
+                {
+                    for (int k = 0; k < 3; k++) if (pos[3 * g + k] != BitCast.FloatToUInt(fpos[3 * g + k])) same = false;
+                    for (int k = 0; k < 4; k++) if (other[4 * g + k] != fother[4 * g + k]) same = false;
+                }
+                bool hidden = pos[3] == UgsPacking.HiddenPositionBits && pos[9] == UgsPacking.HiddenPositionBits && other[5] == 0 && other[13] == 0 &&
+                              other[4] == UgsPacking.PackRotation(0f, 0f, 0f, 1f);
+                Check(same && hidden, "gpu reference: WriteFrame (mirrored) = WriteGpu for matched splats; unmatched stay hidden (NaN position, zero scale)");
+                FramePayload np = new FramePayload();
+                GpuTables.NeutralPayload(c.Avatar, np);
+                bool ok = np.N == 4 && !np.HasIndex && np.PositionWord == 0 && np.RotationWord == 12 && np.ScaleWord == 28 && np.Words == 40 &&
+                          BitCast.ReadFloatLE(np.Bytes, 4 * 12 + 4 * 7) == c.Avatar.Rotation[7] && BitCast.ReadFloatLE(np.Bytes, 4 * 28 + 4 * 11) == c.Avatar.Scale[11];
+                Check(ok, "gpu payload: the avatar's neutral state as a dense f32 payload");
+                uint[] permWords = GpuTables.PermutationWords(map);
+                Check(permWords[1] == 0xffffffffu && permWords[3] == 4 && GpuTables.KernelName(FrameEncoding.F16) == "CSOferaDecodeF16",
+                      "gpu tables: permutation words (0xffffffff unmatched) and kernel names");
+            });
+        }
+
         static void UnitTests(string python)
         {
             Run("msgpack", MsgPackTests);
@@ -800,6 +1117,49 @@ namespace Ofera.Client.Tests
             string output = p.StandardOutput.ReadToEnd() + p.StandardError.ReadToEnd();
             p.WaitForExit();
             Check(p.ExitCode == 0, "facelog: file read back by ofera.sources.read_facelog", output.Trim());
+            File.Delete(path); File.Delete(scriptPath);
+            FaceLogTrackerTimeTests(python);
+        }
+
+        /// The recorder's Quest format: a Face_Time column (tracker clock); rows repeating a tracker time are
+        /// one sample to the reader, which times samples by Face_Time.
+        static void FaceLogTrackerTimeTests(string python)
+        {
+            string path = Path.Combine(Path.GetTempPath(), "ofera_facelog_tracker_" + Process.GetCurrentProcess().Id + ".csv");
+            float[] wts = new float[70];
+            bool refused = false;
+            using (FaceLogWriter fl = FaceLogWriter.Create(path, "ovr70", "Quest Pro, Unity recorder (test)", true, false))
+            {
+                fl.TrackerTime = true;
+                try { fl.Write(0.0, wts); } catch (InvalidOperationException) { refused = true; }
+                Check(refused, "facelog: a Face_Time log refuses a row without tracker time");
+                double[] tracker = { 8000.0, 8000.0 + 1 / 36.0, 8000.0 + 1 / 36.0, 8000.0 + 2 / 36.0, 8000.0 + 3 / 36.0, 8000.0 + 3 / 36.0 };
+                for (int row = 0; row < tracker.Length; row++)
+                {
+                    for (int i = 0; i < 70; i++) wts[i] = (float)((i + 3 * (int)Math.Round((tracker[row] - 8000.0) * 36)) % 64) / 64f;
+                    fl.Write(row / 83.0, tracker[row], wts, 0.9f, 0.3f);
+                }
+                bool late = false;
+                try { fl.TrackerTime = false; } catch (InvalidOperationException) { late = true; }
+                Check(late, "facelog: TrackerTime cannot change after the header");
+            }
+            string[] lines = File.ReadAllLines(path);
+            Check(lines[3].StartsWith("time,Face_Time,BROW_LOWERER_L,") && lines[3].EndsWith(",TONGUE_RETREAT,confidence_lower,confidence_upper")
+                  && lines[4].StartsWith("0.000000,8000.000000,0,"),
+                  "facelog: Face_Time column after time", lines.Length > 4 ? lines[3].Substring(0, 40) + " / " + lines[4].Substring(0, 30) : "short file");
+            if (python == null) { Console.WriteLine("SKIP facelog with Face_Time read back (no --python)"); File.Delete(path); return; }
+            string script = "import sys\nimport numpy as np\nfrom ofera.sources import read_facelog\nlog = read_facelog(sys.argv[1])\n" +
+                            "assert log.layout.name == 'ovr70', log.layout.name\nassert log.weights.shape == (4, 70), log.weights.shape\n" +
+                            "assert np.allclose(log.times, np.arange(4) / 36.0, atol=2e-6), log.times\n" +
+                            "assert np.allclose(log.confidence, [[0.9, 0.3]] * 4), log.confidence\nprint('ok', log.weights.shape)\n";
+            string scriptPath = path + ".py";
+            File.WriteAllText(scriptPath, script);
+            ProcessStartInfo psi = new ProcessStartInfo(python, "\"" + scriptPath + "\" \"" + path + "\"");
+            psi.UseShellExecute = false; psi.RedirectStandardOutput = true; psi.RedirectStandardError = true;
+            Process p = Process.Start(psi);
+            string output = p.StandardOutput.ReadToEnd() + p.StandardError.ReadToEnd();
+            p.WaitForExit();
+            Check(p.ExitCode == 0, "facelog: Face_Time log read back as one sample per tracker time", output.Trim());
             File.Delete(path); File.Delete(scriptPath);
         }
 

@@ -8,15 +8,17 @@ Public API::
     save_avatar(avatar, path)                            # the project's .npz (FORMAT.md)
     import_gaussianavatars([folder] | [ply, npz], head)  # GaussianAvatars point_cloud.ply + flame_param.npz
     import_fate(checkpoint, head)                        # FATE torch checkpoint
+    import_lam(zip)                                      # LAM export: skin.glb + offset.ply (ARKit morph head)
     export_state_ply(path, state, opacity, sh)           # standard world-space 3DGS PLY
     ofera.avatar.render: Camera, project_gaussians, composite, render_state, face_camera
 """
 
-from .binding import AvatarError, BarycentricBinding, TriangleBinding
-from .deform import BarycentricDeformer, Deformer, TriangleDeformer
+from .binding import AvatarError, BarycentricBinding, TriangleBinding, VertexBinding
+from .deform import BarycentricDeformer, Deformer, TriangleDeformer, VertexDeformer
 from .fate import import_fate
 from .gaussianavatars import import_gaussianavatars
 from .io import load_avatar, save_avatar
+from .lam import import_lam
 from .model import GaussianAvatar
 from .ply import export_state_ply
 from .state import GaussianState
@@ -30,9 +32,12 @@ __all__ = [
     "GaussianState",
     "TriangleBinding",
     "TriangleDeformer",
+    "VertexBinding",
+    "VertexDeformer",
     "export_state_ply",
     "import_fate",
     "import_gaussianavatars",
+    "import_lam",
     "load_avatar",
     "save_avatar",
 ]

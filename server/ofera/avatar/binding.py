@@ -1,4 +1,4 @@
-"""How Gaussians are attached to the head mesh: the two binding types, with their local attributes.
+"""How Gaussians are attached to the head mesh: the bindings (triangle, barycentric, vertex) and their attributes.
 
 Triangle-local (GaussianAvatars). Each Gaussian has a parent face and attributes in that face's frame
 (R_f, s_f, c_f from :mod:`.frames`)::
@@ -13,6 +13,13 @@ scalar; its scale is relative to the face's scale in the canonical mesh the avat
     position = sum_k bary_k v_k + n_f * normal_offset_scale * tanh(offset)   # n_f = cross(v1 - v0, v2 - v0)
     rotation = quat(R_f) (x) normalize(local_rotation)
     scale    = exp(local_log_scale + log(s_f / face_scale_canonical[f]))
+
+Vertex offset (LAM). Each Gaussian has a parent vertex and a fixed offset from it; its rotation and scale
+do not follow the surface (LAM's renderer and training keep them as predicted for the neutral head)::
+
+    position = v[vertex] + offset
+    rotation = normalize(rotation)                                # (w, x, y, z), fixed
+    scale    = exp(log_scale)                                     # fixed
 
 Arrays are kept as loaded (float32 for attributes, int64 for faces); deformers compute in float64.
 """
@@ -129,4 +136,27 @@ class BarycentricBinding:
         return int(self.face.shape[0])
 
 
-Binding = TriangleBinding | BarycentricBinding
+@dataclass(frozen=True, eq=False)
+class VertexBinding:
+    """LAM's binding. vertex (N,) int parent vertex; offset (N, 3) metres from it; rotation (N, 4) (w, x, y, z)
+    and log_scale (N, 3) in the avatar's frame, the same in every frame (they do not follow the surface)."""
+
+    kind: ClassVar[str] = "vertex"
+    vertex: np.ndarray
+    offset: np.ndarray
+    rotation: np.ndarray
+    log_scale: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = self.vertex.shape[0]
+        _check("binding vertex", self.vertex, (n,))
+        _check("vertex offset", self.offset, (n, 3))
+        _check("rotation", self.rotation, (n, 4))
+        _check("log scale", self.log_scale, (n, 3))
+
+    @property
+    def count(self) -> int:
+        return int(self.vertex.shape[0])
+
+
+Binding = TriangleBinding | BarycentricBinding | VertexBinding

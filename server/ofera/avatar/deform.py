@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..head.rotations import matrix_to_quaternion, quaternion_multiply, wxyz_to_xyzw
-from .binding import BarycentricBinding, Binding, TriangleBinding, normalize_quaternions
+from .binding import BarycentricBinding, Binding, TriangleBinding, VertexBinding, normalize_quaternions
 from .frames import face_frames, face_normals_unnormalised
 from .state import GaussianState
 
@@ -82,10 +82,31 @@ class BarycentricDeformer(Deformer):
         return self._state(position, rotation, scale)
 
 
+class VertexDeformer(Deformer):
+    """LAM: ``v[vertex] + offset``; rotation and scale fixed (see :class:`.binding.VertexBinding`)."""
+
+    def __init__(self, binding: VertexBinding, faces: np.ndarray, num_vertices: int) -> None:
+        self.num_vertices = num_vertices
+        self.vertex = np.asarray(binding.vertex, np.int64)
+        self.offset = binding.offset.astype(np.float64)
+        rotation = wxyz_to_xyzw(normalize_quaternions(binding.rotation)).astype(np.float32)
+        scale = np.exp(binding.log_scale.astype(np.float64)).astype(np.float32)
+        rotation.flags.writeable = False
+        scale.flags.writeable = False
+        self._rotation, self._scale = rotation, scale  # shared by every state (read-only)
+
+    def deform(self, vertices: np.ndarray) -> GaussianState:
+        vertices = self._check(vertices)
+        position = (vertices[self.vertex] + self.offset).astype(np.float32)
+        return GaussianState(position, self._rotation, self._scale)
+
+
 def make_deformer(binding: Binding, faces: np.ndarray, num_vertices: int) -> Deformer:
     """The reference deformer for ``binding`` on a mesh with ``faces`` (F, 3) and ``num_vertices``."""
     if isinstance(binding, TriangleBinding):
         return TriangleDeformer(binding, faces, num_vertices)
     if isinstance(binding, BarycentricBinding):
         return BarycentricDeformer(binding, faces, num_vertices)
+    if isinstance(binding, VertexBinding):
+        return VertexDeformer(binding, faces, num_vertices)
     raise TypeError(f"unknown binding {type(binding).__name__}")

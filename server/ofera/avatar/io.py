@@ -5,12 +5,16 @@ Format ``ofera-avatar``, version 1. N Gaussians, K = (d+1)^2 SH coefficients, F 
     format                    str   "ofera-avatar"
     format_version            int   1 (readers refuse newer versions)
     name                      str
-    binding                   str   "triangle" (GaussianAvatars) or "barycentric" (FATE)
+    binding                   str   "triangle" (GaussianAvatars), "barycentric" (FATE) or "vertex" (LAM)
+    expression                str   optional: "flame68" (default: driven by the EPM) or "arkit51" (ARKit morph head)
     opacity                   (N,)        float32  linear, 0..1 (NOT a logit)
     sh                        (N, K, 3)   float32  SH coefficients, [:, 0] is DC; colour = C0 * dc + 0.5
-    gaussian/face             (N,)        int32    parent face index into head/faces
+    gaussian/face             (N,)        int32    parent face index into head/faces (not for "vertex")
     gaussian/rotation         (N, 4)      float32  local rotation (w, x, y, z), normalised on use
     gaussian/log_scale        (N, 3)      float32  natural log of the local scale
+  binding = "vertex" (rotation and scale are in the avatar's frame and fixed):
+    gaussian/vertex           (N,)        int32    parent vertex index into head/v_template
+    gaussian/vertex_offset    (N, 3)      float32  offset from the vertex, metres
   binding = "triangle":
     gaussian/position         (N, 3)      float32  local position in face units
   binding = "barycentric":
@@ -37,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..head.model import HeadModel, HeadModelError
-from .binding import AvatarError, BarycentricBinding, TriangleBinding
+from .binding import AvatarError, BarycentricBinding, TriangleBinding, VertexBinding
 from .model import GaussianAvatar
 
 FORMAT = "ofera-avatar"
@@ -88,12 +92,17 @@ def avatar_arrays(avatar: GaussianAvatar) -> dict[str, np.ndarray]:
         "format_version": np.array(FORMAT_VERSION),
         "name": np.array(avatar.name),
         "binding": np.array(b.kind),
+        "expression": np.array(avatar.expression),
         "opacity": avatar.opacity.astype(np.float32),
         "sh": avatar.sh.astype(np.float32),
-        "gaussian/face": b.face.astype(np.int32),
         "gaussian/rotation": b.rotation.astype(np.float32),
         "gaussian/log_scale": b.log_scale.astype(np.float32),
     }
+    if isinstance(b, VertexBinding):
+        arrays["gaussian/vertex"] = b.vertex.astype(np.int32)
+        arrays["gaussian/vertex_offset"] = b.offset.astype(np.float32)
+        return arrays | head_arrays(avatar.head)
+    arrays["gaussian/face"] = b.face.astype(np.int32)
     if isinstance(b, TriangleBinding):
         arrays["gaussian/position"] = b.position.astype(np.float32)
     else:
@@ -122,10 +131,13 @@ def save_avatar(avatar: GaussianAvatar, path: str | Path) -> Path:
 
 def _binding_from(z, kind: str):
     common = {
-        "face": z["gaussian/face"].astype(np.int64),
         "rotation": z["gaussian/rotation"].astype(np.float32),
         "log_scale": z["gaussian/log_scale"].astype(np.float32),
     }
+    if kind == VertexBinding.kind:
+        return VertexBinding(vertex=z["gaussian/vertex"].astype(np.int64),
+                             offset=z["gaussian/vertex_offset"].astype(np.float32), **common)
+    common["face"] = z["gaussian/face"].astype(np.int64)
     if kind == TriangleBinding.kind:
         return TriangleBinding(position=z["gaussian/position"].astype(np.float32), **common)
     if kind == BarycentricBinding.kind:
@@ -136,7 +148,7 @@ def _binding_from(z, kind: str):
             normal_offset_scale=float(z["normal_offset_scale"]),
             **common,
         )
-    raise AvatarError(f"unknown binding type {kind!r} (expected 'triangle' or 'barycentric')")
+    raise AvatarError(f"unknown binding type {kind!r} (expected 'triangle', 'barycentric' or 'vertex')")
 
 
 def load_avatar_npz(path: str | Path) -> GaussianAvatar:
@@ -154,6 +166,7 @@ def load_avatar_npz(path: str | Path) -> GaussianAvatar:
                 opacity=z["opacity"].astype(np.float32),
                 sh=z["sh"].astype(np.float32),
                 name=str(z["name"]),
+                expression=str(z["expression"]) if "expression" in z.files else "flame68",
             )
     except AvatarError as exc:
         raise AvatarError(f"{path}: {exc}") from None
@@ -162,7 +175,8 @@ def load_avatar_npz(path: str | Path) -> GaussianAvatar:
 
 
 def load_avatar(source: str | Path) -> GaussianAvatar:
-    """``"default"`` (the procedural avatar, cached on disk) or an OFERA avatar ``.npz``."""
+    """``"default"`` (the procedural avatar, cached on disk), an OFERA avatar ``.npz`` or a LAM export ``.zip``
+    (imported once, then read from the cache: :func:`ofera.avatar.lam.import_lam_cached`)."""
     if str(source) == "default":
         from .cache import default_avatar
 
@@ -170,9 +184,13 @@ def load_avatar(source: str | Path) -> GaussianAvatar:
     path = Path(source)
     if not path.is_file():
         raise AvatarError(f"{path}: no such file (give 'default' or an OFERA avatar .npz)")
+    if path.suffix.lower() == ".zip":
+        from .lam import import_lam_cached
+
+        return import_lam_cached(path)
     if path.suffix != ".npz":
         raise AvatarError(
-            f"{path}: unknown avatar format {path.suffix!r}: expected an OFERA avatar .npz "
+            f"{path}: unknown avatar format {path.suffix!r}: expected an OFERA avatar .npz or a LAM .zip "
             "(convert GaussianAvatars / FATE outputs with `ofera avatar import`)"
         )
     return load_avatar_npz(path)

@@ -17,9 +17,14 @@ import numpy as np
 from ..head.model import HeadModel
 from .binding import AvatarError, Binding
 from .deform import Deformer, make_deformer
-from .movable import movable_gaussians
+from .movable import movable_gaussians, movable_vertices
 from .sh import sh_degree
 from .state import GaussianState
+
+EXPRESSION_SPACES = ("flame68", "arkit51")
+"""What drives an avatar: ``flame68`` = the EPM's 68 FLAME values (50 expression + jaw and eye 6D rotations),
+``arkit51`` = the BDA-aligned ARKit weights themselves (a head whose 51 expression directions are ARKit morph
+targets, in the ``arkit51`` order; the EPM is skipped)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -29,6 +34,7 @@ class GaussianAvatar:
     opacity: np.ndarray  # (N,) float32, linear
     sh: np.ndarray  # (N, (d+1)^2, 3) float32
     name: str = "avatar"
+    expression: str = "flame68"  # the expression space: "flame68" (EPM output) or "arkit51" (morph-target head)
 
     def __post_init__(self) -> None:
         n = self.binding.count
@@ -42,6 +48,18 @@ class GaussianAvatar:
             raise AvatarError(f"{self.name}: {exc}") from None
         if not (np.all(np.isfinite(self.opacity)) and np.all(np.isfinite(self.sh))):
             raise AvatarError(f"{self.name}: opacity or SH hold NaN or infinite values")
+        if self.expression not in EXPRESSION_SPACES:
+            raise AvatarError(f"{self.name}: unknown expression space {self.expression!r} "
+                              f"(expected one of {', '.join(EXPRESSION_SPACES)})")
+        if self.expression == "arkit51" and self.head.expr_dims != 51:
+            raise AvatarError(f"{self.name}: an arkit51 avatar needs a head with 51 expression directions (the ARKit "
+                              f"morph targets), {self.head.name!r} has {self.head.expr_dims}")
+        vertex = getattr(self.binding, "vertex", None)
+        if vertex is not None:
+            if n and (vertex.min() < 0 or vertex.max() >= self.head.num_vertices):
+                raise AvatarError(f"{self.name}: Gaussians bind to vertex {int(vertex.max())} but head "
+                                  f"{self.head.name!r} has only {self.head.num_vertices} vertices")
+            return
         face = self.binding.face
         if n and (face.min() < 0 or face.max() >= self.head.num_faces):
             raise AvatarError(
@@ -64,12 +82,16 @@ class GaussianAvatar:
 
     @property
     def binding_type(self) -> str:
-        """``"triangle"`` (GaussianAvatars) or ``"barycentric"`` (FATE)."""
+        """``"triangle"`` (GaussianAvatars), ``"barycentric"`` (FATE) or ``"vertex"`` (LAM)."""
         return self.binding.kind
 
     @cached_property
     def movable(self) -> np.ndarray:
-        """(N,) bool: Gaussians on faces that expressions, the jaw or the eyes move (see :mod:`.movable`)."""
+        """(N,) bool: Gaussians on faces (vertex binding: vertices) that expressions, the jaw or the eyes move
+        (see :mod:`.movable`)."""
+        vertex = getattr(self.binding, "vertex", None)
+        if vertex is not None:
+            return movable_vertices(self.head)[np.asarray(vertex, np.int64)]
         return movable_gaussians(self.head, self.binding.face)
 
     def deformer(self) -> Deformer:
@@ -95,8 +117,10 @@ class GaussianAvatar:
             "count": self.count,
             "sh_degree": self.sh_degree,
             "binding": self.binding_type,
+            "expression": self.expression,
             "movable": int(self.movable.sum()),
-            "faces_used": int(np.unique(self.binding.face).size),
+            **({"vertices_used": int(np.unique(self.binding.vertex).size)} if self.binding_type == "vertex"
+               else {"faces_used": int(np.unique(self.binding.face).size)}),
             "head": {"name": self.head.name, "vertices": self.head.num_vertices, "faces": self.head.num_faces,
                      "expr_dims": self.head.expr_dims},
             "extent_m": [round(float(e), 4) for e in hi - lo],

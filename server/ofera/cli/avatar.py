@@ -10,23 +10,32 @@ import typer
 
 from ..avatar import AvatarError, load_avatar
 from ..head import HeadModelError
-from .errors import user_errors
+from .errors import CliError, user_errors
 from .expression import ExpressionArgs, ExprOpt, EyesOpt, JawOpt
 from .summary import print_summary
 
-app = typer.Typer(help="Gaussian avatars: the built-in default, OFERA .npz, GaussianAvatars / FATE imports.",
+app = typer.Typer(help="Gaussian avatars: the built-in default, OFERA .npz, GaussianAvatars / FATE / LAM imports.",
                   no_args_is_help=True)
 
-SourceArg = Annotated[str, typer.Argument(help="'default' or an OFERA avatar .npz")]
+SourceArg = Annotated[str, typer.Argument(help="'default', an OFERA avatar .npz or a LAM .zip")]
 
 
 class ImportKind(str, Enum):
     gaussianavatars = "gaussianavatars"
     fate = "fate"
+    lam = "lam"
 
 
 def _state(avatar, expr: list[str] | None, jaw: float, eyes: str | None):
-    args = ExpressionArgs.parse(avatar.head, expr, jaw, eyes)
+    names: tuple[str, ...] = ()
+    if getattr(avatar, "expression", "flame68") == "arkit51":
+        from ..mapping.layouts import ARKIT51_NAMES
+
+        if jaw or eyes:
+            raise CliError("an ARKit-driven avatar has no jaw or eye joints: use --expr jawOpen=1, "
+                           "--expr eyeLookInLeft=0.5, ...")
+        names = ARKIT51_NAMES
+    args = ExpressionArgs.parse(avatar.head, expr, jaw, eyes, names)
     return avatar.deformer().deform(args.vertices(avatar.head))
 
 
@@ -80,18 +89,38 @@ def render(
 @app.command("import")
 @user_errors(AvatarError, HeadModelError)
 def import_(
-    kind: Annotated[ImportKind, typer.Argument(help="gaussianavatars or fate")],
+    kind: Annotated[ImportKind, typer.Argument(help="gaussianavatars, fate or lam")],
     sources: Annotated[list[Path], typer.Argument(help="gaussianavatars: the folder, or point_cloud.ply and "
-                                                       "flame_param.npz; fate: the checkpoint")],
-    head: Annotated[str, typer.Option("--head", help="The FLAME file the avatar was made with (.pkl or .npz).")],
+                                                       "flame_param.npz; fate: the checkpoint; lam: the export .zip")],
     out: Annotated[Path, typer.Option("-o", "--out", help="OFERA avatar .npz to write.")],
+    head: Annotated[str | None, typer.Option("--head", help="gaussianavatars / fate: the FLAME file the avatar was "
+                                                            "made with (.pkl or .npz); lam: not needed.")] = None,
     n_expr: Annotated[int | None, typer.Option("--n-expr", help="FATE: expression components (default: "
                                                                 "from the checkpoint's size)")] = None,
+    target_order: Annotated[str | None, typer.Option("--target-order", help="lam, only for a skin.glb without morph "
+                                                     "target names: 'arkit' (Apple's order) or 'sorted' "
+                                                     "(alphabetical)")] = None,
 ) -> None:
-    """Convert a GaussianAvatars or FATE avatar into the project's .npz (bound to the given FLAME head)."""
+    """Convert a GaussianAvatars or FATE avatar (bound to the given FLAME head) or a LAM export (ARKit morph
+    head, no FLAME needed) into the project's .npz."""
     from ..avatar import import_fate, import_gaussianavatars, save_avatar
     from ..head import load_head
 
+    if kind is ImportKind.lam:
+        from ..avatar.lam import load_lam
+
+        if len(sources) != 1:
+            raise AvatarError(f"lam takes one .zip, got {len(sources)} paths")
+        result = load_lam(sources[0], name=out.name.split(".", 1)[0], target_order=target_order)
+        for note in result.notes:
+            print(f"  {note}")
+        avatar = result.avatar
+        save_avatar(avatar, out)
+        print(f"wrote {out} ({avatar.count} Gaussians, vertex binding, SH degree {avatar.sh_degree}, driven by "
+              f"{avatar.head.expr_dims} ARKit morph targets: expression {avatar.expression})")
+        return
+    if head is None:
+        raise CliError(f"{kind.value} needs --head: the FLAME file the avatar was made with (.pkl or .npz)")
     model = load_head(head)
     if kind is ImportKind.gaussianavatars:
         avatar = import_gaussianavatars(sources, model)

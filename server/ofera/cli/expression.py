@@ -13,7 +13,8 @@ from ..head.rotations import euler_xy_to_matrix
 from .errors import CliError
 
 # The options of every command that poses a head: `head render`, `avatar render`, `avatar export`.
-ExprOpt = Annotated[list[str] | None, typer.Option("--expr", help="Expression coefficient INDEX=VALUE (repeatable).")]
+ExprOpt = Annotated[list[str] | None, typer.Option("--expr", help="Expression coefficient INDEX=VALUE (repeatable); "
+                                                  "ARKit-driven (LAM) avatars also take NAME=VALUE, e.g. jawOpen=1.")]
 JawOpt = Annotated[float, typer.Option("--jaw", help="Jaw opening in degrees.")]
 EyesOpt = Annotated[str | None, typer.Option("--eyes", help="Gaze YAW,PITCH in degrees.")]
 
@@ -27,14 +28,19 @@ class ExpressionArgs:
     eyes: np.ndarray  # (3, 3), both eyes
 
     @classmethod
-    def parse(cls, model: HeadModel, expr: list[str] | None, jaw: float, eyes: str | None) -> ExpressionArgs:
+    def parse(cls, model: HeadModel, expr: list[str] | None, jaw: float, eyes: str | None,
+              names: tuple[str, ...] = ()) -> ExpressionArgs:
+        """``names``: the expression directions' names (an ARKit morph head), accepted as NAME=VALUE."""
         values = np.zeros(model.expr_dims)
+        lookup = {n.lower(): i for i, n in enumerate(names)}
         for item in expr or []:
             try:
                 i, v = item.split("=")
-                idx, val = int(i), float(v)
+                idx = lookup[i.strip().lower()] if i.strip().lower() in lookup else int(i)
+                val = float(v)
             except ValueError:
-                raise CliError(f"--expr {item!r}: expected INDEX=VALUE, e.g. --expr 0=2.0") from None
+                hint = f" or NAME=VALUE ({', '.join(names[:3])}, ...)" if names else ""
+                raise CliError(f"--expr {item!r}: expected INDEX=VALUE{hint}, e.g. --expr 0=2.0") from None
             if not 0 <= idx < model.expr_dims:
                 raise CliError(f"--expr {item!r}: index must be 0..{model.expr_dims - 1}")
             values[idx] = val

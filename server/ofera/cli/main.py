@@ -17,7 +17,7 @@ app.add_typer(mapping_cmd.bda_app, name="bda")
 app.add_typer(mapping_cmd.epm_app, name="epm")
 app.add_typer(mapping_cmd.mapping_app, name="mapping")
 app.command("serve")(serve_cmd.serve)
-app.command("replay")(replay.replay)
+app.add_typer(replay.replay_app, name="replay")
 app.add_typer(replay.ingest_app, name="ingest")
 app.add_typer(mia_app, name="mia")
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from typer.core import TyperGroup
 
 from .errors import CliError, user_errors
 
@@ -87,9 +88,24 @@ def _explain_failure(stats, what: str) -> None:
     raise typer.Exit(1)
 
 
+class ReplayGroup(TyperGroup):
+    """`ofera replay LOG ...` replays a log (the hidden `play` command); `ofera replay inspect LOG` and any
+    other subcommand are dispatched by name. A first argument that is not a subcommand is the log."""
+
+    def parse_args(self, ctx, args: list[str]) -> list[str]:
+        if not args or args[0] not in self.commands:
+            args = [PLAY, *args]
+        return super().parse_args(ctx, args)
+
+
+PLAY = "play"
+replay_app = typer.Typer(cls=ReplayGroup, help="Replay a recorded face log through a running server "
+                         "(`ofera replay LOG --url URL`), or describe it (`ofera replay inspect LOG`).")
+
+
 def replay(
-    log: Annotated[Path, typer.Argument(help="Face log: face-log/MediaPipe/ARKit CSV, Live Link Face CSV or "
-                                       ".gesichter capture.", show_default=False)],
+    log: Annotated[Path, typer.Argument(help="Face log: face-log/MediaPipe/ARKit CSV, Quest Pro Unity log, "
+                                       "Live Link Face CSV or .gesichter capture.", show_default=False)],
     url: UrlOpt = "ws://127.0.0.1:8000",
     speed: Annotated[float, typer.Option("--speed", help="Playback speed (2: twice as fast).")] = 1.0,
     loop: Annotated[bool, typer.Option("--loop", help="Repeat the log until Ctrl-C.")] = False,
@@ -97,8 +113,9 @@ def replay(
     layout: Annotated[str, typer.Option("--layout", help="'auto' (detect from the column names) or a layout "
                                         "the log must hold: arkit52, arkit51, mediapipe52, ovr63, ovr70, "
                                         "livelink61.")] = "auto",
-    fps: Annotated[float | None, typer.Option("--fps", help="Frame rate of a Live Link timecode (default 60) "
-                                              "or of a CSV frame column.")] = None,
+    fps: Annotated[float | None, typer.Option("--fps", help="Frame rate of a Live Link timecode (default 60), "
+                                              "of a CSV frame column, or the row rate of a log without "
+                                              "time (Quest snapshot or headerless logs).")] = None,
     record: Annotated[Path | None, typer.Option("--record", help="Save the received frames to this .npz "
                                                 "(seq, t_us, recv_us, latency, timing, answered weights).")] = None,
     record_positions: Annotated[bool, typer.Option("--record-positions", help="With --record: also save every "
@@ -115,6 +132,9 @@ def replay(
 ) -> None:
     """Send a recorded face log to a server at its recorded pace and measure the frames that come back.
 
+    Quest Pro logs send one `bs` per tracker sample (repeated rows dropped), with their lower/upper face
+    confidences when the log has them. `ofera replay inspect LOG` shows what a log holds, without a server.
+
     Exits 1 when the server refuses the session or reports errors, 2 on a bad argument or log.
     """
     _replay(log, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar, encoding,
@@ -125,13 +145,13 @@ def replay(
 def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar,
             encoding, token, max_lag, drain, quiet) -> None:
     from ofera.replay import FrameRecorder, LinkOptions, Replayer, replay_through, stream_url
-    from ofera.sources import read_facelog
+    from ofera.sources.inspect import inspect_facelog
 
     if passes is not None and passes < 1:
         raise CliError(f"--passes must be at least 1, got {passes}")
     _check_encoding(encoding)
     target = stream_url(url)
-    log = read_facelog(log_path, layout, fps)
+    log, report = inspect_facelog(log_path, layout, fps)
     replayer = Replayer(log, speed=speed, loop=loop, max_lag=max_lag,
                         max_passes=passes if loop else 1)
     recorder = FrameRecorder(log.layout.name, log.weights, replayer.times, record_positions) if record else None
@@ -139,6 +159,10 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
     console = _err_console()
     console.print(f"replaying {log_path} ({len(log)} frames, {log.duration:.2f} s, layout {log.layout.name}) "
                   f"to {target} at x{speed:g}{' in a loop' if loop else ''}")
+    if report.format.startswith("quest"):
+        console.print(f"{report.format}: {report.rows} rows -> {report.samples} samples ({report.duplicates} "
+                      f"repeats, {report.invalid + report.malformed} invalid dropped), time: {report.time_source}"
+                      + (", with lower/upper confidence" if log.confidence is not None else ""))
     progress, on_tick = _progress(console, replayer, quiet)
     with progress or contextlib.nullcontext():
         stats = _run_with_sigint(
@@ -147,6 +171,8 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
     summary = stats.summary(
         log=str(log_path), layout=log.layout.name, url=target, speed=speed, loop=loop, passes=stats.passes,
         frames_in_log=len(log), log_duration_s=round(replayer.log_duration, 4),
+        log_format=report.format, rows_in_log=report.rows, time_source=report.time_source,
+        confidence_sent=log.confidence is not None,
     )
     _write_json(json_out, summary)
     if recorder is not None:
@@ -158,6 +184,31 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
         f"sending took {stats.duration:.3f} s (expected {stats.expected_duration or 0:.3f} s), "
         f"wall {stats.wall:.3f} s; latency p50 {lat['p50']} ms, p99 {lat['p99']} ms")
     _explain_failure(stats, "replay")
+
+
+replay_app.command(PLAY, hidden=True)(replay)
+
+
+@replay_app.command("inspect")
+@user_errors()
+def inspect_log(
+    log: Annotated[Path, typer.Argument(help="Face log to describe (any format `ofera replay` reads).",
+                                       show_default=False)],
+    layout: Annotated[str, typer.Option("--layout", help="As for `ofera replay`: 'auto', or the layout the "
+                                        "log must hold (a headerless Quest log: ovr63 or ovr70).")] = "auto",
+    fps: Annotated[float | None, typer.Option("--fps", help="As for `ofera replay`: the row rate of a log "
+                                              "without time.")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the report as JSON instead of text.")] = False,
+) -> None:
+    """Describe a face log as `ofera replay` would read it: detected format and layout, rows, samples kept,
+    duplicates and invalid rows dropped, time source, rate, duration, columns ignored. Needs no server."""
+    from ofera.sources.inspect import inspect_facelog
+
+    _, report = inspect_facelog(log, layout, fps)
+    if json_out:
+        print(json.dumps(report.to_dict(), indent=2))
+    else:
+        print(report.text())
 
 
 def _progress(console, replayer, quiet: bool):

@@ -16,6 +16,9 @@ def serve(
     port: Annotated[int | None, typer.Option(help="TCP port, 0 = any free [env OFERA_PORT; default 8000].")] = None,
     avatars: Annotated[Path | None, typer.Option(help="Directory of avatars (each may have a sibling <id>.onnx EPM "
                                                   "and <id>.bda.npz BDA) [env OFERA_AVATARS].")] = None,
+    avatar_zip: Annotated[Path | None, typer.Option(help="A LAM avatar export .zip to serve (imported once, "
+                                                     "cached by content); the default avatar unless "
+                                                     "--default-avatar is given [env OFERA_AVATAR_ZIP].")] = None,
     devices: Annotated[Path | None, typer.Option(help="Directory of device BDA profiles <device>.npz "
                                                   "[env OFERA_DEVICES].")] = None,
     default_avatar: Annotated[str | None, typer.Option(help="Avatar id that 'default' means "
@@ -34,6 +37,10 @@ def serve(
     bs_rate: Annotated[float | None, typer.Option(help="Most bs per second per session [env OFERA_BS_RATE].")] = None,
     compute_threads: Annotated[int | None, typer.Option(help="Pipeline threads, 0 = one per core "
                                                          "[env OFERA_COMPUTE_THREADS].")] = None,
+    confidence_threshold: Annotated[float | None, typer.Option(help="A face region whose bs confidence is below "
+                                                                "this keeps its last confident expression (default "
+                                                                "0.5; 0: never) [env OFERA_CONFIDENCE_THRESHOLD]."
+                                                                )] = None,
     log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
 ) -> None:
     """Stream Gaussian avatars over WebSocket: warms up the default avatar, prints where to connect."""
@@ -42,16 +49,19 @@ def serve(
     from ..streaming.config import Settings
     from ..streaming.server import serve as run
 
-    given = {k: v for k, v in dict(host=host, port=port, avatars=avatars, devices=devices,
+    given = {k: v for k, v in dict(host=host, port=port, avatars=avatars, avatar_zip=avatar_zip, devices=devices,
                                    default_avatar=default_avatar, token=token, allowed_origins=allowed_origins,
                                    ssl_keyfile=ssl_keyfile, ssl_certfile=ssl_certfile, max_sessions=max_sessions,
                                    max_message_bytes=max_message_bytes, bs_rate=bs_rate,
-                                   compute_threads=compute_threads, log_level=log_level).items() if v is not None}
+                                   compute_threads=compute_threads, confidence_threshold=confidence_threshold,
+                                   log_level=log_level).items() if v is not None}
     try:
         settings = Settings(**given)
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise CliError(f"bad settings: {problems}") from None
-    print(f"OFERA server: warming up avatar {settings.default_avatar!r} on {settings.host}:{settings.port} ...",
+    default = (settings.avatar_zip.name.split(".", 1)[0] if settings.avatar_zip is not None
+               and "default_avatar" not in settings.model_fields_set else settings.default_avatar)
+    print(f"OFERA server: warming up avatar {default!r} on {settings.host}:{settings.port} ...",
           flush=True)
     run(settings)

@@ -180,9 +180,12 @@ def experiment(
     seed: Annotated[int, typer.Option(help="Subject and training seed.")] = 0,
     threads: Annotated[int, typer.Option(help="torch CPU threads (1 is fastest for these small tensors, and "
                                                "reproducible).")] = 1,
+    tune: Annotated[bool, typer.Option("--tune", help="Also choose learning-rate scale and views per step per arm "
+                                                      "on the validation frames (6 trainings per arm).")] = False,
 ) -> None:
     """Train one avatar without MiA (tracker values) and one with MiA (EPM values) on a synthetic capture, drive
-    both with the EPM on held-out frames, and compare PSNR / SSIM against the ground truth."""
+    both with the EPM on held-out frames, and compare PSNR / SSIM against the ground truth. Hyperparameters
+    (the step kept, and with --tune the learning rates and views) are chosen on validation frames."""
     _need_torch()
     from dataclasses import replace
 
@@ -193,8 +196,8 @@ def experiment(
     torch.set_num_threads(max(1, threads))
     cfg = QUICK if quick else FULL
     cfg = replace(cfg, seed=seed, **({"iterations": iterations} if iterations else {}))
-    res = run_experiment(cfg, epm=None if epm == "default" else epm, grid=grid)
-    summary = {k: res[k] for k in ("psnr", "ssim")}
+    res = run_experiment(cfg, epm=None if epm == "default" else epm, grid=grid, tune=tune)
+    summary = {k: res[k] for k in ("psnr", "ssim", "val_psnr")}
     print(json.dumps(summary, indent=1))
     if json_out is not None:
         write_json(res, json_out)

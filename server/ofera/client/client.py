@@ -84,10 +84,12 @@ class Client:
 
     # ------------------------------------------------------------------ sending
 
-    async def send_bs(self, weights: np.ndarray, seq: int | None = None, t: int | None = None) -> int:
-        """Send one `bs` (weights in the session's layout). Returns the seq used (default: last + 1)."""
+    async def send_bs(self, weights: np.ndarray, seq: int | None = None, t: int | None = None,
+                      conf: np.ndarray | None = None) -> int:
+        """Send one `bs` (weights in the session's layout; `conf` optional [lower, upper] face confidence
+        in [0, 1]). Returns the seq used (default: last + 1)."""
         self.seq = self.seq + 1 if seq is None else seq
-        await self.ws.send(self.conn.bs(self.seq, now_us() if t is None else t, weights))
+        await self.ws.send(self.conn.bs(self.seq, now_us() if t is None else t, weights, conf))
         return self.seq
 
     async def send_raw(self, data: bytes | str) -> None:

@@ -25,8 +25,9 @@ from ofera.sources.facelog import FaceLog
 
 Clock = Callable[[], float]
 Sleep = Callable[[float], Awaitable[object]]
-SendFn = Callable[[int, int, np.ndarray], Awaitable[object]]
-"""`send(seq, t_us, weights)`: sends one `bs`; `t_us` is the send time on the replay clock."""
+SendFn = Callable[..., Awaitable[object]]
+"""`send(seq, t_us, weights)`: sends one `bs`; `t_us` is the send time on the replay clock. When the log
+has confidences, `send(seq, t_us, weights, conf=(2,) float32 [lower, upper])`."""
 
 
 def percentiles_ms(values_s: list[float] | np.ndarray, prefix: str = "") -> dict[str, float | None]:
@@ -214,6 +215,9 @@ class Replayer:
         self.start = now if start is None else start
         total = self.total_frames
         n = len(self.times)
+        conf = None
+        if self.log.confidence is not None and self.log.confidence.shape[1] == 2:
+            conf = np.clip(self.log.confidence, 0.0, 1.0).astype(np.float32)
         for p, i, offset in self.schedule():
             if self._stop:
                 break
@@ -231,7 +235,10 @@ class Replayer:
                 stats.skipped += 1
                 continue
             t_us = round(now * 1e6)
-            await send(p * n + i, t_us, self.log.weights[i])
+            if conf is None:
+                await send(p * n + i, t_us, self.log.weights[i])
+            else:
+                await send(p * n + i, t_us, self.log.weights[i], conf=conf[i])
             stats.on_sent(now, lateness, p * n + i)
             stats.scheduled = (offset if stats.scheduled is None else stats.scheduled[0], offset)
         return stats

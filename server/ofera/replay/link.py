@@ -55,8 +55,9 @@ class Link:
     def count(self) -> int:
         return self.client.count
 
-    async def send(self, seq: int, t_us: int, w: np.ndarray) -> None:
-        await self.client.send_bs(w, seq=seq, t=t_us)
+    async def send(self, seq: int, t_us: int, w: np.ndarray, conf: np.ndarray | None = None) -> None:
+        """One `bs`; `conf`: optional (2,) [lower, upper] face confidence in [0, 1]."""
+        await self.client.send_bs(w, seq=seq, t=t_us, conf=conf)
 
     async def events(self) -> AsyncIterator[Frame | ErrorMessage]:
         """Frames and errors until the connection closes; a fatal error is yielded last."""

@@ -120,7 +120,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get("/v1/avatars")
     async def avatars() -> JSONResponse:
-        return JSONResponse({"default": settings.default_avatar, "avatars": registry.describe(),
+        return JSONResponse({"default": registry.default_id, "avatars": registry.describe(),
                              "devices": sorted(registry.devices), "layouts": list(LAYOUTS),
                              "encodings": list(ENCODINGS), "coords": list(COORDS),
                              "auth": settings.token is not None})

@@ -19,6 +19,10 @@ class Settings(BaseSettings):
     avatars: Path | None = Field(
         None, description="Directory of avatar files; each may have a sibling EPM <stem>.onnx and BDA "
         "<stem>.bda.npz. 'default' (the built-in avatar) is always available unless the directory has its own.")
+    avatar_zip: Path | None = Field(
+        None, description="A LAM avatar export (.zip) to serve as avatar <zip stem>, imported once and cached (by "
+        "content) in the cache directory; it is the default avatar unless default_avatar is given. A .zip in the "
+        "avatars directory is served the same way.")
     devices: Path | None = Field(
         None, description="Directory of device BDA profiles <device>.npz; hello.device selects one.")
     default_avatar: str = Field("default", description="Avatar id that hello.avatar 'default' resolves to.")
@@ -35,6 +39,8 @@ class Settings(BaseSettings):
     bs_burst: float | None = Field(None, gt=0, description="Token-bucket depth for bs_rate (default: one "
                                    "second's worth).")
     compute_threads: int = Field(0, ge=0, description="Threads running pipelines (0: one per CPU core).")
+    confidence_threshold: float = Field(0.5, ge=0.0, le=1.0, description="bs.conf below this holds that face "
+                                        "region's last confident expression (PROTOCOL.md 4.2); 0: never hold.")
     avatar_chunk_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest avatar message payload.")
     hello_timeout: float = Field(10.0, gt=0, description="Seconds a new connection may take to send hello.")
     fast: bool = Field(True, description="Fast paths: the avatar's numba deformation (moving Gaussians only) "
@@ -42,7 +48,7 @@ class Settings(BaseSettings):
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     log_level: str = Field("info", description="uvicorn log level.")
 
-    @field_validator("token", "avatars", "devices", "ssl_keyfile", "ssl_certfile", mode="before")
+    @field_validator("token", "avatars", "avatar_zip", "devices", "ssl_keyfile", "ssl_certfile", mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v

@@ -5,6 +5,10 @@ space; the server and `offline_pipeline` call the same code, so a streamed f32 f
 offline result bit for bit. One Pipeline per session (the layout adapter, the mapper's bound buffers
 and the deformer hold per-call state); the heavy parts (avatar, head subject, ONNX session) are shared
 through `AvatarAssets`, which `registry.AvatarRegistry` loads once per avatar.
+
+An avatar's expression space is its own (`AvatarAssets.expression`): FLAME-bound avatars ("flame68") go
+through the EPM; ARKit-bound ones ("arkit51", LAM imports: a head of 51 ARKit morph targets) take the
+BDA-aligned ARKit weights directly as morph weights and skip the EPM. Layout adapters and the BDA apply to both.
 """
 
 from __future__ import annotations
@@ -22,10 +26,13 @@ from ..mapping.bda import BDA
 from ..mapping.flame_values import split_flame_values
 from ..mapping.layouts import LayoutAdapter
 from ..mapping.runtime import Mapper
+from .confidence import DEFAULT_THRESHOLD, RegionHold
 
 STAGES: tuple[str, ...] = ("layout", "bda", "epm", "head", "deform")
 """Stage names of `Pipeline.run` timings, in order (microseconds): layout adapter, BDA, EPM (with the
-split into expression and rotations), head model (LBS), Gaussian deformation."""
+split into expression and rotations; ~0 for an arkit51 avatar, which skips it), head model (LBS; arkit51:
+the morph-target blend), Gaussian deformation."""
+_IDENTITY5 = np.broadcast_to(np.eye(3), (5, 3, 3))  # joint rotations of an arkit51 avatar's head (no joints move)
 
 
 @dataclass
@@ -35,18 +42,27 @@ class AvatarAssets:
     id: str
     avatar: Any  # ofera.avatar.GaussianAvatar
     subject: HeadSubject
-    mapper: Mapper  # the avatar's EPM (its ONNX session is shared; each Pipeline binds its own buffers)
+    mapper: Mapper | None  # the avatar's EPM (its ONNX session is shared; each Pipeline binds its own buffers);
+    # None for an arkit51 avatar (driven by the aligned ARKit weights themselves: no EPM)
     bda: BDA  # the avatar's own BDA (sibling <id>.bda.npz) or identity; a device profile overrides it
     fast: Any = None  # ofera.avatar.fast.FastAvatar (shared, read-only), or None: the numpy reference
     _cache: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
-    def create(cls, avatar_id: str, avatar: Any, mapper: Mapper, bda: BDA | None = None,
+    def create(cls, avatar_id: str, avatar: Any, mapper: Mapper | None, bda: BDA | None = None,
                fast: bool = True) -> AvatarAssets:
-        """`fast`: deform with `ofera.avatar.fast` (subset LBS + numba kernels) instead of the reference."""
+        """`fast`: deform with `ofera.avatar.fast` (subset LBS + numba kernels; vertex-bound avatars:
+        `ofera.avatar.fast_vertex`) instead of the reference."""
         subject = HeadSubject.create(avatar.head)  # the avatar's identity is baked into its head's template
+        if mapper is None and getattr(avatar, "expression", "flame68") != "arkit51":
+            raise ValueError(f"avatar {avatar_id!r} is driven by FLAME values and needs an EPM")
         fast_avatar = None
-        if fast:
+        vertex_bound = getattr(avatar, "binding_type", None) == "vertex"
+        if fast and vertex_bound and getattr(avatar, "expression", "flame68") == "arkit51":
+            from ..avatar.fast_vertex import FastVertexAvatar
+
+            fast_avatar = FastVertexAvatar(avatar, subject)
+        elif fast and not vertex_bound:  # (a vertex-bound FLAME avatar has no fast path: the reference runs)
             from ..avatar.fast import FastAvatar
 
             fast_avatar = FastAvatar(avatar, subject)
@@ -55,6 +71,12 @@ class AvatarAssets:
     @property
     def count(self) -> int:
         return int(self.avatar.count)
+
+    @property
+    def expression(self) -> str:
+        """What drives the avatar (welcome.avatar.expression): "flame68" (BDA -> EPM -> FLAME values) or "arkit51"
+        (the BDA-aligned ARKit weights are the morph weights of its head; the EPM is skipped)."""
+        return str(getattr(self.avatar, "expression", "flame68"))
 
     @property
     def sh_degree(self) -> int:
@@ -129,47 +151,62 @@ class AvatarAssets:
             self._cache[key] = sel
         return self._cache[key]
 
-    def pipeline(self, layout: str, bda: BDA | None = None) -> Pipeline:
-        return Pipeline(self, layout, bda)
+    def pipeline(self, layout: str, bda: BDA | None = None, confidence_threshold: float = DEFAULT_THRESHOLD
+                 ) -> Pipeline:
+        return Pipeline(self, layout, bda, confidence_threshold)
 
 
 class Pipeline:
     """One session's pipeline for one avatar and one blendshape layout. Not thread-safe: run one frame
     at a time (the session does)."""
 
-    def __init__(self, assets: AvatarAssets, layout: str, bda: BDA | None = None) -> None:
+    def __init__(self, assets: AvatarAssets, layout: str, bda: BDA | None = None,
+                 confidence_threshold: float = DEFAULT_THRESHOLD) -> None:
         self.assets = assets
         self.layout = layout
         self.adapter = LayoutAdapter(layout)
+        self.hold = RegionHold(confidence_threshold)  # bs.conf: low-confidence regions keep their last values
         self.bda = bda if bda is not None else assets.bda
         base = assets.mapper
         # The BDA runs as its own stage; the mapper gets an identity BDA (a clamp, a no-op on [0, 1]).
-        self.mapper = Mapper(base.session, None, source=base.source)
+        # An arkit51 avatar has no mapper: its head's morph weights are the aligned ARKit weights.
+        self.arkit = assets.expression == "arkit51"
+        self.mapper = Mapper(base.session, None, source=base.source) if not self.arkit else None
         # Head model + deformation: the fast path's per-stream buffers, or the reference deformer.
         self.fast = assets.fast.session() if assets.fast is not None else None
         self.deformer = assets.avatar.deformer() if self.fast is None else None
+        if self.arkit and self.fast is None:  # the reference morph-target blend (numpy)
+            from ..avatar.fast_vertex import morph_blend_reference
+
+            self._morph = morph_blend_reference
         self._x51 = np.zeros(51, np.float32)
         self._y = np.zeros(68, np.float32)
 
-    def run(self, weights: np.ndarray) -> tuple[Any, dict[str, int]]:
-        """Blendshape weights (L,) in the session's layout -> (GaussianState in FLAME space, stage
-        durations in microseconds). The returned state is the caller's: never written again while referenced
-        (fresh arrays on the reference path, a pooled read-only state on the fast path)."""
+    def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[Any, dict[str, int]]:
+        """Blendshape weights (L,) in the session's layout and optional `conf` (2,) [lower, upper] face
+        confidence (a region below the threshold keeps its last confident values: streaming.confidence) ->
+        (GaussianState in FLAME space, stage durations in microseconds). The returned state is the caller's:
+        never written again while referenced (fresh arrays on the reference path, a pooled read-only state on
+        the fast path)."""
         clock = time.perf_counter_ns
         t0 = clock()
-        x = self.adapter(weights)
+        x = self.hold(self.adapter(weights), conf)
         t1 = clock()
         a = self.bda.apply(x, out=self._x51)
         t2 = clock()
-        y = self.mapper.map(a, out=self._y)
-        expr, rotations = split_flame_values(y)
+        if self.arkit:  # the "epm" stage is skipped (0 us): BDA output (clamped to [0, 1]) = morph weights
+            expr, rotations = a, _IDENTITY5
+        else:
+            y = self.mapper.map(a, out=self._y)
+            expr, rotations = split_flame_values(y)
         t3 = clock()
         if self.fast is not None:
             verts = self.fast.head(expr, rotations)
             t4 = clock()
             state = self.fast.deform(verts)
         else:
-            verts = lbs(self.assets.subject, expr[None], rotations[None])[0][0]
+            verts = (self._morph(self.assets.avatar.head, expr) if self.arkit  # what lbs gives: no joints move
+                     else lbs(self.assets.subject, expr[None], rotations[None])[0][0])
             t4 = clock()
             state = self.deformer.deform(verts)
         t5 = clock()

@@ -3,6 +3,9 @@
 Avatars directory: every entry (file or folder) is an avatar whose id is its name up to the first dot
 (`anna.ply` -> `anna`), except `<id>.onnx` (that avatar's EPM) and `<id>.bda.npz` (its BDA), which sit
 next to it. `default` is the built-in avatar with the shipped EPM unless the directory has its own.
+A `.zip` (a LAM export) is imported on first use and cached by content (`ofera.avatar.lam.import_lam_cached`);
+`Settings.avatar_zip` adds one more zip, which is then the default avatar unless `default_avatar` is set.
+ARKit-driven avatars (LAM) load no EPM.
 Devices directory: `<device>.npz` BDA files; hello's `device` picks one.
 """
 
@@ -32,8 +35,12 @@ def _stem(p: Path) -> str:
     return p.name.split(".", 1)[0]
 
 
-def scan_avatars(directory: Path | None) -> dict[str, AvatarSource]:
+def scan_avatars(directory: Path | None, avatar_zip: Path | None = None) -> dict[str, AvatarSource]:
     found: dict[str, AvatarSource] = {DEFAULT: AvatarSource(DEFAULT, None, None, None)}
+    if avatar_zip is not None:
+        if not avatar_zip.is_file():
+            raise FileNotFoundError(f"avatar zip {avatar_zip} does not exist (give a LAM export .zip)")
+        found[_stem(avatar_zip)] = AvatarSource(_stem(avatar_zip), avatar_zip, None, None)
     if directory is None:
         return found
     if not directory.is_dir():
@@ -44,6 +51,8 @@ def scan_avatars(directory: Path | None) -> dict[str, AvatarSource]:
         if p.name.endswith((".onnx", ".bda.npz")) or p.name.lower().startswith("readme"):
             continue
         aid = _stem(p)
+        if avatar_zip is not None and aid == _stem(avatar_zip):
+            continue  # the --avatar-zip one wins
         epm, bda = directory / f"{aid}.onnx", directory / f"{aid}.bda.npz"
         found[aid] = AvatarSource(aid, p, epm if epm.is_file() else None, bda if bda.is_file() else None)
     if DEFAULT not in found or found[DEFAULT].path is None:  # a lone default.onnx / default.bda.npz applies
@@ -66,10 +75,13 @@ class AvatarRegistry:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        self.sources = scan_avatars(settings.avatars)
+        self.sources = scan_avatars(settings.avatars, settings.avatar_zip)
         self.devices = scan_devices(settings.devices)
-        if settings.default_avatar not in self.sources:
-            raise ValueError(f"default avatar {settings.default_avatar!r} is not in {settings.avatars} "
+        self.default_id = settings.default_avatar
+        if settings.avatar_zip is not None and "default_avatar" not in settings.model_fields_set:
+            self.default_id = _stem(settings.avatar_zip)
+        if self.default_id not in self.sources:
+            raise ValueError(f"default avatar {self.default_id!r} is not in {settings.avatars} "
                              f"(available: {', '.join(self.sources)})")
         self._loaded: dict[str, AvatarAssets] = {}
         self._bdas: dict[str, BDA] = {}
@@ -77,8 +89,8 @@ class AvatarRegistry:
         self._locks: dict[str, threading.Lock] = {}
 
     def resolve(self, avatar_id: str) -> str | None:
-        """The id a hello's `avatar` names (`default` -> settings.default_avatar), or None if unknown."""
-        aid = self.settings.default_avatar if avatar_id == DEFAULT else avatar_id
+        """The id a hello's `avatar` names (`default` -> the default avatar's id), or None if unknown."""
+        aid = self.default_id if avatar_id == DEFAULT else avatar_id
         return aid if aid in self.sources else None
 
     def loaded(self, avatar_id: str) -> AvatarAssets | None:
@@ -102,8 +114,11 @@ class AvatarRegistry:
     def _load(self, src: AvatarSource) -> AvatarAssets:
         from ..avatar import load_avatar
 
-        avatar = load_avatar(DEFAULT if src.path is None else src.path)
-        mapper = Mapper.load(src.epm) if src.epm is not None else Mapper.default()
+        avatar = load_avatar(DEFAULT if src.path is None else src.path)  # a LAM .zip: imported once, cached
+        if getattr(avatar, "expression", "flame68") == "arkit51":
+            mapper = None  # driven by the aligned ARKit weights themselves
+        else:
+            mapper = Mapper.load(src.epm) if src.epm is not None else Mapper.default()
         bda = BDA.load(src.bda) if src.bda is not None else None
         return AvatarAssets.create(src.id, avatar, mapper, bda, fast=self.settings.fast)
 
@@ -124,7 +139,7 @@ class AvatarRegistry:
             out.append({"id": aid, "source": "built-in" if src.path is None else src.path.name,
                         "epm": src.epm.name if src.epm else "default", "bda": src.bda.name if src.bda else "identity",
                         "loaded": a is not None, "count": a.count if a else None,
-                        "sh_degree": a.sh_degree if a else None})
+                        "sh_degree": a.sh_degree if a else None, "expression": a.expression if a else None})
         return out
 
 
@@ -136,7 +151,8 @@ def registry_for(settings: Settings | None = None) -> AvatarRegistry:
     """A process-wide registry per (avatars, devices, default_avatar, fast): servers and offline runs share
     loads."""
     settings = settings or Settings()
-    key = (str(settings.avatars), str(settings.devices), settings.default_avatar, settings.fast)
+    key = (str(settings.avatars), str(settings.avatar_zip), str(settings.devices), settings.default_avatar,
+           settings.fast)
     with _REGISTRIES_LOCK:
         reg = _REGISTRIES.get(key)
         if reg is None:

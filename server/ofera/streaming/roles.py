@@ -128,7 +128,8 @@ class Source:
 
     def _compute(self, p: PendingBs) -> ComputedFrame:
         start = time.monotonic_ns()
-        state, stages = self.pipeline.run(p.bs.w)
+        conf = p.bs.conf  # optional face confidence: passed only when sent (pipeline stand-ins take w alone)
+        state, stages = self.pipeline.run(p.bs.w) if conf is None else self.pipeline.run(p.bs.w, conf)
         end = time.monotonic_ns()
         # PROTOCOL.md section 9 names (`map` = layout adapter + BDA), plus the pipeline's own stages.
         timing = {"decode": p.decode_us, "queue": (start - p.received_ns) // 1000, **stages}

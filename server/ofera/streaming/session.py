@@ -218,14 +218,15 @@ class Session:
             log.exception("loading avatar %s failed", aid)
             raise refuse(E.INTERNAL, f"the server could not load avatar {aid!r}: {type(exc).__name__}: {exc}") from exc
 
-        welcome = self.conn.accept(self.id, AvatarInfo(id=aid, count=wire.count, sh_degree=wire.sh_degree),
+        info = AvatarInfo(id=aid, count=wire.count, sh_degree=wire.sh_degree, expression=assets.expression)
+        welcome = self.conn.accept(self.id, info,
                                    quant=quant, server=f"ofera/{__version__}")
         await self.t.send(welcome)
         for chunk in self.conn.avatar(wire, s.avatar_chunk_bytes):
             await self.t.send(chunk)
             self.metrics.bytes_out.inc(len(chunk))
 
-        pipeline = assets.pipeline(hello.layout, device_bda)
+        pipeline = assets.pipeline(hello.layout, device_bda, s.confidence_threshold)
         self.source = Source(pipeline, self.hub.executor, self.metrics)
         assert self.conn.format is not None
         key = (hello.encoding, hello.coords, hello.sparse, size)

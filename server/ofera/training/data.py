@@ -57,7 +57,7 @@ class Capture:
         return len(self.frames)
 
     def indices(self, part: str) -> np.ndarray:
-        """Frame indices of split ``part`` ('train' or 'test'); without a split every frame is 'train'."""
+        """Frame indices of split ``part`` ('train', 'val' or 'test'); without a split every frame is 'train'."""
         if part in self.split:
             pos = {f: i for i, f in enumerate(self.frames)}
             return np.array([pos[f] for f in self.split[part]], np.int64)

@@ -7,14 +7,20 @@
    - with MiA: trained on EPM(blendshapes) of the same training frames.
 3. Both are driven by EPM(blendshapes) on held-out frames (what the server does at run time) and compared with
    the ground-truth images: PSNR and SSIM, plus a PNG grid (GT / without MiA / with MiA).
+
+Hyperparameters are chosen on validation frames (between the training and the test frames in time), never on
+the test frames: each arm keeps the training step with the best validation PSNR (checked every ``val_every``
+steps), and ``tune=True`` also picks, per arm, the learning-rate scale and views per step of ``TUNE_GRID`` with
+the best validation PSNR. The test frames are rendered once, for the chosen avatars.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +37,10 @@ class ExperimentConfig:
     cameras: int = 4
     train_frames: int = 120
     test_frames: int = 32
+    val_frames: int = 16  # hyperparameters (steps, learning rates, views) are chosen on these, never on test
     iterations: int = 2000
+    val_every: int = 100  # steps between validation checks; each arm keeps its best step on validation
+    lr_scale: float = 1.0  # multiplies every learning rate of TrainConfig
     per_face: int = 1
     seed: int = 0
     background: float = 1.0
@@ -41,7 +50,10 @@ class ExperimentConfig:
 
 
 FULL = ExperimentConfig()
-QUICK = ExperimentConfig(size=64, cameras=3, train_frames=48, test_frames=16, iterations=700)
+QUICK = ExperimentConfig(size=64, cameras=3, train_frames=48, test_frames=16, val_frames=8, iterations=700)
+TUNE_GRID: dict[str, tuple] = {"lr_scale": (0.5, 1.0, 2.0), "views_per_step": (1, 0)}
+"""What ``tune=True`` searches, per arm, on the validation frames (views_per_step 0: every camera)."""
+_LRS = tuple(f.name for f in fields(TrainConfig) if f.name.startswith("lr_"))
 
 
 # ----- the mapper --------------------------------------------------------------------------------------------
@@ -131,9 +143,27 @@ def save_grid(path: str | Path, columns: dict[str, np.ndarray], title: str = "")
 # ----- the experiment ----------------------------------------------------------------------------------------
 
 
+def _train_arm(start: TrainableAvatar, cap, flame: np.ndarray, tcfg: TrainConfig, val_every: int,
+               val_score: Callable[[TrainableAvatar], float], train_idx: np.ndarray):
+    """Train a copy of ``start``; returns (the avatar at its best validation step, that step, its score, the
+    validation curve [(step, score)], the training history)."""
+    av = TrainableAvatar.from_attributes(start.head_model, start.attributes())
+    trainer = Trainer(av, cap, flame, tcfg, train_idx=train_idx)
+    best = (-np.inf, 0, av.attributes())
+    curve = []
+    every = max(1, val_every)
+    while trainer.iteration < tcfg.iterations:
+        trainer.run(iterations=min(tcfg.iterations, trainer.iteration + every), progress=False)
+        score = val_score(av)
+        curve.append((trainer.iteration, round(score, 3)))
+        if score > best[0]:
+            best = (score, trainer.iteration, av.attributes())
+    return TrainableAvatar.from_attributes(start.head_model, best[2]), best[1], best[0], curve, trainer.history
+
+
 def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Path | None = None,
-                   progress: bool = True, log: Callable[[str], None] = print,
-                   train_overrides: dict | None = None, mapper=None) -> dict:
+                   log: Callable[[str], None] = print,
+                   train_overrides: dict | None = None, mapper=None, tune: bool = False) -> dict:
     """Run the experiment; returns the result dict (see module docstring; JSON-ready)."""
     from ..head import default_head
     from .synthetic import capture_cameras, degraded_copy, make_scene
@@ -142,10 +172,10 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
     t_start = time.perf_counter()
     head = default_head()
     cams = capture_cameras(cfg.cameras, cfg.size)
-    log(f"scene: {cfg.cameras} cameras at {cfg.size} px, {cfg.train_frames} training + {cfg.test_frames} held-out "
-        "frames of a rig subject")
+    log(f"scene: {cfg.cameras} cameras at {cfg.size} px, {cfg.train_frames} training + {cfg.val_frames} validation "
+        f"+ {cfg.test_frames} held-out frames of a rig subject")
     scene = make_scene(head, cfg.train_frames, cfg.test_frames, cams, seed=cfg.seed, per_face=cfg.per_face,
-                       background=cfg.background)
+                       background=cfg.background, n_val=cfg.val_frames)
     cap = scene.capture
     if mapper is None:
         mapper, mapper_name = load_mapper(head, epm)
@@ -154,8 +184,11 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
     log(f"mapper: {mapper_name}")
     y_epm = np.asarray(mapper.map_batch(cap.blendshapes), np.float32)
     y_trk = cap.tracker
-    train_idx, test_idx = cap.indices("train"), cap.indices("test")
+    train_idx, val_idx, test_idx = cap.indices("train"), cap.indices("val"), cap.indices("test")
+    if len(val_idx) == 0:
+        raise ValueError("the experiment needs validation frames (val_frames > 0) to choose its hyperparameters")
     gt_test = np.stack([[cap.image(c.name, i) for c in cams] for i in test_idx])  # (T, C, H, W, 3)
+    gt_val = np.stack([[cap.image(c.name, i) for c in cams] for i in val_idx])
     # Pixels that expressions change, per camera: "psnr_moving" measures only those.
     masks = np.stack([np.std(np.stack([cap.image(c.name, i) for i in range(cap.num_frames)]), 0).max(-1) > 1e-3
                       for c in cams])
@@ -167,37 +200,53 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
         per = [10 * np.log10(1.0 / max(float(diff[t][sel[t]].mean()), 1e-12)) for t in range(len(diff))]
         return base | {"psnr_moving": float(np.mean(per))}
 
+    def val_psnr(av: TrainableAvatar) -> float:  # EPM-driven, as at run time
+        return image_metrics(render_frames(av, y_epm[val_idx], cams, cfg.background), gt_val)["psnr"]
+
     start = degraded_copy(scene.gt_avatar, seed=cfg.seed + 1, correct_basis=cfg.correct_basis)
-    tcfg = TrainConfig(iterations=cfg.iterations, seed=cfg.seed, background=cfg.background,
-                       correct_basis=cfg.correct_basis, checkpoint_every=0, views_per_step=cfg.views_per_step)
+    base_cfg = TrainConfig(iterations=cfg.iterations, seed=cfg.seed, background=cfg.background,
+                           correct_basis=cfg.correct_basis, checkpoint_every=0, views_per_step=cfg.views_per_step)
     if train_overrides:
-        tcfg = replace(tcfg, **train_overrides)
-    results: dict = {"psnr": {}, "ssim": {}, "psnr_moving": {}}
+        base_cfg = replace(base_cfg, **train_overrides)
+    grid_points = [dict(zip(TUNE_GRID, v)) for v in itertools.product(*TUNE_GRID.values())] if tune else \
+        [{"lr_scale": cfg.lr_scale, "views_per_step": base_cfg.views_per_step}]
+    results: dict = {"psnr": {}, "ssim": {}, "psnr_moving": {}, "val_psnr": {}}
     renders: dict[str, np.ndarray] = {}
     extra: dict = {}
     for name, flame in (("without_mia", y_trk), ("mia", y_epm)):
         log(f"training {name.replace('_', ' ')} ({'tracker FLAME fit' if name == 'without_mia' else 'EPM(bs)'}"
-            f" values), {cfg.iterations} steps")
-        av = TrainableAvatar.from_attributes(head, start.attributes())
-        trainer = Trainer(av, cap, flame, tcfg, train_idx=train_idx)
+            f" values), {cfg.iterations} steps x {len(grid_points)} setting(s)")
+        tried = []
         t0 = time.perf_counter()
-        hist = trainer.run(progress=progress)
+        for point in grid_points:
+            tcfg = replace(base_cfg, views_per_step=point["views_per_step"],
+                           **{k: getattr(base_cfg, k) * point["lr_scale"] for k in _LRS})
+            av, step, score, curve, hist = _train_arm(start, cap, flame, tcfg, cfg.val_every, val_psnr, train_idx)
+            tried.append({**point, "best_step": step, "val_psnr": score, "val_curve": curve, "avatar": av,
+                          "history": hist})
+            log(f"  {name} {point}: best validation PSNR {score:.2f} dB at step {step}")
+        chosen = max(tried, key=lambda t: t["val_psnr"])
         secs = time.perf_counter() - t0
+        av = chosen["avatar"]
         pred = render_frames(av, y_epm[test_idx], cams, cfg.background)
         renders[name] = pred
         m = metrics(pred)
-        for k in results:
+        for k in ("psnr", "ssim", "psnr_moving"):
             results[k][name] = m[k]
+        results["val_psnr"][name] = chosen["val_psnr"]
         # The same avatar driven by the tracker's values (for the MiA avatar: values it never trained on).
         trk = metrics(render_frames(av, y_trk[test_idx], cams, cfg.background))
         extra[name] = {
             "train_seconds": round(secs, 1),
-            "final_l1": float(np.mean([h["l1"] for h in hist[-50:]])),
+            "chosen": {k: chosen[k] for k in ("lr_scale", "views_per_step", "best_step", "val_psnr")},
+            "tried": [{k: t[k] for k in ("lr_scale", "views_per_step", "best_step", "val_psnr", "val_curve")}
+                      for t in tried],
+            "final_l1": float(np.mean([h["l1"] for h in chosen["history"][-50:]])),
             "epm_driven": m,
             "tracker_driven": trk,
         }
-        log(f"  {name}: held-out PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (EPM-driven); "
-            f"{secs:.0f} s")
+        log(f"  {name}: held-out PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (EPM-driven; chosen on validation: "
+            f"{extra[name]['chosen']}); {secs:.0f} s")
     # Reference points: the ground-truth avatar on the FLAME mesh of the tracker's values / of the EPM's values.
     gt_av = TrainableAvatar.from_attributes(head, scene.gt_avatar.attributes())
     extra["reference"] = {
@@ -208,7 +257,8 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
     err = np.abs(y_epm - y_trk)
     extra["mapper_vs_tracker"] = {"expr_mae": float(err[:, :50].mean()), "rot6d_mae": float(err[:, 50:].mean())}
     results["extra"] = extra
-    results["config"] = asdict(cfg) | {"mapper": mapper_name, "train": asdict(tcfg)}
+    results["config"] = asdict(cfg) | {"mapper": mapper_name, "train": asdict(base_cfg), "tune": tune,
+                                       "tune_grid": TUNE_GRID if tune else None}
     results["fit_rms_mm"] = float(scene.fit_rms.mean() * 1e3)
     results["seconds"] = round(time.perf_counter() - t_start, 1)
     if grid is not None:

@@ -6,7 +6,7 @@ the head model), a capture-like weight sequence, the camera estimator's observed
 benchmark's estimator for that source: gain, bias, cross-talk, lag, jitter, dropouts), and the tracker's
 FLAME fit of the rig's meshes. Images are the ground-truth avatar (Gaussians bound to the head's faces)
 placed on the rig's mesh and rendered with the torch rasteriser. Frames are taken every ``stride`` frames of
-the sequence; the held-out frames come from the end of the sequence, after the training frames.
+the sequence; validation frames follow the training frames, and the held-out test frames come last.
 """
 
 from __future__ import annotations
@@ -118,8 +118,11 @@ class SyntheticScene:
 
 def make_scene(head: HeadModel, n_train: int, n_test: int, cameras: list[Camera], seed: int = 0,
                per_face: int = 1, background: float = 1.0, source: int = 0, stride: int = 4,
-               fps: float = 30.0) -> SyntheticScene:
-    """A new subject (``TEST_SUBJECT`` + seed) of paired-benchmark source ``source``; see the module docstring."""
+               fps: float = 30.0, n_val: int = 0) -> SyntheticScene:
+    """A new subject (``TEST_SUBJECT`` + seed) of paired-benchmark source ``source``; see the module docstring.
+
+    Frames in time order: ``n_train`` training, ``n_val`` validation (for choosing hyperparameters), then
+    ``n_test`` held-out test frames."""
     from ..mapping.paired.benchmark import SOURCES
     from ..mapping.paired.fit import FlameFitter
     from ..mapping.paired.observe import estimator_params, observe_camera
@@ -130,7 +133,7 @@ def make_scene(head: HeadModel, n_train: int, n_test: int, cameras: list[Camera]
     seeds = np.random.SeedSequence([BENCHMARK_SEED, TEST_SUBJECT + seed]).spawn(4)
     rngs = [np.random.default_rng(s) for s in seeds]
     style = RigStyle.random(rngs[0], head.shape_dims)
-    frames = (n_train + n_test) * stride
+    frames = (n_train + n_val + n_test) * stride
     w = generate_weights(rngs[1], frames, fps, src.sequence)
     estimator = estimator_params(np.random.default_rng([BENCHMARK_SEED, 0x50C, source]), src.noise)
     bs = observe_camera(rngs[2], w, fps, src.noise, estimator)
@@ -143,5 +146,6 @@ def make_scene(head: HeadModel, n_train: int, n_test: int, cameras: list[Camera]
     images = render_on_meshes(gt, meshes, cameras, background)
     names = [f"{i * stride:06d}" for i in range(len(pick))]
     capture = Capture(cameras, images, bs, names, tracker=fit.flame.astype(np.float32),
-                      split={"train": names[:n_train], "test": names[n_train:]})
+                      split={"train": names[:n_train], "val": names[n_train:n_train + n_val],
+                             "test": names[n_train + n_val:]})
     return SyntheticScene(head, style.shape, capture, gt, w, meshes, fit.rms)

@@ -5,7 +5,8 @@ build step, no CDN, nothing fetched from outside at run time. ``static/msgpack.j
 ``static/protocol.js`` are the client side of PROTOCOL.md (hello, bs, ping, bye; welcome, avatar chunks,
 frames in f32/f16/q13, dense or sparse), ``static/renderer.js`` draws the Gaussians with WebGL2 (instanced
 quads, projected 2D covariance, back-to-front premultiplied blending, depths sorted in
-``static/sort-worker.js``), ``static/facelog.js`` reads dropped face-log and Live Link CSV files and
+``static/sort-worker.js``), ``static/facelog.js`` reads dropped face-log and Live Link CSV files,
+``static/bsdata.js`` LAM / OpenAvatarChat ``bsData.json`` expression tracks, and
 ``static/app.js`` ties it together (sliders, presets, playback, orbit camera, statistics, reduced stream
 when the browser is slow).
 

@@ -1,6 +1,7 @@
 // Sans-I/O client end of one session (PROTOCOL.md section 3): state machine, avatar assembly,
 // frame decoding. The caller owns the socket. UnityEngine-free, C# 7.2.
 using System;
+using System.Collections.Generic;
 
 namespace Ofera.Client
 {
@@ -10,10 +11,37 @@ namespace Ofera.Client
     /// One session's protocol state. Not thread-safe: one receiving thread calls <see cref="Receive"/>;
     /// encoders write into caller-owned writers so sending may happen on another thread.
     /// </summary>
-    public sealed class ClientConnection
+    public sealed class ClientConnection : IFrameFormatSource
     {
         readonly ServerMessageDecoder _decoder = new ServerMessageDecoder();
         int _nextChunk, _nextOffset, _totalChunks = -1;
+        readonly Dictionary<string, MemberState> _members = new Dictionary<string, MemberState>();
+
+        /// <summary>Keep frames' wire arrays (FrameData.Payload) for the GPU upload path; with DecodeValues false, skip the float decode.</summary>
+        public bool KeepPayload { get { return _decoder.KeepPayload; } set { _decoder.KeepPayload = value; } }
+        public bool DecodeValues { get { return _decoder.DecodeValues; } set { _decoder.DecodeValues = value; } }
+
+        /// <summary>True when welcome named a room: join/leave and `member` on avatar chunks and frames are routed per member.</summary>
+        public bool InRoom { get { return Welcome != null && Welcome.Room != null; } }
+        /// <summary>Set by the Receive call whose avatar chunk completed a member's avatar (else null).</summary>
+        public MemberState CompletedMember { get; private set; }
+        /// <summary>Set by the Receive call that handled a `leave` for a known member (else null).</summary>
+        public MemberState LeftMember { get; private set; }
+        public int MemberCount { get { return _members.Count; } }
+
+        /// <summary>A member announced by `join` (its avatar may still be arriving), or null.</summary>
+        public MemberState Member(string id)
+        {
+            MemberState m;
+            return id != null && _members.TryGetValue(id, out m) ? m : null;
+        }
+
+        /// <summary>IFrameFormatSource: the format of a member whose avatar is complete, else null (the frame is not_ready).</summary>
+        public FrameFormat FormatFor(string member)
+        {
+            MemberState m = Member(member);
+            return m != null && m.Complete ? m.Format : null;
+        }
 
         public ClientState State { get; private set; }
         public Hello SentHello { get; private set; }
@@ -77,6 +105,8 @@ namespace Ofera.Client
         public ServerMessageKind Receive(byte[] buf, int offset, int count, ServerMessage result)
         {
             if (State == ClientState.Closed) throw new InvalidOperationException("receive on a closed connection");
+            CompletedMember = null;
+            LeftMember = null;
             try
             {
                 ServerMessageKind kind = _decoder.Decode(buf, offset, count, Format, result, MaxMessageSize);
@@ -85,7 +115,9 @@ namespace Ofera.Client
             }
             catch (ProtocolException e)
             {
-                ProtocolException err = State != ClientState.Streaming ? e.AsFatal() : e;
+                // in a room, membered traffic may run while the own avatar is still arriving (or never comes: watch-only)
+                bool tolerant = State == ClientState.Streaming || (InRoom && State == ClientState.ReceivingAvatar && !e.Fatal);
+                ProtocolException err = tolerant ? e : e.AsFatal();
                 if (err.Fatal) State = ClientState.Closed;
                 throw err;
             }
@@ -112,14 +144,47 @@ namespace Ofera.Client
                             throw new ProtocolException(ErrorCodes.BadField, "welcome's layout/coords (" + w.Layout + "/" + w.Coords + ") differ from hello's (" + SentHello.Layout + "/" + coords + ")", true);
                         Welcome = w;
                         Format = w.ToFormat();
+                        _members.Clear();
+                        _decoder.MemberFormats = w.Room != null ? this : null;
                         Mirroring = MirrorFlameToUnity && w.Coords == "flame";
                         Avatar = new AvatarData(w.Count, w.ShDegree);
                         _nextChunk = 0; _nextOffset = 0; _totalChunks = -1;
                         State = ClientState.ReceivingAvatar;
                         break;
                     }
+                case ServerMessageKind.Join:
+                    {
+                        if (Welcome == null) throw new ProtocolException(ErrorCodes.NotReady, "join before welcome", true);
+                        JoinMessage j = m.Join;
+                        MemberState ms = new MemberState();
+                        ms.Id = j.Member;
+                        ms.Join = j;
+                        ms.Avatar = new AvatarData(j.Count, j.ShDegree);
+                        Quant q = j.Quant ?? Welcome.Quant;
+                        FrameEncoding enc = Format.Encoding;
+                        if (enc == FrameEncoding.Q13 && q == null)
+                            throw new ProtocolException(ErrorCodes.BadField, "join: q13 session without quant parameters for member '" + j.Member + "'");
+                        ms.Format = new FrameFormat(enc, j.Count, Format.Sparse, enc == FrameEncoding.Q13 ? q : null);
+                        _members[j.Member] = ms; // a repeated join replaces the member (new avatar follows)
+                        break;
+                    }
+                case ServerMessageKind.Leave:
+                    {
+                        MemberState ms;
+                        if (_members.TryGetValue(m.Leave.Member, out ms))
+                        {
+                            _members.Remove(m.Leave.Member);
+                            LeftMember = ms;
+                        }
+                        break;
+                    }
                 case ServerMessageKind.Avatar:
                     {
+                        if (m.Avatar.Member != null && InRoom)
+                        {
+                            MemberChunk(buf, m.Avatar);
+                            break;
+                        }
                         if (State != ClientState.ReceivingAvatar)
                             throw new ProtocolException(ErrorCodes.NotReady, "unexpected avatar chunk in state " + State, true);
                         AvatarChunkHeader h = m.Avatar;
@@ -145,14 +210,56 @@ namespace Ofera.Client
                         break;
                     }
                 case ServerMessageKind.Frame:
-                    if (State != ClientState.Streaming)
+                    if (State != ClientState.Streaming && !(InRoom && m.Frame.Member != null))
                         throw new ProtocolException(ErrorCodes.NotReady, "frame before the avatar was complete (state " + State + ")");
-                    if (Mirroring) Coords.MirrorX(m.Frame);
+                    if (Mirroring && m.Frame.HasValues) Coords.MirrorX(m.Frame);
                     break;
                 case ServerMessageKind.Error:
                     if (m.Error.Fatal) State = ClientState.Closed;
                     break;
             }
         }
+
+        void MemberChunk(byte[] buf, AvatarChunkHeader h)
+        {
+            MemberState ms = Member(h.Member);
+            if (ms == null) throw new ProtocolException(ErrorCodes.NotReady, "avatar chunk for member '" + h.Member + "' before its join");
+            string problems = "";
+            if (ms.Complete) problems += "; the member's avatar is already complete";
+            if (h.Count != ms.Avatar.Count) problems += "; count " + h.Count + " != join's " + ms.Avatar.Count;
+            if (h.ShDegree != ms.Avatar.ShDegree) problems += "; sh_degree " + h.ShDegree + " != join's " + ms.Avatar.ShDegree;
+            if (h.Chunk != ms.NextChunk) problems += "; chunk " + h.Chunk + " arrived, expected " + ms.NextChunk;
+            if (ms.TotalChunks >= 0 && h.Chunks != ms.TotalChunks) problems += "; chunks " + h.Chunks + " != " + ms.TotalChunks;
+            if (h.Offset != ms.NextOffset) problems += "; offset " + h.Offset + " != " + ms.NextOffset;
+            bool last = h.Chunk == h.Chunks - 1;
+            if (last && h.Offset + h.N != ms.Avatar.Count) problems += "; last chunk ends at " + (h.Offset + h.N) + ", avatar has " + ms.Avatar.Count;
+            if (problems.Length > 0)
+            {
+                _members.Remove(h.Member); // its stream cannot be shown; a new join starts over
+                throw new ProtocolException(ErrorCodes.BadField, "bad avatar chunk for member '" + h.Member + "': " + problems.Substring(2));
+            }
+            _decoder.CopyAvatarChunk(buf, ms.Avatar);
+            ms.TotalChunks = h.Chunks;
+            ms.NextChunk++;
+            ms.NextOffset += h.N;
+            if (last)
+            {
+                if (Mirroring) Coords.MirrorX(ms.Avatar);
+                ms.Complete = true;
+                CompletedMember = ms;
+            }
+        }
+    }
+
+    /// <summary>One room member as the connection knows it: its join, its avatar (assembled from chunks) and frame format.</summary>
+    public sealed class MemberState
+    {
+        public string Id;
+        public JoinMessage Join;
+        public AvatarData Avatar;
+        public FrameFormat Format;
+        /// <summary>Every avatar chunk arrived: frames for this member are accepted.</summary>
+        public bool Complete;
+        internal int NextChunk, NextOffset, TotalChunks = -1;
     }
 }

@@ -13,15 +13,15 @@ namespace Ofera.Client
             Device = 7, Token = 8, MaxGaussians = 9, Seq = 10, T = 11, W = 12, Session = 13, Quant_ = 14,
             Server = 15, Count = 16, ShDegree = 17, Chunk = 18, Chunks = 19, Offset = 20, N = 21, Opacity = 22,
             Sh = 23, Position = 24, Rotation = 25, Scale = 26, Timing = 27, Index = 28, Code = 29, Message = 30,
-            Fatal = 31, Id = 32, PosMin = 33, PosMax = 34, LogScale = 35;
-        public const int KeyCount = 36;
+            Fatal = 31, Id = 32, PosMin = 33, PosMax = 34, LogScale = 35, Room = 36, Member = 37, Reason = 38;
+        public const int KeyCount = 39;
 
         public static readonly string[] Names =
         {
             "type", "protocol", "layout", "avatar", "encoding", "coords", "sparse", "device", "token",
             "max_gaussians", "seq", "t", "w", "session", "quant", "server", "count", "sh_degree", "chunk",
             "chunks", "offset", "n", "opacity", "sh", "position", "rotation", "scale", "timing", "index",
-            "code", "message", "fatal", "id", "pos_min", "pos_max", "log_scale",
+            "code", "message", "fatal", "id", "pos_min", "pos_max", "log_scale", "room", "member", "reason",
         };
 
         public static readonly byte[][] Utf8 = MakeUtf8();
@@ -229,9 +229,28 @@ namespace Ofera.Client
     /// into a caller-provided <see cref="FrameData"/>; avatar chunk arrays are validated and can then be
     /// copied with <see cref="CopyAvatarChunk"/> while the input buffer is unchanged.
     /// </summary>
+    /// <summary>Rooms: the frame format of a member's stream (null: unknown member, or its avatar is incomplete).</summary>
+    public interface IFrameFormatSource
+    {
+        FrameFormat FormatFor(string member);
+    }
+
     public sealed class ServerMessageDecoder : MessageDecoderBase
     {
-        public static readonly string[] Types = { "welcome", "avatar", "frame", "error", "pong" };
+        /// <summary>v1 types plus the rooms messages `join` and `leave` (DESIGN.md "Rooms"; the reference server does not send them yet).</summary>
+        public static readonly string[] Types = { "welcome", "avatar", "frame", "error", "pong", "join", "leave" };
+
+        /// <summary>Keep each frame's arrays as they arrived in <see cref="FrameData.Payload"/> (GPU upload).</summary>
+        public bool KeepPayload;
+        /// <summary>Decode frames into float arrays (false with KeepPayload: validate only, FrameData.HasValues false).</summary>
+        public bool DecodeValues = true;
+        /// <summary>Rooms: formats of members' streams; frames carrying `member` are decoded with these. Null: v1 (member ignored).</summary>
+        public IFrameFormatSource MemberFormats;
+
+        // member ids seen so far (UTF-8 or int -> string), so frames allocate no strings
+        readonly byte[][] _memberKeys = new byte[256][];
+        readonly string[] _memberNames = new string[256];
+        int _memberCount;
 
         // timing stage names seen so far (UTF-8 -> string), so frames allocate no strings
         readonly byte[][] _stageKeys = new byte[128][];
@@ -257,11 +276,46 @@ namespace Ofera.Client
             switch (t)
             {
                 case "frame":
-                    if (format == null) throw Err(ErrorCodes.NotReady, "frame before welcome: the session's format is unknown");
-                    if (result.Frame == null) result.Frame = new FrameData();
-                    DecodeFrame(format, result.Frame);
-                    result.Kind = ServerMessageKind.Frame;
-                    break;
+                    {
+                        string member = GetMember(Top, "frame", false);
+                        FrameFormat f = format;
+                        if (member != null && MemberFormats != null)
+                        {
+                            f = MemberFormats.FormatFor(member);
+                            if (f == null) throw Err(ErrorCodes.NotReady, "frame for member '" + member + "' before its join and complete avatar");
+                        }
+                        if (f == null) throw Err(ErrorCodes.NotReady, "frame before welcome: the session's format is unknown");
+                        if (result.Frame == null) result.Frame = new FrameData();
+                        DecodeFrame(f, result.Frame);
+                        result.Frame.Member = member;
+                        result.Kind = ServerMessageKind.Frame;
+                        break;
+                    }
+                case "join":
+                    {
+                        const string w = "join";
+                        JoinMessage j = new JoinMessage();
+                        j.Member = GetMember(Top, w, true);
+                        int av = GetMap(Top, Keys.Avatar, w, true);
+                        int qm = GetMap(Top, Keys.Quant_, w, false);
+                        Scan(av, Sub);
+                        j.AvatarId = GetStr(Sub, Keys.Id, "join.avatar", true);
+                        j.Count = (int)Math.Min(int.MaxValue, GetInt(Sub, Keys.Count, "join.avatar", 0, Protocol.UInt32Max));
+                        j.ShDegree = (int)GetInt(Sub, Keys.ShDegree, "join.avatar", 0, Protocol.MaxShDegree);
+                        if (qm >= 0) j.Quant = DecodeQuant(qm);
+                        result.Join = j;
+                        result.Kind = ServerMessageKind.Join;
+                        break;
+                    }
+                case "leave":
+                    {
+                        LeaveMessage l = new LeaveMessage();
+                        l.Member = GetMember(Top, "leave", true);
+                        l.Reason = GetStr(Top, Keys.Reason, "leave", false, Protocol.MaxStringBytes, 0);
+                        result.Leave = l;
+                        result.Kind = ServerMessageKind.Leave;
+                        break;
+                    }
                 case "avatar":
                     result.Avatar = DecodeAvatarChunk();
                     _lastBuffer = buf;
@@ -312,7 +366,63 @@ namespace Ofera.Client
             m.Sparse = GetBool(Top, Keys.Sparse, w);
             if (qm >= 0 && m.Encoding == "q13") m.Quant = DecodeQuant(qm);
             m.Server = GetStr(Top, Keys.Server, w, false);
+            m.Room = GetStr(Top, Keys.Room, w, false);
+            m.Member = GetMember(Top, w, false);
             return m;
+        }
+
+        /// <summary>
+        /// A `member` id: a string (1..256 characters) or a non-negative int (DESIGN.md does not fix the
+        /// type; an int becomes its decimal string). Interned: a known id allocates nothing.
+        /// </summary>
+        internal string GetMember(int[] s, string where, bool required)
+        {
+            if (s[Keys.Member] < 0)
+            {
+                if (required) throw Err(ErrorCodes.BadField, where + ": missing field 'member'");
+                return null;
+            }
+            R.Position = s[Keys.Member];
+            MsgType t = R.PeekType();
+            if (t == MsgType.Int)
+            {
+                long v = GetInt(s, Keys.Member, where, 0, long.MaxValue);
+                for (int i = 0; i < _memberCount; i++)
+                {
+                    byte[] k = _memberKeys[i];
+                    if (k.Length == 9 && k[0] == 0xff && BitConverter.ToInt64(k, 1) == v) return _memberNames[i];
+                }
+                byte[] key = new byte[9];
+                key[0] = 0xff; // never the first byte of a UTF-8 id
+                Buffer.BlockCopy(BitConverter.GetBytes(v), 0, key, 1, 8);
+                return Intern(key, v.ToString(System.Globalization.CultureInfo.InvariantCulture));
+            }
+            if (t != MsgType.Str) throw Err(ErrorCodes.BadField, where + ": field 'member' must be a str or an int, got " + R.PeekTypeName());
+            int off, len;
+            R.ReadStringSegment(out off, out len);
+            int cp = CodePoints(R.Buffer, off, len);
+            if (cp < 1 || cp > Protocol.MaxIdLength) throw Err(ErrorCodes.BadField, where + ": field 'member' must have 1.." + Protocol.MaxIdLength + " characters, got " + cp);
+            byte[] b = R.Buffer;
+            for (int i = 0; i < _memberCount; i++)
+            {
+                byte[] k = _memberKeys[i];
+                if (k.Length != len) continue;
+                int j = 0;
+                while (j < len && b[off + j] == k[j]) j++;
+                if (j == len) return _memberNames[i];
+            }
+            byte[] copy = new byte[len];
+            Buffer.BlockCopy(b, off, copy, 0, len);
+            return Intern(copy, System.Text.Encoding.UTF8.GetString(b, off, len));
+        }
+
+        string Intern(byte[] key, string name)
+        {
+            if (_memberCount == _memberKeys.Length) _memberCount = 0; // a long-lived room: start over (rare)
+            _memberKeys[_memberCount] = key;
+            _memberNames[_memberCount] = name;
+            _memberCount++;
+            return name;
         }
 
         Quant DecodeQuant(int pos)
@@ -363,6 +473,7 @@ namespace Ofera.Client
             GetArray(Top, Keys.Scale, w, 4, n * 3, true, out _sclOff, "float32");
             CheckFiniteF32(_sclOff, n * 3, w, Keys.Scale);
             if (count > int.MaxValue) throw Err(ErrorCodes.BadField, "avatar: count " + count + " is too large for this client");
+            h.Member = GetMember(Top, w, false);
             h.Count = (int)count; h.ShDegree = deg; h.Chunk = (int)chunk; h.Chunks = (int)Math.Min(chunks, int.MaxValue);
             h.Offset = (int)offset; h.N = (int)n;
             _lastChunk = h;
@@ -494,6 +605,27 @@ namespace Ofera.Client
                 if (BitConverter.IsLittleEndian) Buffer.BlockCopy(b, idxOff, f.Index, 0, 4 * ni);
                 else for (int i = 0; i < ni; i++) f.Index[i] = BitCast.ReadUInt32LE(b, idxOff + 4 * i);
             }
+            f.HasValues = DecodeValues || !KeepPayload;
+            if (!f.HasValues)
+            {
+                // validate as the float decoders do, without decoding
+                if (fmt.Encoding == FrameEncoding.F32)
+                {
+                    CheckFiniteF32(pOff, 3L * ni, w, Keys.Position);
+                    CheckFiniteF32(rOff, 4L * ni, w, Keys.Rotation);
+                    CheckFiniteF32(sOff, 3L * ni, w, Keys.Scale);
+                }
+                else if (fmt.Encoding == FrameEncoding.F16)
+                {
+                    if (!FiniteF16(b, pOff, 3 * ni)) throw NonFinite("position");
+                    if (!FiniteF16(b, rOff, 4 * ni)) throw NonFinite("rotation");
+                    if (!FiniteF16(b, sOff, 3 * ni)) throw NonFinite("scale");
+                }
+                f.Payload.Fill(b, fmt.Encoding, ni, hasIndex, idxOff, pOff, pLen, rOff, rLen, sOff, sLen);
+                return;
+            }
+            if (KeepPayload) f.Payload.Fill(b, fmt.Encoding, ni, hasIndex, idxOff, pOff, pLen, rOff, rLen, sOff, sLen);
+            else f.Payload.Length = 0;
             switch (fmt.Encoding)
             {
                 case FrameEncoding.Q13:
@@ -512,6 +644,13 @@ namespace Ofera.Client
                     if (!FrameCodec.DecodeF32(b, sOff, 3 * ni, f.Scale, 0)) throw NonFinite("scale");
                     break;
             }
+        }
+
+        static bool FiniteF16(byte[] b, int off, int count)
+        {
+            for (int i = 0; i < count; i++)
+                if ((b[off + 2 * i + 1] & 0x7c) == 0x7c) return false;
+            return true;
         }
 
         static ProtocolException NonFinite(string field)
@@ -601,6 +740,9 @@ namespace Ofera.Client
             if (h.Device != null) n++;
             if (h.Token != null) n++;
             if (h.MaxGaussians.HasValue) n++;
+            if (h.Room != null) n++;
+            if (h.Publish.HasValue) n++;
+            if (h.Self.HasValue) n++;
             w.WriteMapHeader(n);
             w.WriteString("type"); w.WriteString("hello");
             w.WriteString("protocol"); w.WriteInt(h.Protocol);
@@ -612,6 +754,9 @@ namespace Ofera.Client
             if (h.Device != null) { w.WriteString("device"); w.WriteString(h.Device); }
             if (h.Token != null) { w.WriteString("token"); w.WriteString(h.Token); }
             if (h.MaxGaussians.HasValue) { w.WriteString("max_gaussians"); w.WriteInt(h.MaxGaussians.Value); }
+            if (h.Room != null) { w.WriteString("room"); w.WriteString(h.Room); }
+            if (h.Publish.HasValue) { w.WriteString("publish"); w.WriteBool(h.Publish.Value); }
+            if (h.Self.HasValue) { w.WriteString("self"); w.WriteBool(h.Self.Value); }
         }
 
         static readonly byte[] BsPrefix = { 0x84, 0xa4, (byte)'t', (byte)'y', (byte)'p', (byte)'e', 0xa2, (byte)'b', (byte)'s', 0xa3, (byte)'s', (byte)'e', (byte)'q' };

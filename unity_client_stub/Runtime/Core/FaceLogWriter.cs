@@ -9,8 +9,10 @@ namespace Ofera.Client
 {
     /// <summary>
     /// Writes "# ofera facelog 1", "# layout: ...", optional metadata comments, the header
-    /// (time, the layout's names, optional confidence_lower/confidence_upper, optional data_source) and
-    /// one row per sample: time %.6f seconds, values %.6g, '\n' line ends.
+    /// (time, optional Face_Time, the layout's names, optional confidence_lower/confidence_upper, optional
+    /// data_source) and one row per sample: time %.6f seconds, values %.6g, '\n' line ends.
+    /// With <see cref="TrackerTime"/> the file has a Face_Time column (the tracker's own sample time, device
+    /// seconds, %.6f), which `read_facelog` reads as a Quest log: one sample per new Face_Time.
     /// </summary>
     public sealed class FaceLogWriter : IDisposable
     {
@@ -20,11 +22,26 @@ namespace Ofera.Client
         readonly bool _dataSource;
         readonly StringBuilder _line = new StringBuilder(1024);
         bool _headerDone;
+        bool _trackerTime;
         double _lastTime = double.NegativeInfinity;
 
         public string Layout { get; private set; }
         public int Length { get { return _names.Length; } }
         public long Rows { get; private set; }
+
+        /// <summary>
+        /// Write a Face_Time column (set before the first row; the header is written with it). Rows then
+        /// need a tracker time: <see cref="Write(double, double, float[], float, float, string)"/>.
+        /// </summary>
+        public bool TrackerTime
+        {
+            get { return _trackerTime; }
+            set
+            {
+                if (_headerDone) throw new InvalidOperationException("TrackerTime must be set before the first row");
+                _trackerTime = value;
+            }
+        }
 
         /// <param name="metadata">extra "# key: value" lines (pairs key, value), e.g. "headset", "Quest Pro".</param>
         public FaceLogWriter(TextWriter writer, string layout, string source, bool withConfidence = false,
@@ -66,6 +83,7 @@ namespace Ofera.Client
         {
             _line.Length = 0;
             _line.Append("time");
+            if (_trackerTime) _line.Append(",Face_Time");
             for (int i = 0; i < _names.Length; i++) _line.Append(',').Append(_names[i]);
             if (_confidence) _line.Append(",confidence_lower,confidence_upper");
             if (_dataSource) _line.Append(",data_source");
@@ -81,6 +99,25 @@ namespace Ofera.Client
         public void Write(double timeSeconds, float[] weights, float confidenceLower = 1f, float confidenceUpper = 1f,
                           string dataSource = "visual")
         {
+            if (_trackerTime) throw new InvalidOperationException("this log has a Face_Time column: pass the tracker time");
+            Row(timeSeconds, double.NaN, weights, confidenceLower, confidenceUpper, dataSource);
+        }
+
+        /// <summary>
+        /// One sample with the tracker's own time (<see cref="TrackerTime"/> on): <paramref name="trackerSeconds"/>
+        /// is the device-clock time of the face state (Meta: OVRPlugin.FaceState.Time), finite.
+        /// </summary>
+        public void Write(double timeSeconds, double trackerSeconds, float[] weights, float confidenceLower = 1f,
+                          float confidenceUpper = 1f, string dataSource = "visual")
+        {
+            if (!_trackerTime) throw new InvalidOperationException("set TrackerTime before the first row to write Face_Time");
+            if (double.IsNaN(trackerSeconds) || double.IsInfinity(trackerSeconds)) throw new ArgumentException("tracker time must be finite");
+            Row(timeSeconds, trackerSeconds, weights, confidenceLower, confidenceUpper, dataSource);
+        }
+
+        void Row(double timeSeconds, double trackerSeconds, float[] weights, float confidenceLower, float confidenceUpper,
+                 string dataSource)
+        {
             if (weights == null || weights.Length < _names.Length)
                 throw new ArgumentException("layout " + Layout + " needs " + _names.Length + " weights");
             if (double.IsNaN(timeSeconds) || double.IsInfinity(timeSeconds)) throw new ArgumentException("time must be finite");
@@ -89,6 +126,7 @@ namespace Ofera.Client
             _lastTime = timeSeconds;
             _line.Length = 0;
             _line.Append(timeSeconds.ToString("F6", CultureInfo.InvariantCulture));
+            if (_trackerTime) _line.Append(',').Append(trackerSeconds.ToString("F6", CultureInfo.InvariantCulture));
             for (int i = 0; i < _names.Length; i++)
             {
                 float v = weights[i];

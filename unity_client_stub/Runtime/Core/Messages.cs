@@ -4,7 +4,7 @@ using System;
 
 namespace Ofera.Client
 {
-    public enum ServerMessageKind { None, Welcome, Avatar, Frame, Error, Pong }
+    public enum ServerMessageKind { None, Welcome, Avatar, Frame, Error, Pong, Join, Leave }
     public enum ClientMessageKind { None, Hello, Blendshapes, Ping, Bye }
 
     /// <summary>Client -> server `hello`. Null fields are omitted on the wire (the server's defaults apply).</summary>
@@ -19,6 +19,10 @@ namespace Ofera.Client
         public string Device;
         public string Token;
         public long? MaxGaussians;
+        /// <summary>Rooms (DESIGN.md; not in PROTOCOL.md v1, a v1 server ignores them): room to join, publish (default true), self (default false).</summary>
+        public string Room;
+        public bool? Publish;
+        public bool? Self;
     }
 
     /// <summary>Client -> server `bs` (as decoded by a server; a client encodes from its own arrays).</summary>
@@ -58,6 +62,9 @@ namespace Ofera.Client
         public bool Sparse;
         public Quant Quant;     // null unless encoding q13
         public string Server;   // optional
+        /// <summary>Rooms (DESIGN.md "Rooms"; not yet in PROTOCOL.md): the room joined and this client's member id; null without a room.</summary>
+        public string Room;
+        public string Member;
 
         public FrameFormat ToFormat()
         {
@@ -71,6 +78,8 @@ namespace Ofera.Client
     public struct AvatarChunkHeader
     {
         public int Count, ShDegree, Chunk, Chunks, Offset, N;
+        /// <summary>Rooms: whose avatar the chunk belongs to (null: the session's own avatar, v1).</summary>
+        public string Member;
     }
 
     /// <summary>The whole static avatar (session coordinates): N Gaussians, float32, row-major.</summary>
@@ -111,6 +120,12 @@ namespace Ofera.Client
         public long T;
         public int N;
         public bool HasIndex;
+        /// <summary>Rooms: whose avatar the frame moves (null: the session's own avatar, v1). Interned by the decoder.</summary>
+        public string Member;
+        /// <summary>False when the decoder only kept the payload (GPU upload path): Position/Rotation/Scale are not filled.</summary>
+        public bool HasValues = true;
+        /// <summary>The arrays as they arrived, when the decoder keeps payloads (<see cref="ServerMessageDecoder.KeepPayload"/>).</summary>
+        public readonly FramePayload Payload = new FramePayload();
         public uint[] Index = new uint[0];
         public float[] Position = new float[0]; // N x 3
         public float[] Rotation = new float[0]; // N x 4
@@ -145,12 +160,16 @@ namespace Ofera.Client
 
         public void CopyFrom(FrameData o)
         {
-            Seq = o.Seq; T = o.T; N = o.N; HasIndex = o.HasIndex;
+            Seq = o.Seq; T = o.T; N = o.N; HasIndex = o.HasIndex; Member = o.Member; HasValues = o.HasValues;
             EnsureCapacity(o.N);
             if (o.HasIndex) Array.Copy(o.Index, Index, o.N);
-            Array.Copy(o.Position, Position, 3 * o.N);
-            Array.Copy(o.Rotation, Rotation, 4 * o.N);
-            Array.Copy(o.Scale, Scale, 3 * o.N);
+            if (o.HasValues)
+            {
+                Array.Copy(o.Position, Position, 3 * o.N);
+                Array.Copy(o.Rotation, Rotation, 4 * o.N);
+                Array.Copy(o.Scale, Scale, 3 * o.N);
+            }
+            Payload.CopyFrom(o.Payload);
             TimingCount = o.TimingCount;
             Array.Copy(o.TimingNames, TimingNames, o.TimingCount);
             Array.Copy(o.TimingValues, TimingValues, o.TimingCount);
@@ -172,6 +191,24 @@ namespace Ofera.Client
         }
     }
 
+    /// <summary>Rooms: `join` {member, avatar {id, count, sh_degree}}; that member's `avatar` chunks follow.</summary>
+    public sealed class JoinMessage
+    {
+        public string Member;
+        public string AvatarId;
+        public int Count;
+        public int ShDegree;
+        /// <summary>q13 parameters of this member's stream if the server sends them (else the session's welcome.quant).</summary>
+        public Quant Quant;
+    }
+
+    /// <summary>Rooms: `leave` {member, reason}.</summary>
+    public sealed class LeaveMessage
+    {
+        public string Member;
+        public string Reason;
+    }
+
     /// <summary>Holder of the latest decoded server message of each kind (reused; no per-message allocation for frames).</summary>
     public sealed class ServerMessage
     {
@@ -181,6 +218,8 @@ namespace Ofera.Client
         public FrameData Frame;
         public ErrorMessage Error;
         public long PongT;
+        public JoinMessage Join;
+        public LeaveMessage Leave;
     }
 
     /// <summary>Holder of a decoded client message (used by tests and by any C# server).</summary>

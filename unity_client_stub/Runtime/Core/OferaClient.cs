@@ -39,6 +39,16 @@ namespace Ofera.Client
         public double PingIntervalSeconds = 2;
         public int MaxMessageSize = Protocol.MaxServerMessage;
         public int InitialReceiveBuffer = 256 * 1024;
+
+        /// <summary>Keep each frame's wire arrays (FrameData.Payload) for the GPU upload path.</summary>
+        public bool KeepPayload;
+        /// <summary>With KeepPayload: also decode frames into floats (false: the GPU decodes; only checks run on the CPU).</summary>
+        public bool DecodeValues = true;
+
+        /// <summary>Rooms (DESIGN.md; a v1 server ignores these): room to join, publish this client's face (default true), receive one's own stream.</summary>
+        public string Room;
+        public bool? Publish;
+        public bool? Self;
     }
 
     public enum ClientStatus { Stopped, Connecting, AwaitingWelcome, ReceivingAvatar, Streaming, Reconnecting, Failed }
@@ -85,9 +95,10 @@ namespace Ofera.Client
     /// Thread model: Start() runs a supervisor task on the thread pool (connect, handshake, receive loop,
     /// reconnect). A send task runs per session. The main thread calls SubmitBlendshapes, TryTakeAvatar,
     /// TryTakeFrame and TryDequeueEvent; none of them blocks on the network.
-    /// Frames use three pooled FrameData objects: the receive thread decodes into one, publishes it as
-    /// "ready" (a ready frame the main thread has not taken is recycled and counted as dropped), and the
-    /// main thread holds at most one until its next TryTakeFrame.
+    /// Frames go through a <see cref="FrameExchange"/>: the receive thread decodes into a pooled FrameData
+    /// and publishes it as its member's "ready" frame (a ready frame the main thread has not taken is
+    /// recycled and counted as dropped); the main thread holds at most one per member until its next
+    /// TryTakeFrame. In a room, members' avatars and departures arrive through TryTakeRoomEvent.
     /// </summary>
     public sealed class OferaClient : IDisposable
     {
@@ -109,12 +120,9 @@ namespace Ofera.Client
         bool _bsPending;
         readonly SemaphoreSlim _sendSignal = new SemaphoreSlim(0, 1);
 
-        // frames
-        readonly object _frameLock = new object();
-        FrameData _writing = new FrameData();
-        FrameData _ready;
-        FrameData _held;
-        readonly Stack<FrameData> _spare = new Stack<FrameData>(3);
+        // frames (own avatar and room members)
+        readonly FrameExchange _frames = new FrameExchange();
+        readonly ConcurrentQueue<RoomEvent> _roomEvents = new ConcurrentQueue<RoomEvent>();
 
         // avatar handoff
         readonly object _avatarLock = new object();
@@ -138,8 +146,6 @@ namespace Ofera.Client
             if (!Protocol.Contains(Protocol.CoordsNames, options.Coords)) throw new ArgumentException("unknown coords '" + options.Coords + "'; expected unity or flame");
             _uri = MakeUri(options.Url);
             _bsLatest = new float[_layoutLength];
-            _spare.Push(new FrameData());
-            _spare.Push(new FrameData());
             _rx = new byte[Math.Max(4096, options.InitialReceiveBuffer)];
         }
 
@@ -225,18 +231,18 @@ namespace Ofera.Client
         /// The newest frame not taken yet, or null. The returned object stays valid until the next call
         /// (it is then recycled); copy what you need. Check frame.SessionNumber against your avatar's.
         /// </summary>
-        public FrameData TryTakeFrame()
+        public FrameData TryTakeFrame() { return TryTakeFrame(null); }
+
+        /// <summary>As <see cref="TryTakeFrame()"/> for one room member (null: the session's own avatar).</summary>
+        public FrameData TryTakeFrame(string member)
         {
-            lock (_frameLock)
-            {
-                if (_held != null) { _spare.Push(_held); _held = null; }
-                if (_ready == null) return null;
-                _held = _ready;
-                _ready = null;
-            }
-            if (_held.T != 0) Stats.RoundTripAtTake.Add(OferaClock.NowMicros() - _held.T);
-            return _held;
+            FrameData f = _frames.Take(member);
+            if (f != null && member == null && f.T != 0) Stats.RoundTripAtTake.Add(OferaClock.NowMicros() - f.T);
+            return f;
         }
+
+        /// <summary>Rooms: the next member joined (avatar complete) or left, in arrival order.</summary>
+        public bool TryTakeRoomEvent(out RoomEvent e) { return _roomEvents.TryDequeue(out e); }
 
         public bool TryDequeueEvent(out ClientEvent e) { return _events.TryDequeue(out e); }
 
@@ -282,6 +288,9 @@ namespace Ofera.Client
             h.Device = string.IsNullOrEmpty(_opt.Device) ? null : _opt.Device;
             h.Token = string.IsNullOrEmpty(_opt.Token) ? null : _opt.Token;
             h.MaxGaussians = _opt.MaxGaussians;
+            h.Room = string.IsNullOrEmpty(_opt.Room) ? null : _opt.Room;
+            h.Publish = h.Room != null ? _opt.Publish : null;
+            h.Self = h.Room != null ? _opt.Self : null;
             return h;
         }
 
@@ -334,12 +343,14 @@ namespace Ofera.Client
                 }
                 int session = Interlocked.Increment(ref _sessionNumber);
                 Interlocked.Increment(ref Stats.Sessions);
-                lock (_frameLock) { if (_ready != null) { _spare.Push(_ready); _ready = null; } }
+                _frames.Reset();
                 lock (_bsLock) { _bsPending = false; }
 
                 ClientConnection conn = new ClientConnection();
                 conn.MaxMessageSize = _opt.MaxMessageSize;
                 conn.MirrorFlameToUnity = _opt.MirrorFlameToUnity;
+                conn.KeepPayload = _opt.KeepPayload;
+                conn.DecodeValues = _opt.DecodeValues || !_opt.KeepPayload;
                 MsgPackWriter hw = new MsgPackWriter(256);
                 conn.EncodeHello(BuildHello(), hw);
                 await ws.SendAsync(hw.Segment, WebSocketMessageType.Binary, true, stop).ConfigureAwait(false);
@@ -361,7 +372,7 @@ namespace Ofera.Client
                         return;
                     }
                     Interlocked.Add(ref Stats.BytesReceived, len);
-                    msg.Frame = _writing;
+                    msg.Frame = _frames.DecodeTarget;
                     ServerMessageKind kind;
                     try
                     {
@@ -387,8 +398,24 @@ namespace Ofera.Client
                             SetStatus(ClientStatus.ReceivingAvatar, "welcome: session " + msg.Welcome.Session + ", " + msg.Welcome.Count + " Gaussians, " + msg.Welcome.Encoding + (msg.Welcome.Sparse ? " sparse" : " dense") + ", coords " + msg.Welcome.Coords);
                             sender = Task.Run(() => SendLoopAsync(ws, conn, sessionCts.Token));
                             break;
+                        case ServerMessageKind.Join:
+                            Emit(ClientEventKind.Info, "room: member " + msg.Join.Member + " joined (" + msg.Join.Count + " Gaussians); its avatar follows");
+                            break;
+                        case ServerMessageKind.Leave:
+                            if (conn.LeftMember != null)
+                            {
+                                _frames.Drop(conn.LeftMember.Id);
+                                _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Left, Member = conn.LeftMember.Id, Reason = msg.Leave.Reason, Session = session });
+                            }
+                            break;
                         case ServerMessageKind.Avatar:
-                            if (conn.State == ClientState.Streaming)
+                            if (conn.CompletedMember != null)
+                            {
+                                MemberState ms = conn.CompletedMember;
+                                _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Joined, Member = ms.Id, Avatar = ms.Avatar, Join = ms.Join, Session = session });
+                                if (conn.State == ClientState.ReceivingAvatar) rxToken = sessionCts.Token; // watch-only rooms may never send an own avatar
+                            }
+                            else if (conn.State == ClientState.Streaming && (msg.Avatar.Member == null || !conn.InRoom))
                             {
                                 lock (_avatarLock)
                                 {
@@ -403,29 +430,21 @@ namespace Ofera.Client
                             break;
                         case ServerMessageKind.Frame:
                             {
-                                FrameData f = _writing;
+                                FrameData f = msg.Frame;
                                 long now = OferaClock.NowMicros();
                                 f.ReceivedAt = now;
                                 f.SessionNumber = session;
                                 Interlocked.Increment(ref Stats.FramesReceived);
-                                Stats.RoundTrip.Add(now - f.T);
-                                long total = f.Timing("total");
-                                if (total >= 0) Stats.ServerTotal.Add(total);
-                                if (lastSeq >= 0 && f.Seq > lastSeq + 1) Interlocked.Add(ref Stats.FramesSkippedByServer, f.Seq - lastSeq - 1);
-                                lastSeq = f.Seq;
-                                lock (_frameLock)
+                                if (f.Member == null)
                                 {
-                                    if (_ready != null)
-                                    {
-                                        Interlocked.Increment(ref Stats.FramesDropped);
-                                        _writing = _ready;
-                                    }
-                                    else
-                                    {
-                                        _writing = _spare.Count > 0 ? _spare.Pop() : new FrameData();
-                                    }
-                                    _ready = f;
+                                    // t and seq are this client's own only for its own stream
+                                    Stats.RoundTrip.Add(now - f.T);
+                                    long total = f.Timing("total");
+                                    if (total >= 0) Stats.ServerTotal.Add(total);
+                                    if (lastSeq >= 0 && f.Seq > lastSeq + 1) Interlocked.Add(ref Stats.FramesSkippedByServer, f.Seq - lastSeq - 1);
+                                    lastSeq = f.Seq;
                                 }
+                                if (_frames.Publish(f.Member)) Interlocked.Increment(ref Stats.FramesDropped);
                                 break;
                             }
                         case ServerMessageKind.Error:

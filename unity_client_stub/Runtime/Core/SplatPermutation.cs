@@ -98,8 +98,15 @@ namespace Ofera.Client
 
         public static uint PackRotation(float x, float y, float z, float w)
         {
-            float len = (float)Math.Sqrt(x * x + y * y + z * z + w * w);
-            if (len > 0f && !float.IsInfinity(len)) { x /= len; y /= len; z /= len; w /= len; }
+            // float32 operation order shared with the upload kernel (PackUgsRotation): tested bit-exact
+            float n2 = (float)((float)((float)(x * x) + (float)(y * y)) + (float)(z * z));
+            n2 = (float)(n2 + (float)(w * w));
+            float len = (float)Math.Sqrt(n2);
+            if (len > 0f && !float.IsInfinity(len))
+            {
+                float inv = (float)(1f / len);
+                x = (float)(x * inv); y = (float)(y * inv); z = (float)(z * inv); w = (float)(w * inv);
+            }
             else { x = 0f; y = 0f; z = 0f; w = 1f; }
             float ax = Math.Abs(x), ay = Math.Abs(y), az = Math.Abs(z), aw = Math.Abs(w);
             int index = 0; float maxV = ax;
@@ -115,18 +122,61 @@ namespace Ofera.Client
                 default: a = x; b = y; c = z; d = w; break;
             }
             float s = d >= 0 ? 1f : -1f;
-            a = a * s * Sqrt2 * 0.5f + 0.5f;
-            b = b * s * Sqrt2 * 0.5f + 0.5f;
-            c = c * s * Sqrt2 * 0.5f + 0.5f;
-            float iw = index / 3.0f;
-            return Norm10(a) | (Norm10(b) << 10) | (Norm10(c) << 20) | ((uint)(iw * 3.5f) << 30);
+            a = (float)((float)((float)((float)(a * s) * Sqrt2) * 0.5f) + 0.5f);
+            b = (float)((float)((float)((float)(b * s) * Sqrt2) * 0.5f) + 0.5f);
+            c = (float)((float)((float)((float)(c * s) * Sqrt2) * 0.5f) + 0.5f);
+            return Norm10(a) | (Norm10(b) << 10) | (Norm10(c) << 20) | ((uint)index << 30); // index = (uint)(index / 3f * 3.5f)
         }
 
         static uint Norm10(float v)
         {
             if (v < 0f) v = 0f;
             if (v > 1f) v = 1f;
-            return (uint)(v * 1023.5f);
+            return (uint)(float)(v * 1023.5f);
+        }
+
+        /// <summary>Float32 bits the upload kernel writes into every hidden splat's position (a quiet NaN).</summary>
+        public const uint HiddenPositionBits = 0x7fc00000u;
+
+        /// <summary>
+        /// CPU reference of the kernel CSOferaHide: every splat hidden (position NaN, which makes the
+        /// renderer's vertex shader discard it; identity rotation; scale 0). pos: 3 words per splat, other: 4.
+        /// </summary>
+        public static void Hide(uint[] pos, uint[] other, int splats)
+        {
+            uint identity = PackRotation(0f, 0f, 0f, 1f);
+            for (int i = 0; i < splats; i++)
+            {
+                pos[3 * i] = HiddenPositionBits; pos[3 * i + 1] = HiddenPositionBits; pos[3 * i + 2] = HiddenPositionBits;
+                other[4 * i] = identity; other[4 * i + 1] = 0; other[4 * i + 2] = 0; other[4 * i + 3] = 0;
+            }
+        }
+
+        /// <summary>
+        /// CPU reference of the decode kernels: writes a decoded frame (server order, dense or sparse) into
+        /// GPU-order words through serverToGpu (-1: skipped), mirroring x first when asked. Same bytes as
+        /// CSOferaDecode* on the same frame (tests/test_unity_kernels.py).
+        /// </summary>
+        public static void WriteFrame(FrameData f, int[] serverToGpu, bool mirrorX, uint[] pos, uint[] other)
+        {
+            float[] p = f.Position, r = f.Rotation, s = f.Scale;
+            for (int i = 0; i < f.N; i++)
+            {
+                int g = f.HasIndex ? (int)f.Index[i] : i;
+                if (g < 0 || g >= serverToGpu.Length) continue;
+                int d = serverToGpu[g];
+                if (d < 0) continue;
+                uint px = BitCast.FloatToUInt(p[3 * i]);
+                float qx = r[4 * i], qy = r[4 * i + 1], qz = r[4 * i + 2], qw = r[4 * i + 3];
+                if (mirrorX) { px ^= 0x80000000u; qy = -qy; qz = -qz; }
+                pos[3 * d] = px;
+                pos[3 * d + 1] = BitCast.FloatToUInt(p[3 * i + 1]);
+                pos[3 * d + 2] = BitCast.FloatToUInt(p[3 * i + 2]);
+                other[4 * d] = PackRotation(qx, qy, qz, qw);
+                other[4 * d + 1] = BitCast.FloatToUInt(s[3 * i]);
+                other[4 * d + 2] = BitCast.FloatToUInt(s[3 * i + 1]);
+                other[4 * d + 3] = BitCast.FloatToUInt(s[3 * i + 2]);
+            }
         }
 
         /// <summary>The shader's DecodeRotation (for tests): 10.10.10.2 -> (x, y, z, w).</summary>

@@ -3,10 +3,22 @@
 // and tested under mono.
 using System;
 using System.IO;
+using System.Reflection;
 using UnityEngine;
 
 namespace Ofera.Client.Unity
 {
+    /// <summary>
+    /// A face source that knows when the tracker took its newest sample, on the tracker's own clock
+    /// (Meta: OVRPlugin.FaceState.Time, device seconds). The recorder writes it as Face_Time, so that a
+    /// replay sends each tracker sample once, at its own time, however often the app's frames repeat it.
+    /// </summary>
+    public interface IFaceSampleTime
+    {
+        /// <summary>The newest sample's tracker time in seconds; false if unknown.</summary>
+        bool TryGetSampleTime(out double seconds);
+    }
+
     [AddComponentMenu("OFERA/Face Log Recorder")]
     public sealed class FaceLogRecorder : MonoBehaviour
     {
@@ -25,49 +37,165 @@ namespace Ofera.Client.Unity
         [Tooltip("Write confidence_lower/confidence_upper/data_source columns when the source provides them.")]
         public bool recordConfidence = true;
 
+        [Tooltip("Write the tracker's own sample time (Face_Time) when the source or Meta's OVRPlugin provides it.")]
+        public bool recordTrackerTime = true;
+
         public bool recordOnEnable;
 
-        public bool IsRecording { get { return _writer != null; } }
+        /// <summary>True from StartRecording to StopRecording (the file itself opens at the first valid sample).</summary>
+        public bool IsRecording { get; private set; }
         public string CurrentPath { get; private set; }
 
         FaceLogWriter _writer;
-        float[] _weights = new float[70];
+        readonly float[] _weights = new float[70];
         bool _withConfidence;
+        IFaceSampleTime _trackerClock;
+        double _lastTrackerTime = double.NaN;
         long _t0 = -1;
 
         void OnEnable() { if (recordOnEnable) StartRecording(); }
         void OnDisable() { StopRecording(); }
 
+        /// <summary>
+        /// Starts a recording. The file is created at the first valid sample (tracking on), when the
+        /// columns are decided: confidences if the source gives them then, Face_Time if a tracker clock
+        /// answers then. Nothing is written while tracking has not started.
+        /// </summary>
         public void StartRecording()
         {
-            if (_writer != null || faceSource == null) return;
+            if (IsRecording || faceSource == null) return;
             string name = string.Format(fileName, DateTime.Now.ToString("yyyyMMdd_HHmmss"));
             CurrentPath = Path.Combine(Application.persistentDataPath, name);
-            float lo, up; bool audio;
-            _withConfidence = recordConfidence && faceSource.TryGetConfidence(out lo, out up, out audio);
-            _writer = FaceLogWriter.Create(CurrentPath, faceSource.Layout, sourceDescription, _withConfidence, _withConfidence,
-                                           "headset", headset, "unity", Application.unityVersion);
+            IsRecording = true;
+            _writer = null;
             _t0 = -1;
-            Debug.Log("[OFERA] recording face log to " + CurrentPath);
+            _lastTrackerTime = double.NaN;
+            Debug.Log("[OFERA] recording face log to " + CurrentPath + " from the first valid sample");
         }
 
         public void StopRecording()
         {
-            if (_writer == null) return;
+            if (!IsRecording) return;
+            IsRecording = false;
+            if (_writer == null)
+            {
+                Debug.Log("[OFERA] face log not written: tracking never delivered a valid sample");
+                return;
+            }
             _writer.Dispose();
             Debug.Log("[OFERA] face log written: " + CurrentPath + " (" + _writer.Rows + " rows)");
             _writer = null;
         }
 
+        void Open()
+        {
+            float lo, up; bool audio;
+            _withConfidence = recordConfidence && faceSource.TryGetConfidence(out lo, out up, out audio);
+            _trackerClock = null;
+            if (recordTrackerTime)
+            {
+                IFaceSampleTime clock = faceSource as IFaceSampleTime;
+                if (clock == null && (faceSource.Layout == "ovr63" || faceSource.Layout == "ovr70")) clock = OvrPluginFaceTime.Create();
+                double probe;
+                if (clock != null && clock.TryGetSampleTime(out probe)) _trackerClock = clock;
+            }
+            _writer = FaceLogWriter.Create(CurrentPath, faceSource.Layout, sourceDescription, _withConfidence, _withConfidence,
+                                           "headset", headset, "unity", Application.unityVersion);
+            _writer.TrackerTime = _trackerClock != null;
+        }
+
         void Update()
         {
-            if (_writer == null || faceSource == null) return;
+            if (!IsRecording || faceSource == null) return;
             long t;
-            if (!faceSource.TryGetSample(_weights, out t)) return;
+            if (!faceSource.IsTracking || !faceSource.TryGetSample(_weights, out t)) return;
+            if (_writer == null) Open();
             if (_t0 < 0) _t0 = t;
             float lo = 1f, up = 1f; bool audio = false;
             if (_withConfidence) faceSource.TryGetConfidence(out lo, out up, out audio);
-            _writer.Write((t - _t0) * 1e-6, _weights, lo, up, audio ? "audio" : "visual");
+            string source = audio ? "audio" : "visual";
+            if (_trackerClock == null)
+            {
+                _writer.Write((t - _t0) * 1e-6, _weights, lo, up, source);
+                return;
+            }
+            double tracker;
+            if (!_trackerClock.TryGetSampleTime(out tracker) || tracker == _lastTrackerTime) return; // no new tracker sample
+            _lastTrackerTime = tracker;
+            _writer.Write((t - _t0) * 1e-6, tracker, _weights, lo, up, source);
+        }
+    }
+
+    /// <summary>
+    /// The face state's time from Meta's OVRPlugin (Meta XR Core SDK), found by reflection so that this
+    /// assembly needs no reference to Oculus.VR: OVRPlugin.GetFaceState2 (v2), else GetFaceState (v1), with
+    /// Step.Render and the newest frame, read once per rendered frame. Null when the SDK is absent.
+    /// </summary>
+    sealed class OvrPluginFaceTime : IFaceSampleTime
+    {
+        readonly MethodInfo _get;
+        readonly object[] _args;
+        readonly FieldInfo _time, _status, _valid;
+        int _frame = -1;
+        double _cached;
+        bool _ok;
+
+        OvrPluginFaceTime(MethodInfo get, Type state, object step)
+        {
+            _get = get;
+            _args = new object[] { step, -1, Activator.CreateInstance(state) };
+            _time = state.GetField("Time");
+            _status = state.GetField("Status");
+            _valid = _status != null ? _status.FieldType.GetField("IsValid") : null;
+        }
+
+        public static OvrPluginFaceTime Create()
+        {
+            try
+            {
+                Type plugin = Type.GetType("OVRPlugin, Oculus.VR");
+                if (plugin == null) return null;
+                Type stepType = plugin.GetNestedType("Step");
+                if (stepType == null) return null;
+                object render = Enum.Parse(stepType, "Render");
+                foreach (string pair in new[] { "GetFaceState2:FaceState2", "GetFaceState:FaceState" })
+                {
+                    string[] p = pair.Split(':');
+                    Type state = plugin.GetNestedType(p[1]);
+                    if (state == null) continue;
+                    MethodInfo m = plugin.GetMethod(p[0], BindingFlags.Public | BindingFlags.Static, null,
+                                                    new[] { stepType, typeof(int), state.MakeByRefType() }, null);
+                    if (m == null || state.GetField("Time") == null) continue;
+                    return new OvrPluginFaceTime(m, state, render);
+                }
+            }
+            catch (Exception e)
+            {
+                Debug.LogWarning("[OFERA] no tracker time from OVRPlugin (" + e.GetType().Name + "): Face_Time not recorded");
+            }
+            return null;
+        }
+
+        public bool TryGetSampleTime(out double seconds)
+        {
+            if (Time.frameCount != _frame)
+            {
+                _frame = Time.frameCount;
+                _ok = false;
+                try
+                {
+                    if ((bool)_get.Invoke(null, _args))
+                    {
+                        object state = _args[2];
+                        bool valid = _valid == null || (bool)_valid.GetValue(_status.GetValue(state));
+                        _cached = (double)_time.GetValue(state);
+                        _ok = valid && _cached > 0;
+                    }
+                }
+                catch (Exception) { _ok = false; }
+            }
+            seconds = _cached;
+            return _ok;
         }
     }
 }

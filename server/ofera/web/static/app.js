@@ -1,8 +1,9 @@
-// The preview page: a protocol client of /v1/stream with sliders, presets, CSV playback, an orbit camera
+// The preview page: a protocol client of /v1/stream with sliders, presets, CSV and bsData.json playback, an orbit camera
 // and a WebGL2 splat renderer. URL options: ?max=N (ask for at most N Gaussians; no automatic
 // reduction), ?auto=0 (never reduce), ?enc=f32|f16|q13 (default f16), ?sparse=0, ?res=PIXELS (largest
 // canvas side, default 480), ?minfps=15, ?fill=0 (no splat enlargement of a reduced stream),
 // ?avatar=ID, ?device=NAME, ?token=T, ?ws=URL.
+import { looksLikeJson, parseBsData } from "./bsdata.js";
 import { parseFaceLog } from "./facelog.js";
 import { decode } from "./msgpack.js";
 import { bsMessage, byeMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError } from "./protocol.js";
@@ -73,6 +74,7 @@ const latencies = [];
 let lastBytes = 0, lastTiming = null, framesReceived = 0, framesDrawn = 0, droppedSeq = 0;
 let fps = 0;
 let playback = null;
+let playbackConf = null; // [lower, upper] face confidence of the sample being played, sent with its bs
 const errors = [];
 
 // A debugging and testing handle (read by tests/test_browser_*.py).
@@ -84,6 +86,8 @@ const debug = {
   get fullCount() { return fullCount; },
   get maxGaussians() { return conn?.maxGaussians ?? null; },
   get encoding() { return conn?.welcome?.encoding ?? null; },
+  /** What drives the avatar (welcome.avatar.expression): "flame68" (through the EPM) or "arkit51" (LAM). */
+  get expression() { return conn?.welcome?.avatar?.expression ?? null; },
   get lastSentSeq() { return conn ? conn.seq - 1 : -1; },
   get lastFrameSeq() { return conn?.lastSeq ?? -1; },
   get drawnSeq() { return drawnSeq; },
@@ -235,7 +239,7 @@ function applyPreset(name) {
 function loadRecording(text, name) {
   stopPlayback();
   try {
-    const log = parseFaceLog(text, table, name);
+    const log = looksLikeJson(text) ? parseBsData(text, table) : parseFaceLog(text, table, name);
     playback = { log, name, start: 0, idx: -1, timer: null };
     $("playinfo").textContent = `${name}: ${log.kind}, layout ${log.layout}, ${log.rows} rows, ${log.duration.toFixed(2)} s`;
     $("play").disabled = false;
@@ -258,6 +262,7 @@ function startPlayback() {
 }
 
 function stopPlayback(keep = false) {
+  playbackConf = null;
   if (playback?.timer) clearTimeout(playback.timer);
   if (playback) playback.timer = null;
   $("stop").disabled = true;
@@ -273,6 +278,7 @@ function playStep() {
   if (idx !== p.idx && idx >= 0) {
     p.idx = idx;
     weights.set(frames.subarray(52 * idx, 52 * idx + 52));
+    playbackConf = p.log.conf ? p.log.conf.subarray(2 * idx, 2 * idx + 2) : null; // a Quest log's confidences
     weightsDirty = true;
     p.slidersStale = true;
     maybeSend(performance.now()); // at the recorded time (flow control permitting)
@@ -431,7 +437,7 @@ function maybeSend(now) {
   if (!c || c.state !== "streaming" || !weightsDirty || c.ws.readyState !== WebSocket.OPEN) return;
   const outstanding = c.seq - 1 - c.lastSeq; // sent, not answered (the server may skip some)
   if (outstanding >= 2 && now - c.lastSendMs < 1000) return;
-  c.ws.send(bsMessage(c.seq, nowUs(), weights));
+  c.ws.send(bsMessage(c.seq, nowUs(), weights, playbackConf));
   c.seq += 1;
   c.lastSendMs = now;
   weightsDirty = false;
@@ -590,7 +596,7 @@ function updateHud(now) {
     `fps      ${fps.toFixed(1)}${activeSince === null ? " (idle)" : ""} · prepare ${prepMs.toFixed(0)} ms`,
     `latency  ${lat === null ? "-" : `${latencies[latencies.length - 1].toFixed(1)} ms (avg ${lat.toFixed(1)})`}`,
     `frame    ${lastBytes ? `${(lastBytes / 1024).toFixed(1)} KiB` : "-"}${lastTiming?.total !== undefined ? ` · server ${(lastTiming.total / 1000).toFixed(1)} ms` : ""}`,
-    `gauss.   ${c?.count || "-"}${fullCount && c?.count && c.count < fullCount ? ` / ${fullCount}` : ""}  ${c?.welcome ? `${c.welcome.encoding}${c.welcome.sparse ? " sparse" : ""}` : ""}`,
+    `gauss.   ${c?.count || "-"}${fullCount && c?.count && c.count < fullCount ? ` / ${fullCount}` : ""}  ${c?.welcome ? `${c.welcome.encoding}${c.welcome.sparse ? " sparse" : ""} · ${c.welcome.avatar.expression}` : ""}`,
     `frames   ${framesReceived} recv · ${droppedSeq} skipped`,
   ];
   $("hud").textContent = lines.join("\n");

@@ -32,10 +32,17 @@ export function helloMessage({ layout = "arkit52", avatar, encoding, coords, spa
   });
 }
 
-/** `bs`: weights as float32 (a Float32Array or an array of numbers). */
-export function bsMessage(seq, t, weights) {
+/** `bs`: weights as float32 (a Float32Array or an array of numbers); `conf` optional [lower, upper] face
+ * confidence in [0, 1] (PROTOCOL.md 4.2). */
+export function bsMessage(seq, t, weights, conf = null) {
   const w = weights instanceof Float32Array ? weights : Float32Array.from(weights);
-  return encode({ type: "bs", seq, t, w: new Uint8Array(w.buffer, w.byteOffset, w.byteLength) });
+  const m = { type: "bs", seq, t, w: new Uint8Array(w.buffer, w.byteOffset, w.byteLength) };
+  if (conf != null) {
+    const c = Float32Array.from(conf);
+    if (c.length !== 2 || !c.every((v) => v >= 0 && v <= 1)) throw new RangeError("bs conf: 2 values in [0, 1]");
+    m.conf = new Uint8Array(c.buffer);
+  }
+  return encode(m);
 }
 
 export function pingMessage(t) {
@@ -110,7 +117,8 @@ export function decodeServerMessage(bytes) {
       field(msg, "protocol", "int");
       field(msg, "session", "string");
       const av = field(msg, "avatar", "map");
-      const avatar = { id: field(av, "id", "string"), count: field(av, "count", "int"), sh_degree: field(av, "sh_degree", "int") };
+      const avatar = { id: field(av, "id", "string"), count: field(av, "count", "int"), sh_degree: field(av, "sh_degree", "int"),
+        expression: field(av, "expression", "string", true) ?? "flame68" };
       const out = {
         type, protocol: msg.protocol, session: msg.session, avatar, layout: field(msg, "layout", "string"),
         encoding: field(msg, "encoding", "string"), coords: field(msg, "coords", "string"),

@@ -1,0 +1,141 @@
+"""The page's drag-and-drop reader (web/static/facelog.js) on Quest Pro Unity logs, in headless Chromium:
+the same samples, times and confidences as the Python reader (ofera.sources.quest_csv), and playback of
+one through a live server with its confidences on the wire.
+
+Needs /usr/bin/chromium and the `playwright` package, like tests/test_browser_preview.py (skipped otherwise).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ofera.mapping.layouts import convert
+from ofera.sources import read_facelog
+from quest_logs import v1_names, write_quest_log
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--no-sandbox",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator:
+    missing = None
+    if not Path(CHROMIUM).exists():
+        missing = f"{CHROMIUM} is missing (apt-get install chromium)"
+    else:
+        try:
+            import playwright.sync_api  # noqa: F401
+        except ImportError:
+            missing = "the playwright Python package is missing (pip install playwright)"
+    if missing:
+        if os.environ.get("CI"):
+            pytest.fail(f"browser test cannot run in CI: {missing}")
+        pytest.skip(missing)
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            yield b
+        finally:
+            b.close()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    from ofera.replay.testing import small_server
+
+    with small_server(tmp_path_factory.getbasetemp() / "small-avatar-browser-quest", 1000) as s:
+        yield s
+
+
+PARSE = """async ([text, name]) => {
+  const F = await import("/static/facelog.js");
+  const table = await (await fetch("/static/layouts.json")).json();
+  try {
+    const log = F.parseFaceLog(text, table, name);
+    return { times: Array.from(log.times), frames: Array.from(log.frames), conf: log.conf && Array.from(log.conf),
+             layout: log.layout, rows: log.rows, kind: log.kind, report: log.report ?? null };
+  } catch (e) { return { error: e.message }; }
+}"""
+
+
+def parse_in_page(page, path: Path) -> dict:
+    return page.evaluate(PARSE, [path.read_bytes().decode("utf-8"), path.name])
+
+
+VARIANTS = {
+    "v2_tracker_bom_max_label_shuffled": dict(version=2, bom=True, max_column=True, label=True, shuffle=True),
+    "v1_unity_clock_repeats": dict(version=1, tracker_time=False, clock="TimeFromStart", confidence=False),
+    "v1_status_timestamp": dict(version=1, tracker_time=False, clock="Timestamp"),
+}
+
+
+def test_page_reader_matches_the_python_reader(browser, server, tmp_path):
+    page = browser.new_page()
+    try:
+        page.goto(f"{server.http_url}/static/layouts.json")
+        for name, options in VARIANTS.items():
+            path = tmp_path / f"{name}.csv"
+            write_quest_log(path, seconds=1.5, **options)
+            log = read_facelog(path)
+            got = parse_in_page(page, path)
+            assert "error" not in got, (name, got)
+            assert got["layout"] == log.layout.name and got["rows"] == len(log), name
+            np.testing.assert_allclose(got["times"], log.times, atol=1e-6, err_msg=name)
+            frames = np.array(got["frames"], np.float32).reshape(-1, 52)
+            np.testing.assert_allclose(frames, convert(log.layout, log.weights, "arkit52"), atol=1e-5, err_msg=name)
+            if log.confidence is None:
+                assert got["conf"] is None
+            else:
+                np.testing.assert_allclose(np.reshape(got["conf"], (-1, 2)), log.confidence, atol=1e-6)
+            assert got["report"]["samples"] == len(log) and "Quest Pro log" in got["kind"]
+
+        snap = tmp_path / "snapshot.csv"
+        write_quest_log(snap, version=1, tracker_hz=5, row_hz=5, seconds=1.0, tracker_time=False, clock=None,
+                        status=False, confidence=False, label=True, invalid_window=None)
+        got = parse_in_page(page, snap)
+        assert got["rows"] == 6 and "30 rows/s (assumed)" in got["kind"]  # the page's stand-in for --fps
+        np.testing.assert_allclose(got["times"], np.arange(6) / 30)
+
+        raw = tmp_path / "headerless.csv"
+        write_quest_log(raw, version=1, tracker_hz=10, row_hz=10, seconds=1.0, tracker_time=False, clock=None,
+                        status=False, confidence=False, headerless=True, invalid_window=None)
+        got = parse_in_page(page, raw)
+        assert got["layout"] == "ovr63" and got["rows"] == 11
+        np.testing.assert_allclose(np.array(got["frames"]).reshape(-1, 52),
+                                   convert("ovr63", read_facelog(raw, "ovr63", 30).weights, "arkit52"), atol=1e-5)
+
+        bad = tmp_path / "short.csv"
+        bad.write_text("Face_Time," + ",".join(v1_names()[:40]) + "\n1" + ",0" * 40 + "\n")
+        got = parse_in_page(page, bad)
+        assert "not a complete Meta ovr63 log: missing LIP_PUCKER_L" in got["error"]
+    finally:
+        page.close()
+
+
+def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
+    path = tmp_path / "quest.csv"
+    truth = write_quest_log(path, seconds=1.0, bom=True, label=True)
+    page = browser.new_page(viewport={"width": 800, "height": 600})
+    problems: list[str] = []
+    page.on("pageerror", lambda e: problems.append(str(e)))
+    try:
+        page.goto(f"{server.http_url}/")
+        page.wait_for_function("window.__ofera && window.__ofera.settled", timeout=240_000)
+        page.uncheck("#loop")
+        seq = page.evaluate("__ofera.lastSentSeq")
+        out = page.evaluate("t => __ofera.playText(t, 'quest.csv')", path.read_bytes().decode("utf-8"))
+        assert out.get("rows") == len(truth.times) and out.get("layout") == "ovr70", out
+        assert "Quest Pro log (quest-v2" in page.text_content("#playinfo")
+        page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=120_000)
+        assert page.evaluate("__ofera.lastSentSeq") > seq + 1, "playback sent no bs"
+        assert not page.evaluate("__ofera.errors"), page.evaluate("__ofera.errors")  # conf accepted by the server
+        assert not problems, problems
+    finally:
+        page.close()

@@ -1,0 +1,118 @@
+"""`ofera replay` of Quest Pro Unity logs through a live server: every variant the reader takes, one `bs`
+per tracker sample on the tracker's clock, confidences on the wire."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ofera.cli.main import app
+from ofera.replay import Replayer
+from ofera.sources import read_facelog
+from quest_logs import write_quest_log
+from typer.testing import CliRunner
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    from ofera.replay.testing import small_server
+
+    with small_server(tmp_path_factory.getbasetemp() / "small-avatar-quest") as s:
+        yield s
+
+
+def replay(*args: str) -> tuple[int, str, dict | None]:
+    out = Path(os.environ.get("PYTEST_TMP", "/tmp")) / f"replay-quest-{time.monotonic_ns()}.json"
+    result = runner.invoke(app, ["replay", *args, "--json", str(out), "--quiet"])
+    summary = json.loads(out.read_text()) if out.exists() else None
+    out.unlink(missing_ok=True)
+    return result.exit_code, result.output, summary
+
+
+VARIANTS: dict[str, dict] = {
+    "v2_tracker_repeats_invalid": dict(version=2),
+    "v2_bom_max_label_shuffled": dict(version=2, bom=True, max_column=True, label=True, shuffle=True),
+    "v1_unity_clock_repeats": dict(version=1, tracker_time=False, clock="TimeFromStart", confidence=False),
+    "v1_timestamp_status": dict(version=1, tracker_time=False, clock="Timestamp"),
+}
+
+
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_variant_replays_one_bs_per_sample(server, tmp_path, name):
+    path = tmp_path / f"{name}.csv"
+    truth = write_quest_log(path, seconds=2.0, **VARIANTS[name])
+    code, text, s = replay(str(path), "--url", server.url, "--speed", "4")
+    assert code == 0, text
+    assert s["sent"] == s["frames_in_log"] == len(truth.times) and s["errors"] == 0 and s["skipped"] == 0
+    assert s["rows_in_log"] == truth.rows and s["log_format"].startswith("quest-")
+    assert s["confidence_sent"] is (truth.confidence is not None)
+    assert s["received"] >= 1 and s["last_seq_answered"] == len(truth.times) - 1
+    assert "samples (" in text and "repeats" in text
+
+
+def test_done_when_v2_at_speed_4(server, tmp_path):
+    """The issue's check: one bs per tracker sample, on the tracker's clock (log span / speed within 10 %),
+    0 errors, >= 90 % answered at --speed 4."""
+    path = tmp_path / "quest_v2.csv"
+    truth = write_quest_log(path, seconds=8.0, bom=True, max_column=True, label=True)
+    code, text, s = replay(str(path), "--url", server.url, "--speed", "4")
+    assert code == 0, text
+    assert s["sent"] == len(truth.times) == 280 and s["errors"] == 0  # 289 samples, 9 while invalid
+    assert s["log_duration_s"] == pytest.approx(8.0, abs=1e-6) and "tracker" in s["time_source"]
+    assert s["duration_s"] == pytest.approx(8.0 / 4, rel=0.10)
+    assert s["answered"] >= 0.9
+
+
+def test_snapshot_with_label_needs_fps_then_replays(server, tmp_path):
+    path = tmp_path / "snapshot_v1.csv"
+    truth = write_quest_log(path, version=1, tracker_hz=5, row_hz=5, seconds=4.0, tracker_time=False, clock=None,
+                            status=False, confidence=False, label=True, max_column=True, invalid_window=None)
+    code, text, _ = replay(str(path), "--url", server.url)
+    assert code == 2 and "no time column: give --fps" in text
+    code, text, s = replay(str(path), "--url", server.url, "--fps", "30")
+    assert code == 0, text
+    assert s["sent"] == truth.rows == 21 and s["errors"] == 0
+    assert s["log_duration_s"] == pytest.approx(20 / 30, abs=1e-4)
+
+
+def test_headerless_needs_layout_and_fps_then_replays(server, tmp_path):
+    path = tmp_path / "headerless_v1.csv"
+    truth = write_quest_log(path, version=1, tracker_hz=30, row_hz=30, seconds=1.0, tracker_time=False, clock=None,
+                            status=False, confidence=False, headerless=True, invalid_window=None)
+    code, text, _ = replay(str(path), "--url", server.url, "--fps", "30")
+    assert code == 2 and "give --layout ovr63 or ovr70" in text
+    code, text, s = replay(str(path), "--url", server.url, "--layout", "ovr63", "--fps", "30")
+    assert code == 0, text
+    assert s["sent"] == truth.rows == 31 and s["layout"] == "ovr63" and s["errors"] == 0
+    assert s["log_format"] == "quest-headerless"
+
+
+def test_v2_no_time_column_with_fps(server, tmp_path):
+    path = tmp_path / "notime_v2.csv"
+    write_quest_log(path, tracker_time=False, clock=None, seconds=1.0, tracker_hz=36, row_hz=72)
+    code, text, _ = replay(str(path), "--url", server.url)
+    assert code == 2 and "no time column: give --fps" in text
+    code, text, s = replay(str(path), "--url", server.url, "--fps", "72", "--speed", "2")
+    assert code == 0, text
+    assert s["errors"] == 0 and s["sent"] == s["frames_in_log"] < s["rows_in_log"]  # repeats sent once
+
+
+def test_replayer_sends_the_logs_confidences(tmp_path):
+    path = tmp_path / "v2.csv"
+    write_quest_log(path, seconds=0.5)
+    log = read_facelog(path)
+    got: list[tuple[int, np.ndarray | None]] = []
+
+    async def send(seq, t_us, w, conf=None):
+        got.append((seq, conf))
+
+    asyncio.run(Replayer(log, speed=100).run(send))
+    assert [g[0] for g in got] == list(range(len(log)))
+    np.testing.assert_allclose(np.stack([g[1] for g in got]), log.confidence)
