@@ -197,7 +197,7 @@ def plot(path: Path, results: dict, title: str) -> None:
                          label=f"{impl}: skipped bs (first later frame)")
     axes[0].set_xscale("log")
     axes[0].set_xlabel("end-to-end latency (ms, log)")
-    axes[0].set_ylabel("fraction of frames")
+    axes[0].set_ylabel("fraction of bs sent (skipped ones included)")
     axes[0].axvline(8.0, color="grey", ls="--", lw=0.8, label="target p99 8 ms")
     axes[0].legend(fontsize=8)
     axes[1].set_yscale("log")

@@ -167,6 +167,29 @@ def test_zip_variants_import_the_same_avatar(tmp_path, small, variant) -> None:
     np.testing.assert_allclose(a.neutral().position, small.neutral().position, atol=1e-6)
 
 
+def test_gltf_json_with_embedded_buffers_imports(tmp_path, small) -> None:
+    import pygltflib
+
+    doc = pygltflib.GLTF2.load_from_bytes(L.make_glb())
+    doc.convert_buffers(pygltflib.BufferFormat.DATAURI)  # a .gltf JSON text with base64 data URIs
+    z = tmp_path / "json.zip"
+    with zipfile.ZipFile(z, "w") as zf:
+        zf.writestr("lam/skin.gltf", doc.to_json())
+        zf.writestr("lam/offset.ply", L.make_ply(L.gaussians(L.patch()[0].shape[0])))
+    a = import_lam(z)
+    np.testing.assert_allclose(a.head.exprdirs, small.head.exprdirs, atol=1e-7)
+    # ... or with its buffer in a separate file next to it
+    doc = pygltflib.GLTF2.load_from_bytes(L.make_glb())
+    blob = doc.binary_blob()
+    doc.buffers[0].uri = "skin%20data.bin"
+    doc.set_binary_blob(None)
+    with zipfile.ZipFile(z, "w") as zf:
+        zf.writestr("lam/skin.gltf", doc.to_json())
+        zf.writestr("lam/skin data.bin", blob)
+        zf.writestr("lam/offset.ply", L.make_ply(L.gaussians(L.patch()[0].shape[0])))
+    np.testing.assert_allclose(import_lam(z).head.exprdirs, small.head.exprdirs, atol=1e-7)
+
+
 def test_missing_target_names_is_a_clear_error_with_a_fallback(tmp_path, small) -> None:
     z = L.make_zip(tmp_path / "unnamed.zip", skin=L.make_glb(names_in=None, order_seed=None))
     with pytest.raises(AvatarError, match=r"no names.*--target-order"):

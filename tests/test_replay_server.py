@@ -24,7 +24,7 @@ from ofera.mapping.layouts import LIVELINK61_NAMES, MEDIAPIPE52_NAMES, get_layou
 from ofera.sources import FaceLog, build_livelink_packet, read_facelog, write_facelog, write_gesichter
 from typer.testing import CliRunner
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("OFERA_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data")
 CAPTURE = SHARED_DATA / "livelink_dao.gesichter"
 
 pytestmark = pytest.mark.timeout(120)

@@ -22,7 +22,6 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
-
 from ofera_protocol import codec
 from ofera_protocol.encodings import FrameFormat, decode_arrays, dequantize_log_scale, dequantize_positions, make_quant
 from ofera_protocol.messages import Frame
@@ -44,7 +43,8 @@ UNMATCHED = 0xFFFFFFFF
 def _glslang() -> str:
     tool = shutil.which("glslangValidator")
     if tool is None:
-        pytest.skip("glslangValidator not found: install glslang-tools (Debian/Ubuntu: apt-get install -y glslang-tools)")
+        pytest.skip("glslangValidator not found: install glslang-tools "
+                    "(Debian/Ubuntu: apt-get install -y glslang-tools)")
     return tool
 
 

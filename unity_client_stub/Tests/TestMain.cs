@@ -695,6 +695,9 @@ namespace Ofera.Client.Tests
                 Check(r1 == "ok" && r2 == "ok" && c.CompletedMember != null && c.CompletedMember.Id == "alice" && c.State == ClientState.ReceivingAvatar,
                       "rooms: a member's avatar completes before the own avatar", r1 + " " + r2 + " " + c.State);
                 Check(c.Member("alice").Avatar.Count == 3 && c.Member("alice").Avatar.Position[3] == 11f, "rooms: member avatar assembled");
+                Welcome mw = c.Welcome.ForMember(c.Member("alice").Join);
+                Check(mw.Count == 3 && mw.AvatarId == "default" && mw.Encoding == "f32" && mw.Coords == "unity" && c.Welcome.Count == 2,
+                      "rooms: a member's welcome (session settings, member's avatar) for its sinks");
                 string r3 = Feed(c, RoomFrame("alice", 3, 5, 0.5f), m);
                 Check(r3 == "ok" && m.Frame.Member == "alice" && m.Frame.N == 3 && m.Frame.Position[0] == 0.5f,
                       "rooms: a member's frame is accepted before the own avatar, decoded with the member's count", r3);

@@ -51,7 +51,20 @@ if ! mcs -langversion:7.2 -nologo -warn:4 -r:System.dll -r:"$BUILD/Ofera.Client.
         -out:"$BUILD/TestMain.exe" "$HERE/TestMain.cs"; then
     echo "0 passed, 1 failed"; exit 1
 fi
-# The Unity-side scripts need UnityEngine.dll, which this machine does not have: they are not compiled here.
+# The Unity-side scripts need UnityEngine.dll, which this machine does not have: they are type-checked
+# against Tests/UnityStandIn.cs (stand-ins for the members they use; FaceLogRecorder.cs, which needs
+# more of UnityEngine, is left out), with every optional assembly's define on, and on again without v60.
+echo "== type-checking Runtime/Unity against Tests/UnityStandIn.cs"
+for SDK60 in -define:OFERA_META_SDK_60 ""; do
+    # shellcheck disable=SC2086
+    if ! mcs -langversion:7.2 -nologo -warn:4 -target:library -r:System.dll -r:"$BUILD/Ofera.Client.Core.dll" \
+            -define:OFERA_GAUSSIAN_SPLATTING -define:OFERA_META_SDK $SDK60 -out:"$BUILD/UnityTypeCheck.dll" \
+            "$HERE/UnityStandIn.cs" "$PKG"/Runtime/Unity/OferaAvatarClient.cs "$PKG"/Runtime/Unity/Sinks.cs \
+            "$PKG"/Runtime/Unity/FaceSources.cs "$PKG"/Runtime/Unity/MemberPoseSource.cs \
+            "$PKG"/Runtime/Unity/GaussianSplatting/GaussianSplattingSink.cs "$PKG"/Runtime/Unity/MetaQuest/OvrFaceSource.cs; then
+        echo "0 passed, 1 failed"; exit 1
+    fi
+done
 
 ARGS=(--vectors "$VECTORS" --frames "${OFERA_STUB_FRAMES:-100}")
 if command -v "$PYTHON" >/dev/null 2>&1 && "$PYTHON" -c "import ofera.sources" >/dev/null 2>&1; then

@@ -2,8 +2,9 @@
 
 LAM ("Large Avatar Model", Tongyi Lab / Alibaba) exports what OpenAvatarChat and LAM's web renderer drive:
 
-- ``skin.glb``: glTF 2.0, one skinned mesh (an upsampled FLAME-topology head), 51 morph targets named with
-  ARKit names in ``mesh.extras.targetNames`` (the order in the file is arbitrary: matched by name);
+- ``skin.glb`` (or a ``skin.gltf`` JSON with data-URI or in-zip buffers): glTF 2.0, one skinned mesh (an
+  upsampled FLAME-topology head), 51 morph targets named with ARKit names in ``mesh.extras.targetNames``
+  (the order in the file is arbitrary: matched by name);
 - ``offset.ply``: one Gaussian per mesh vertex (row i belongs to vertex i): ``x y z`` = offset from the
   vertex, ``f_dc_*`` = plain RGB in 0..1 (not SH), ``opacity`` = logit, ``scale_*`` = log scale, ``rot_*`` =
   unit quaternion (w, x, y, z);
@@ -150,7 +151,7 @@ def read_lam_zip(path: str | Path) -> LamFiles:
         def named(base: str) -> list[str]:
             return sorted(n for n in members if posixpath.basename(n).lower() == base)
 
-        skins, offsets = named(SKIN_NAME), named(OFFSET_NAME)
+        skins, offsets = named(SKIN_NAME) or named("skin.gltf"), named(OFFSET_NAME)  # .gltf: JSON, data URIs
         if len(skins) > 1 and offsets:  # prefer the skin that has an offset.ply beside it
             paired = [s for s in skins if any(posixpath.dirname(o) == posixpath.dirname(s) for o in offsets)]
             skins = paired or skins

@@ -66,6 +66,17 @@ namespace Ofera.Client
         public string Room;
         public string Member;
 
+        /// <summary>Rooms: this session's settings with a member's avatar (count, sh_degree, and quant if the join has its own).</summary>
+        public Welcome ForMember(JoinMessage j)
+        {
+            Welcome w = (Welcome)MemberwiseClone();
+            w.AvatarId = j.AvatarId;
+            w.Count = j.Count;
+            w.ShDegree = j.ShDegree;
+            if (j.Quant != null) w.Quant = j.Quant;
+            return w;
+        }
+
         public FrameFormat ToFormat()
         {
             FrameEncoding e;

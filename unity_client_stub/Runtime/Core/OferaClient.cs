@@ -412,7 +412,7 @@ namespace Ofera.Client
                             if (conn.CompletedMember != null)
                             {
                                 MemberState ms = conn.CompletedMember;
-                                _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Joined, Member = ms.Id, Avatar = ms.Avatar, Join = ms.Join, Session = session });
+                                _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Joined, Member = ms.Id, Avatar = ms.Avatar, Join = ms.Join, Welcome = conn.Welcome.ForMember(ms.Join), Session = session });
                                 if (conn.State == ClientState.ReceivingAvatar) rxToken = sessionCts.Token; // watch-only rooms may never send an own avatar
                             }
                             else if (conn.State == ClientState.Streaming && (msg.Avatar.Member == null || !conn.InRoom))

@@ -15,6 +15,8 @@ namespace Ofera.Client
         /// <summary>Joined: the member's static avatar (session coordinates); Left: null.</summary>
         public AvatarData Avatar;
         public JoinMessage Join;
+        /// <summary>Joined: the session's welcome with this member's avatar (what a sink's SetAvatar needs).</summary>
+        public Welcome Welcome;
         /// <summary>Left: the server's reason (may be null).</summary>
         public string Reason;
         /// <summary>Session number (OferaClient.SessionNumber) the event belongs to; members of older sessions are gone.</summary>

@@ -1,12 +1,16 @@
 // The MonoBehaviour that ties it together: connects to the server (OferaClient, Core), feeds it the
 // face source's samples, applies the avatar and frames to the sinks on the main thread, and shows
-// statistics in the inspector. Needs UnityEngine; not compiled by Tests/run.sh.
+// statistics in the inspector. In a room (DESIGN.md "Rooms"; the reference server does not implement
+// rooms yet) it spawns one instance of memberPrefab per member that joins, each with its own sinks
+// (and so its own server->GPU permutation), removes it when the member leaves, and places it at the
+// member's head pose when a MemberPoseSource knows it. Needs UnityEngine; not compiled by Tests/run.sh.
 using System.Collections.Generic;
 using UnityEngine;
 
 namespace Ofera.Client.Unity
 {
     [AddComponentMenu("OFERA/OFERA Avatar Client")]
+    [DefaultExecutionOrder(200)] // after the face source (OvrFaceSource: 100) and OVRFaceExpressions / GaussianSplatRenderer (0)
     public sealed class OferaAvatarClient : MonoBehaviour
     {
         public enum FrameEncodingChoice { F32, F16, Q13 }
@@ -24,6 +28,8 @@ namespace Ofera.Client.Unity
         public string deviceProfile = "quest_pro";
         [Tooltip("Access token, if the server requires one.")]
         public string token = "";
+        [Tooltip("Most Gaussians to render per avatar (hello.max_gaussians; the server streams a reduced avatar). 0: no limit.")]
+        public int maxGaussians;
         public bool reconnect = true;
 
         [Header("Face and avatar")]
@@ -34,6 +40,24 @@ namespace Ofera.Client.Unity
         [Tooltip("Log connection events to the console.")]
         public bool logEvents = true;
 
+        [Header("Room (several avatars)")]
+        [Tooltip("Room to join; empty: a plain v1 session (one avatar). A server without rooms ignores it.")]
+        public string room = "";
+        [Tooltip("Send this headset's face (publish); off: watch only.")]
+        public bool publishFace = true;
+        [Tooltip("Also receive one's own avatar in the room.")]
+        public bool receiveSelf;
+        [Tooltip("Instantiated once per member who joins; its GaussianSinkBehaviours (e.g. GaussianSplatRenderer + GaussianSplattingSink, or a PointCloudSink) show that member.")]
+        public GameObject memberPrefab;
+        [Tooltip("Parent of the spawned members (default: this object).")]
+        public Transform memberParent;
+        [Tooltip("Head poses of members (the protocol carries none: they come from your networking layer). Empty: members stay where spawned.")]
+        public MemberPoseSource poseSource;
+        [Tooltip("Where a member's avatar sits relative to its head pose (FLAME's origin is near the head's centre).")]
+        public Vector3 headOffset = Vector3.zero;
+        [Tooltip("Spacing of members spawned without a pose (along this object's x axis).")]
+        public float spawnSpacing = 0.6f;
+
         [Header("Statistics (read only)")]
         public string status = "stopped";
         public int gaussians;
@@ -43,25 +67,78 @@ namespace Ofera.Client.Unity
         public float roundTripMsP50;
         public float roundTripMsP95;
         public float serverMsP50;
+        public int members;
+
+        /// <summary>One shown avatar: its sinks, and the CPU state only if a sink needs it.</summary>
+        sealed class View
+        {
+            public readonly List<IGaussianSink> Sinks = new List<IGaussianSink>();
+            public readonly List<IFrameSink> FrameSinks = new List<IFrameSink>();
+            public bool NeedsState;
+            public GaussianState State;
+            public int Session = -1;
+            public GameObject Instance; // members only
+
+            public void Collect(IEnumerable<GaussianSinkBehaviour> sinks)
+            {
+                foreach (GaussianSinkBehaviour s in sinks)
+                {
+                    if (s == null) continue;
+                    Sinks.Add(s);
+                    IFrameSink fs = s as IFrameSink;
+                    if (fs != null) FrameSinks.Add(fs);
+                    if (fs == null || fs.NeedsValues) NeedsState = true;
+                }
+            }
+
+            public void SetAvatar(AvatarData avatar, Welcome welcome, int session)
+            {
+                Session = session;
+                State = NeedsState ? new GaussianState(avatar) : null;
+                foreach (IGaussianSink s in Sinks) s.SetAvatar(avatar, welcome, State);
+                if (State != null) State.ClearDirty();
+            }
+
+            public void Apply(FrameData f)
+            {
+                if (f == null || f.SessionNumber != Session) return;
+                foreach (IFrameSink fs in FrameSinks) fs.ApplyFrame(f);
+                if (State != null && f.HasValues && State.Apply(f))
+                {
+                    foreach (IGaussianSink s in Sinks) if (!(s is IFrameSink) || ((IFrameSink)s).NeedsValues) s.ApplyState(State);
+                    State.ClearDirty();
+                }
+            }
+        }
 
         OferaClient _client;
-        GaussianState _state;
-        int _session = -1;
+        readonly View _own = new View();
+        readonly Dictionary<string, View> _members = new Dictionary<string, View>();
+        readonly List<string> _memberIds = new List<string>();
         float[] _weights = new float[70];
-        readonly List<IGaussianSink> _sinks = new List<IGaussianSink>();
         float _nextStats;
 
         public OferaClient Client { get { return _client; } }
 
         void OnEnable()
         {
-            _sinks.Clear();
-            if (sinks != null) foreach (GaussianSinkBehaviour s in sinks) if (s != null) _sinks.Add(s);
-            if (_sinks.Count == 0)
+            _own.Sinks.Clear(); _own.FrameSinks.Clear(); _own.NeedsState = false;
+            if (sinks != null) _own.Collect(sinks);
+            if (_own.Sinks.Count == 0 && string.IsNullOrEmpty(room))
             {
                 PointCloudSink points = GetComponent<PointCloudSink>(); // not '??': Unity objects compare to null with ==
                 if (points == null) points = gameObject.AddComponent<PointCloudSink>();
-                _sinks.Add(points);
+                _own.Collect(new GaussianSinkBehaviour[] { points });
+            }
+            // what the sinks need decides what the receive thread does: GPU sinks take the wire payload,
+            // CPU sinks the decoded floats
+            bool wantPayload = _own.FrameSinks.Count > 0, wantValues = _own.NeedsState;
+            if (memberPrefab != null)
+            {
+                View probe = new View();
+                probe.Collect(memberPrefab.GetComponentsInChildren<GaussianSinkBehaviour>(true));
+                wantPayload |= probe.FrameSinks.Count > 0;
+                wantValues |= probe.NeedsState;
             }
 
             OferaClientOptions o = new OferaClientOptions();
@@ -74,6 +151,15 @@ namespace Ofera.Client.Unity
             o.Device = deviceProfile;
             o.Token = token;
             o.Reconnect = reconnect;
+            if (maxGaussians > 0) o.MaxGaussians = maxGaussians;
+            o.KeepPayload = wantPayload;
+            o.DecodeValues = wantValues || !wantPayload;
+            if (!string.IsNullOrEmpty(room))
+            {
+                o.Room = room;
+                o.Publish = publishFace;
+                o.Self = receiveSelf;
+            }
             try
             {
                 _client = new OferaClient(o);
@@ -91,9 +177,48 @@ namespace Ofera.Client.Unity
         {
             if (_client != null) _client.Stop(500);
             _client = null;
-            _state = null;
-            _session = -1;
-            foreach (IGaussianSink s in _sinks) s.Clear();
+            _own.State = null;
+            _own.Session = -1;
+            foreach (IGaussianSink s in _own.Sinks) s.Clear();
+            RemoveMembers(int.MaxValue);
+        }
+
+        void RemoveMembers(int olderThanSession)
+        {
+            _memberIds.Clear();
+            foreach (KeyValuePair<string, View> kv in _members) if (kv.Value.Session < olderThanSession) _memberIds.Add(kv.Key);
+            foreach (string id in _memberIds) RemoveMember(id);
+        }
+
+        void RemoveMember(string id)
+        {
+            View v;
+            if (!_members.TryGetValue(id, out v)) return;
+            foreach (IGaussianSink s in v.Sinks) s.Clear();
+            if (v.Instance != null) Destroy(v.Instance);
+            _members.Remove(id);
+            members = _members.Count;
+        }
+
+        void SpawnMember(RoomEvent e)
+        {
+            RemoveMember(e.Member); // a re-join brings a new avatar
+            if (memberPrefab == null)
+            {
+                Debug.LogWarning("[OFERA] member " + e.Member + " joined but no Member Prefab is set: not shown");
+                return;
+            }
+            Transform parent = memberParent != null ? memberParent : transform;
+            GameObject go = Instantiate(memberPrefab, parent);
+            go.name = "OFERA member " + e.Member;
+            go.transform.localPosition = new Vector3(spawnSpacing * (_members.Count + 1), 0f, 0f);
+            go.transform.localRotation = Quaternion.identity;
+            View v = new View();
+            v.Instance = go;
+            v.Collect(go.GetComponentsInChildren<GaussianSinkBehaviour>(true));
+            v.SetAvatar(e.Avatar, e.Welcome, e.Session); // each member's sinks build their own permutation
+            _members[e.Member] = v;
+            members = _members.Count;
         }
 
         void Update()
@@ -112,23 +237,27 @@ namespace Ofera.Client.Unity
             AvatarData avatar; Welcome welcome; int session;
             if (_client.TryTakeAvatar(out avatar, out welcome, out session))
             {
-                _state = new GaussianState(avatar);
-                _session = session;
                 gaussians = avatar.Count;
-                foreach (IGaussianSink s in _sinks) s.SetAvatar(avatar, welcome, _state);
-                _state.ClearDirty();
+                _own.SetAvatar(avatar, welcome, session);
+                RemoveMembers(session); // members of an older session are gone
+            }
+
+            RoomEvent re;
+            while (_client.TryTakeRoomEvent(out re))
+            {
+                if (logEvents) Debug.Log("[OFERA] room: " + re);
+                if (re.Session != _client.SessionNumber) continue; // stale
+                RemoveMembers(re.Session);
+                if (re.Kind == RoomEventKind.Joined) SpawnMember(re);
+                else RemoveMember(re.Member);
             }
 
             long t;
-            if (faceSource != null && faceSource.TryGetSample(_weights, out t))
+            if (faceSource != null && faceSource.TryGetSample(_weights, out t) && (string.IsNullOrEmpty(room) || publishFace))
                 _client.SubmitBlendshapes(_weights, t);
 
-            FrameData f = _client.TryTakeFrame();
-            if (f != null && _state != null && f.SessionNumber == _session && _state.Apply(f))
-            {
-                foreach (IGaussianSink s in _sinks) s.ApplyState(_state);
-                _state.ClearDirty();
-            }
+            _own.Apply(_client.TryTakeFrame());
+            foreach (KeyValuePair<string, View> kv in _members) kv.Value.Apply(_client.TryTakeFrame(kv.Key));
 
             if (Time.unscaledTime >= _nextStats)
             {
@@ -141,6 +270,17 @@ namespace Ofera.Client.Unity
                 roundTripMsP50 = st.RoundTrip.Percentile(50) * 1e-3f;
                 roundTripMsP95 = st.RoundTrip.Percentile(95) * 1e-3f;
                 serverMsP50 = st.ServerTotal.Percentile(50) * 1e-3f;
+            }
+        }
+
+        void LateUpdate()
+        {
+            if (poseSource == null) return;
+            foreach (KeyValuePair<string, View> kv in _members)
+            {
+                Vector3 p; Quaternion q;
+                if (kv.Value.Instance == null || !poseSource.TryGetHeadPose(kv.Key, out p, out q)) continue;
+                kv.Value.Instance.transform.SetPositionAndRotation(p + q * headOffset, q);
             }
         }
     }

@@ -21,6 +21,18 @@ namespace Ofera.Client.Unity
         void Clear();
     }
 
+    /// <summary>
+    /// A sink that takes each decoded frame itself (with its wire payload, FrameData.Payload) instead of
+    /// the CPU-side state: the GPU upload path. When every sink of an avatar is an IFrameSink with
+    /// NeedsValues false, the client neither decodes floats nor keeps a GaussianState for it.
+    /// </summary>
+    public interface IFrameSink
+    {
+        bool NeedsValues { get; }
+        /// <summary>Main thread, once per frame taken; the frame is valid until the next take.</summary>
+        void ApplyFrame(FrameData frame);
+    }
+
     /// <summary>Base class so sinks can be assigned in the inspector.</summary>
     public abstract class GaussianSinkBehaviour : MonoBehaviour, IGaussianSink
     {
