@@ -34,7 +34,7 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
     """Clients[:k] stream for warmup + seconds; returns latencies (ms) after warm-up, answered and dropped bs
     alike, and counts."""
     from ofera.client import now_us
-    from ofera.streaming.encode_fast import FastFrameDecoder
+    from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
 
     period = 1e6 / rate

@@ -68,7 +68,7 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     decode: 'fast' (numba FastFrameDecoder, same checks and values as the codec), 'reference'
     (ofera_protocol's decoder, via the client library's connection), 'header' (arrays left undecoded)."""
     from ofera.client import connect, now_us
-    from ofera.streaming.encode_fast import FastFrameDecoder
+    from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
 
     client = await connect(url, layout=layout, encoding=encoding, sparse=sparse)

@@ -1,6 +1,7 @@
 """Fast frame encoding (ofera_protocol.fast_encodings + ofera.streaming.encode_fast): byte-identical to the
 reference codec for every encoding, coordinates and sparse selection; round trips within each encoding's
-documented bound; the q13 "moved since last sent" delta stream keeps the client within its thresholds."""
+documented bound; temporal delta frames (numba = reference, byte for byte) keep the client within the tolerance
+whatever is dropped."""
 
 from __future__ import annotations
 
@@ -9,13 +10,21 @@ import math
 import numpy as np
 import pytest
 from ofera.streaming.encode_fast import (
-    DeltaQ13,
-    DeltaThresholds,
+    delta_encoder,
     f16_flat_kernel,
     numba_kernels,
     scale_table,
 )
-from ofera_protocol import ClientConnection, Frame, FrameFormat, decode_server_message, encode_frame, to_coords
+from ofera_protocol import (
+    ClientConnection,
+    Frame,
+    FrameFormat,
+    GaussianState,
+    decode_server_message,
+    encode_frame,
+    to_coords,
+)
+from ofera_protocol.delta import DeltaDecoder, DeltaEncoder, DeltaTolerance
 from ofera_protocol.encodings import (
     F16_ROTATION_ERROR,
     Q13_ROTATION_ERROR,
@@ -25,6 +34,7 @@ from ofera_protocol.encodings import (
     quantize_log_scale,
 )
 from ofera_protocol.fast_encodings import BufferPool, FrameWriter, NumpyKernels, scale_thresholds
+from ofera_protocol.messages import DeltaFrame
 
 N = 20_000
 TIMING = {"decode": 3, "epm": 40, "total": 900}
@@ -167,66 +177,139 @@ def test_buffer_pool_reuses_only_unreferenced_buffers() -> None:
     assert len(d) >= 50
 
 
-def run_delta(thresholds: DeltaThresholds, frames: int = 12):
-    """A client that applies sparse q13 delta frames; returns max errors per frame and bytes."""
+def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between quaternions (n, 4), from the chord (stable for small angles)."""
+    a = a.astype(np.float64) / np.linalg.norm(a.astype(np.float64), axis=1, keepdims=True)
+    b = b.astype(np.float64) / np.linalg.norm(b.astype(np.float64), axis=1, keepdims=True)
+    sign = np.where(np.sum(a * b, axis=1) < 0, -1.0, 1.0)[:, None]
+    return np.degrees(4 * np.arcsin(np.minimum(np.linalg.norm(a - sign * b, axis=1) / 2, 1.0)))
+
+
+def moving(rng, n, frames, candidates):
+    """State arrays of `frames` frames in which the candidates move smoothly (some a lot, most a little)."""
+    p, r, s = state(rng, n, edge_cases=False)
+    out = []
+    amp = np.where(np.arange(candidates.size) % 7 == 0, 3e-4, 1e-5)
+    for _ in range(frames):
+        p, r, s = p.copy(), r.copy(), s.copy()
+        p[candidates] += (rng.normal(0, 1, (candidates.size, 3)) * amp[:, None]).astype(np.float32)
+        r[candidates] += rng.normal(0, 3e-3, (candidates.size, 4)).astype(np.float32)
+        r[candidates] /= np.linalg.norm(r[candidates], axis=1, keepdims=True)
+        s[candidates] *= np.exp(rng.normal(0, 0.01, (candidates.size, 3))).astype(np.float32)
+        for a in (p, r, s):
+            a.flags.writeable = False  # like the fast pipeline's pooled states
+        out.append((p, r, s))
+    return out
+
+
+@pytest.mark.parametrize("enc", ["f16", "q13"])
+@pytest.mark.parametrize("coords", ["flame", "unity"])
+def test_delta_kernels_equal_the_reference(kernels, enc, coords) -> None:
+    """The numba delta kernels select, encode and hold exactly what the numpy reference does: same bytes."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
+    frames = moving(rng, n, 25, cand)
+    quant = make_quant(frames[0][0], frames[0][2])
+    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    ref = DeltaEncoder(fmt, coords, None, cand, key_interval=10)
+    fast = delta_encoder(fmt, coords, None, cand, key_interval=10)
+    sizes = []
+    for f, (p, r, s) in enumerate(frames):
+        a, b = ref.encode(f, 1, TIMING, p, r, s), fast.encode(f, 1, TIMING, p, r, s)
+        assert a == b, f"frame {f} differs"
+        sizes.append(len(a))
+    for name in ("held_p", "held_r", "held_s", "dec_p", "dec_r", "dec_s"):
+        np.testing.assert_array_equal(getattr(ref, name), getattr(fast, name))
+    assert ref.key_frames == 3 and min(sizes) < max(sizes) * 0.6  # key frames at 0, 10, 20; deltas are smaller
+
+
+@pytest.mark.parametrize("enc", ["f16", "q13"])
+def test_delta_client_error_is_bounded_whatever_is_dropped(kernels, enc) -> None:
+    """Closed loop: after any number of frames and any drops (frames never handed to the socket are never
+    encoded), the client's state is within max(tolerance, the encoding's error) of the exact state, and a
+    resync (key frame) gives exactly the dense frame's values."""
     rng = np.random.default_rng(6)
     n = 3000
-    neutral_p, neutral_r, neutral_s = state(rng, n, edge_cases=False)
-    quant = make_quant(neutral_p, neutral_s)
     cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
-    delta = DeltaQ13(quant, cand, neutral_p, neutral_r, neutral_s, "flame", thresholds)
-    fmt = FrameFormat("q13", n, True, quant)
-    held_p, held_r, held_s = neutral_p.copy(), neutral_r.copy(), neutral_s.copy()
-    p, r, s = neutral_p.copy(), neutral_r.copy(), neutral_s.copy()
-    out = []
-    for f in range(frames):
-        # smooth motion of the candidates: some move a lot, most a little
-        amp = np.where(np.arange(cand.size) % 7 == 0, 2e-4, 1e-5)
-        p[cand] += (rng.normal(0, 1, (cand.size, 3)) * amp[:, None]).astype(np.float32)
-        r[cand] += rng.normal(0, 2e-3, (cand.size, 4)).astype(np.float32)
-        r[cand] /= np.linalg.norm(r[cand], axis=1, keepdims=True)
-        s[cand] *= np.exp(rng.normal(0, 0.01, (cand.size, 3))).astype(np.float32)
-        data = delta.message(f, 0, {}, p, r, s, force=False)
-        msg = decode_server_message(data, fmt)
-        held_p[msg.index], held_r[msg.index], held_s[msg.index] = msg.position, msg.rotation, msg.scale
-        perr = np.linalg.norm(held_p.astype(np.float64) - p, axis=1).max()
-        dot = np.clip(np.abs(np.sum(held_r.astype(np.float64) * r, axis=1)), 0, 1)
-        rerr = np.degrees(2 * np.arccos(dot)).max()
-        serr = np.abs(np.log(held_s.astype(np.float64)) - np.log(s)).max()
-        out.append((perr, rerr, serr, msg.n, len(data)))
-    return out, quant
+    frames = moving(rng, n, 40, cand)
+    quant = make_quant(frames[0][0], frames[0][2])
+    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    tol = DeltaTolerance()
+    enc_ = delta_encoder(fmt, "unity", None, cand, tolerance=tol, key_interval=0)
+    client = ClientConnection()
+    client.format, client.delta = fmt, DeltaDecoder(fmt)
+    held = None
+    dropped = {3, 4, 5, 11, 17, 18, 30}
+    if enc == "q13":
+        pos_bound = max(tol.position_m, float(np.linalg.norm(position_error_bound("q13", quant, 0.3))))
+        rot_bound = max(tol.rotation_deg, math.degrees(2 * math.asin(Q13_ROTATION_ERROR / 2)) * 2)
+        s_bound = max(tol.log_scale, log_scale_error_bound(quant))
+    else:
+        pos_bound = max(tol.position_m, 0.3 * 2.0**-11 * math.sqrt(3))
+        rot_bound = max(tol.rotation_deg, 0.05)
+        s_bound = max(tol.log_scale, 2.0**-10)
+    for f, (p, r, s) in enumerate(frames):
+        if f in dropped:
+            continue
+        if f == 25:
+            enc_.request_key()
+        msg = decode_server_message(enc_.encode(f, 0, {}, p, r, s), fmt)
+        if isinstance(msg, DeltaFrame):
+            got = client.delta.apply(msg)
+            assert not got.key and got.n < n
+            held.position[got.index], held.rotation[got.index], held.scale[got.index] = \
+                got.position, got.rotation, got.scale
+        else:
+            assert msg.key and f in (0, 25)
+            client.delta.key(msg)
+            held = GaussianState(msg.position, msg.rotation, msg.scale)
+            plain = FrameFormat(enc, n, False, fmt.quant)
+            ep, er = to_coords(p, r, "unity")
+            dense = decode_server_message(encode_frame(Frame(seq=f, t=0, position=ep, rotation=er, scale=s), plain),
+                                          plain)
+            np.testing.assert_array_equal(held.position, dense.position)
+        ep, er = to_coords(p, r, "unity")
+        perr = np.linalg.norm(held.position.astype(np.float64) - ep, axis=1).max()
+        rerr = rotation_error_deg(held.rotation, er).max()
+        serr = np.abs(np.log(held.scale.astype(np.float64)) - np.log(s)).max()
+        assert perr <= pos_bound + 1e-7 and rerr <= rot_bound + 1e-3 and serr <= s_bound + 1e-6, (f, perr, rerr, serr)
 
 
-def test_delta_stream_keeps_the_client_within_thresholds() -> None:
-    th = DeltaThresholds(position_m=4.5e-5, rotation_deg=0.5, log_scale=0.02)
-    out, quant = run_delta(th)
-    q13_pos = float(position_error_bound("q13", quant, 0.2).max()) * math.sqrt(3)
-    for perr, rerr, serr, n, size in out:
-        assert perr <= max(th.position_m, q13_pos) + 1e-8
-        assert rerr <= max(th.rotation_deg, math.degrees(2 * math.asin(Q13_ROTATION_ERROR / 2) * 2)) + 1e-3
-        assert serr <= max(th.log_scale, log_scale_error_bound(quant)) + 1e-6
-        assert 0 < n < 2000 and size > 0
-    # Tighter thresholds send more.
-    tight, _ = run_delta(DeltaThresholds(position_m=5e-6, rotation_deg=0.2, log_scale=0.005))
-    assert sum(o[3] for o in tight) > sum(o[3] for o in out)
+def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
+    from ofera_protocol import ProtocolError
+    from ofera_protocol.codec import pack_map
 
-
-def test_delta_messages_decode_with_the_client_connection() -> None:
-    rng = np.random.default_rng(7)
-    n = 500
-    p, r, s = state(rng, n, edge_cases=False)
-    quant = make_quant(p, s)
-    delta = DeltaQ13(quant, np.arange(0, n, 2), p, r, s)
-    data = delta.message(3, 9, TIMING, p, r, s, force=True)
-    msg = decode_server_message(data, FrameFormat("q13", n, True, quant))
-    assert msg.n == n // 2 and np.array_equal(msg.index, np.arange(0, n, 2))
-    assert ClientConnection is not None  # the same codec a client uses
+    n = 20
+    fmt = FrameFormat("q13", n, False, make_quant(np.zeros((n, 3)), np.full((n, 3), 1e-3)), delta=True)
+    dec = DeltaDecoder(fmt)
+    good = {"type": "frame", "seq": 2, "t": 0, "timing": {}, "key": False, "n": 1,
+            "changed": np.array([1, 0, 0], np.uint8), "wide": np.zeros(1, np.uint8),
+            "position_delta": np.array([[5, -3, 1]], np.int8), "position": np.zeros((0, 3), "<u2"),
+            "rotation": np.array([3 << 30], "<u4"), "scale": np.array([[9, 9, 9]], np.uint8)}
+    with pytest.raises(ProtocolError) as e:  # before any key frame
+        dec.apply(decode_server_message(pack_map(good), fmt))
+    assert e.value.code == "not_ready"
+    dec.has_key = True
+    before = dec.position.copy()
+    for bad, code in ((dict(good, changed=np.array([1, 0, 0, 0], np.uint8)), "bad_length"),
+                      (dict(good, changed=np.array([3, 0, 0], np.uint8)), "bad_field"),  # n = 1, two marked
+                      (dict(good, changed=np.array([1, 0, 0x10], np.uint8)), "bad_field"),  # padding bit
+                      (dict(good, position_delta=np.array([[-5, 0, 0]], np.int8)), "bad_field"),  # code < 0
+                      (dict(good, scale=np.zeros((2, 3), np.uint8)), "bad_length")):
+        with pytest.raises(ProtocolError) as e:
+            dec.apply(decode_server_message(pack_map(bad), fmt))
+        assert e.value.code == code
+        np.testing.assert_array_equal(dec.position, before)
+    dec.position[0] = [10, 10, 10]
+    got = dec.apply(decode_server_message(pack_map(good), fmt))
+    assert got.index.tolist() == [0] and dec.position[0].tolist() == [15, 7, 11]
 
 
 @pytest.mark.parametrize("enc", ["f32", "f16", "q13"])
 @pytest.mark.parametrize("sparse", [False, True])
 def test_fast_decoder_equals_codec(kernels, enc, sparse) -> None:
-    from ofera.streaming.encode_fast import FastFrameDecoder
+    from ofera.client.fast_decode import FastFrameDecoder
 
     rng = np.random.default_rng(8)
     pos, rot, scale = state(rng, edge_cases=False)
@@ -244,7 +327,7 @@ def test_fast_decoder_equals_codec(kernels, enc, sparse) -> None:
 
 
 def test_fast_decoder_checks_like_the_codec(kernels) -> None:
-    from ofera.streaming.encode_fast import FastFrameDecoder
+    from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import ProtocolError
     from ofera_protocol.codec import pack_map
 

@@ -64,14 +64,15 @@ def device():
         pytest.fail("the wgpu package is missing: pip install -e '.[dev]'")
     os.environ.setdefault("XDG_RUNTIME_DIR", "/tmp")
     try:
-        adapter = wgpu.gpu.request_adapter_sync(power_preference="low-power")
+        adapters = wgpu.gpu.enumerate_adapters_sync()
     except Exception as e:  # noqa: BLE001 - any failure means "no adapter"
-        adapter = None
-        reason = f"{type(e).__name__}: {e}"
-    else:
-        reason = "request_adapter returned None"
-    if adapter is None:
-        pytest.skip(f"no Vulkan adapter ({reason}): install mesa-vulkan-drivers (lavapipe)")
+        pytest.skip(f"no Vulkan adapter ({type(e).__name__}: {e}): install mesa-vulkan-drivers (lavapipe)")
+    vulkan = [a for a in adapters if a.info.get("backend_type") == "Vulkan"]
+    if not vulkan:
+        found = ", ".join(f"{a.info.get('backend_type')} {a.info.get('device')}" for a in adapters) or "none"
+        pytest.skip(f"no Vulkan adapter (found: {found}): install mesa-vulkan-drivers (lavapipe)")
+    # prefer the CPU device (lavapipe) so results do not depend on whichever GPU a machine has
+    adapter = next((a for a in vulkan if a.info.get("adapter_type") == "CPU"), vulkan[0])
     return adapter.request_device_sync()
 
 
@@ -320,7 +321,7 @@ def _frames(fmt: FrameFormat, neutral, rng) -> list[bytes]:
 
 @pytest.mark.parametrize("encoding,sparse,mirror", CASES)
 def test_decode_kernel_matches_python_reference(device, spirv, encoding, sparse, mirror):
-    rng = np.random.default_rng(hash((encoding, sparse, mirror)) & 0xFFFF)
+    rng = np.random.default_rng(CASES.index((encoding, sparse, mirror)))  # deterministic per case
     fmt, neutral = _session(encoding, sparse, rng)
     perm = make_perm(rng)
     tables = q13_tables(fmt.quant) if encoding == "q13" else (np.zeros(1, np.uint32), np.zeros(1, np.uint32))

@@ -36,6 +36,7 @@ from .errors import (
     BAD_LENGTH,
     MALFORMED,
     MESSAGE_TOO_LARGE,
+    NON_FINITE,
     NOT_READY,
     UNKNOWN_ENCODING,
     UNKNOWN_LAYOUT,
@@ -51,6 +52,7 @@ from .messages import (
     Blendshapes,
     Bye,
     ClientMessage,
+    DeltaFrame,
     ErrorMessage,
     Frame,
     Hello,
@@ -58,6 +60,7 @@ from .messages import (
     Ping,
     Pong,
     Quant,
+    Resync,
     ServerMessage,
     Welcome,
 )
@@ -117,7 +120,7 @@ def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
 def encode_hello(m: Hello) -> bytes:
     return pack_map(_drop_none({
         "type": "hello", "protocol": m.protocol, "layout": m.layout, "avatar": m.avatar,
-        "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse, "device": m.device,
+        "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse, "delta": m.delta or None, "device": m.device,
         "token": m.token, "max_gaussians": m.max_gaussians,
     }))
 
@@ -139,6 +142,8 @@ def encode_welcome(m: Welcome) -> bytes:
                    "expression": m.avatar.expression},
         "layout": m.layout, "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse,
     }
+    if m.delta:
+        d["delta"] = True
     if m.quant is not None:
         validate_quant(m.quant)
         d["quant"] = {"pos_min": m.quant.pos_min.astype("<f4"), "pos_max": m.quant.pos_max.astype("<f4"),
@@ -171,6 +176,10 @@ def encode_frame(m: Frame, fmt: FrameFormat) -> bytes:
         raise ValueError(f"frame arrays must be (n, 3), (n, 4), (n, 3); got {m.position.shape}, "
                          f"{m.rotation.shape}, {m.scale.shape}")
     d: dict[str, Any] = {"type": "frame", "seq": m.seq, "t": m.t, "timing": m.timing, "n": n}
+    if fmt.delta:  # a key frame (delta frames come from delta.DeltaEncoder or encode_delta_frame)
+        if m.key is False or m.index is not None:
+            raise ValueError("a Frame of a delta session is a dense key frame")
+        d = {"type": "frame", "seq": m.seq, "t": m.t, "timing": m.timing, "key": True, "n": n}
     if m.index is None:
         if n != fmt.count:
             raise ValueError(f"dense frame carries {n} Gaussians, the avatar has {fmt.count}")
@@ -186,6 +195,19 @@ def encode_frame(m: Frame, fmt: FrameFormat) -> bytes:
     return pack_map(d)
 
 
+def encode_delta_frame(m: DeltaFrame, fmt: FrameFormat) -> bytes:
+    """A delta frame (PROTOCOL.md 7.1) from its wire arrays (see DeltaFrame)."""
+    from .delta import pack_bits
+
+    changed = np.zeros(fmt.count, bool)
+    changed[np.asarray(m.index, np.int64)] = True
+    return pack_map({"type": "frame", "seq": m.seq, "t": m.t, "timing": m.timing, "key": False, "n": m.n,
+                     "changed": pack_bits(changed), "wide": pack_bits(m.wide),
+                     "position_delta": np.ascontiguousarray(m.position_delta, np.int8),
+                     "position": np.ascontiguousarray(m.position), "rotation": np.ascontiguousarray(m.rotation),
+                     "scale": np.ascontiguousarray(m.scale)})
+
+
 def encode_error(m: ErrorMessage) -> bytes:
     return pack_map(_drop_none({"type": "error", "code": m.code, "message": m.message, "fatal": m.fatal,
                                 "seq": m.seq}))
@@ -197,14 +219,18 @@ def encode(m: Message, fmt: FrameFormat | None = None) -> bytes:
         if fmt is None:
             raise ValueError("encoding a frame needs the session's FrameFormat")
         return encode_frame(m, fmt)
+    if isinstance(m, DeltaFrame):
+        if fmt is None:
+            raise ValueError("encoding a frame needs the session's FrameFormat")
+        return encode_delta_frame(m, fmt)
     if isinstance(m, Hello):
         return encode_hello(m)
     if isinstance(m, Blendshapes):
         return encode_bs(m)
     if isinstance(m, (Ping, Pong)):
         return pack_map({"type": m.TYPE, "t": m.t})
-    if isinstance(m, Bye):
-        return pack_map({"type": "bye"})
+    if isinstance(m, (Bye, Resync)):
+        return pack_map({"type": m.TYPE})
     if isinstance(m, Welcome):
         return encode_welcome(m)
     if isinstance(m, AvatarChunk):
@@ -277,6 +303,7 @@ def decode_hello(m: dict[str, Any]) -> Hello:
         encoding=F.get_choice(m, "encoding", w, ENCODINGS, UNKNOWN_ENCODING, default="f32"),
         coords=F.get_choice(m, "coords", w, COORDS, BAD_FIELD, default="flame"),
         sparse=F.get_bool(m, "sparse", w, default=False),
+        delta=F.get_bool(m, "delta", w, default=False),
         device=F.get_str(m, "device", w, default=None),
         token=F.get_str(m, "token", w, max_len=MAX_STR_LEN, default=None),
         max_gaussians=F.get_int(m, "max_gaussians", w, lo=1, hi=UINT32_MAX, default=None),
@@ -318,6 +345,8 @@ def decode_client_message(data: bytes | bytearray | memoryview, layout: str | No
         return decode_hello(m)
     if t == "ping":
         return Ping(t=F.get_int(m, "t", "ping"))
+    if t == "resync":
+        return Resync()
     return Bye()
 
 
@@ -353,6 +382,7 @@ def decode_welcome(m: dict[str, Any]) -> Welcome:
         sparse=F.get_bool(m, "sparse", w),
         quant=decode_quant(qm) if qm is not None and encoding == "q13" else None,
         server=F.get_str(m, "server", w, default=None),
+        delta=F.get_bool(m, "delta", w, default=False),
     )
 
 
@@ -387,13 +417,64 @@ def decode_timing(m: dict[str, Any]) -> dict[str, int]:
     return tm
 
 
-def decode_frame(m: dict[str, Any], fmt: FrameFormat) -> Frame:
+_CODE_DTYPES = {"q13": ("<u2", "<u4", "u1"), "f16": ("<u2", "<u2", "<u2")}
+_CODE_WIDTH = {"q13": (3, 1, 3), "f16": (3, 4, 3)}
+
+
+def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, timing: dict[str, int]) -> DeltaFrame:
+    """The wire arrays of a delta frame (`key: false`), checked: mask lengths and padding, n = the number of
+    changed Gaussians, array lengths; f16 codes sent whole must be finite. Raises ProtocolError."""
+    from .delta import unpack_bits
+    from .encodings import FIELD_BYTES
+
+    w = "frame"
+    n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
+    changed = unpack_bits(F.get_bin(m, "changed", w), fmt.count, "changed")
+    index = np.flatnonzero(changed).astype(np.uint32)
+    if index.size != n:
+        raise ProtocolError(BAD_FIELD, f"frame: n = {n} but 'changed' marks {index.size} Gaussians")
+    wide = unpack_bits(F.get_bin(m, "wide", w), n, "wide")
+    nw = int(wide.sum())
+    res = F.get_array(m, "position_delta", w, "i1", (n - nw, 3))
+    pb, rb, sb = FIELD_BYTES[fmt.encoding]
+    dts = _CODE_DTYPES[fmt.encoding] if fmt.encoding == "q13" else ("<f2", "<f2", "<f2")
+    arrays = []
+    fields = (("position", nw, pb, dts[0], 3), ("rotation", n, rb, dts[1], 4 if rb == 8 else 1),
+              ("scale", n, sb, dts[2], 3))
+    for key, count, size, dt, width in fields:
+        buf = F.get_bin(m, key, w)
+        if len(buf) != count * size:
+            raise ProtocolError(BAD_LENGTH, f"frame field {key!r} has {len(buf)} bytes; {count} Gaussians in "
+                                f"{fmt.encoding} need {count * size}")
+        a = np.frombuffer(buf, dtype=dt)
+        arrays.append(a.reshape(count, width) if width > 1 else a)
+        if fmt.encoding == "f16" and ((a.view(np.uint16) & 0x7C00) == 0x7C00).any():
+            raise ProtocolError(NON_FINITE, f"frame field {key!r} holds NaN or infinity")
+    return DeltaFrame(seq=seq, t=t, timing=timing, index=index, wide=wide, position_delta=res, position=arrays[0],
+                      rotation=arrays[1], scale=arrays[2])
+
+
+FrameParts = tuple[int, int, dict[str, int], bool | None, int, Any, list[bytes]]
+
+
+def frame_parts(m: dict[str, Any], fmt: FrameFormat) -> FrameParts | DeltaFrame:
+    """The checked fields of a `frame` map: (seq, t, timing, key, n, index, [position, rotation, scale] bins with
+    their byte lengths checked), or the DeltaFrame of a delta frame. Every decoder of frames starts here."""
+    from .encodings import FIELD_BYTES
+
     w = "frame"
     seq = F.get_int(m, "seq", w, lo=0)
     t = F.get_int(m, "t", w)
     timing = decode_timing(m)
+    key = None
+    if fmt.delta:
+        key = F.get_bool(m, "key", w)
+        if not key:
+            return decode_delta_frame(m, fmt, seq, t, timing)
     n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
     index = F.get_array(m, "index", w, "<u4", (n,), required=False)
+    if key and index is not None:
+        raise ProtocolError(BAD_FIELD, "frame: a key frame is dense (no 'index')")
     if index is None:
         if n != fmt.count:
             raise ProtocolError(BAD_LENGTH, f"frame: dense frame carries n={n} Gaussians, the avatar "
@@ -406,8 +487,24 @@ def decode_frame(m: dict[str, Any], fmt: FrameFormat) -> Frame:
         if n > 1 and not (index[1:] > index[:-1]).all():
             raise ProtocolError(BAD_FIELD, "frame: 'index' must be strictly ascending")
     bufs = [F.get_bin(m, k, w) for k in ("position", "rotation", "scale")]
+    for name, buf, size in zip(("position", "rotation", "scale"), bufs, FIELD_BYTES[fmt.encoding], strict=True):
+        if len(buf) != n * size:
+            raise ProtocolError(BAD_LENGTH, f"frame field {name!r} has {len(buf)} bytes; {n} Gaussians in "
+                                f"{fmt.encoding} need {n * size}")
+    return seq, t, timing, key, n, index, bufs
+
+
+def decode_frame(m: dict[str, Any], fmt: FrameFormat) -> Frame | DeltaFrame:
+    parts = frame_parts(m, fmt)
+    if isinstance(parts, DeltaFrame):
+        return parts
+    seq, t, timing, key, n, index, bufs = parts
     p, r, s = decode_arrays(fmt.encoding, n, bufs[0], bufs[1], bufs[2], fmt.quant)
-    return Frame(seq=seq, t=t, timing=timing, index=index, position=p, rotation=r, scale=s)
+    codes = None
+    if key:
+        codes = tuple(np.frombuffer(b, dtype=dt) for b, dt in zip(bufs, _CODE_DTYPES[fmt.encoding], strict=True))
+    return Frame(seq=seq, t=t, timing=timing, index=index, position=p, rotation=r, scale=s, key=key,
+                 codes=codes)  # type: ignore[arg-type]
 
 
 def decode_server_message(data: bytes | bytearray | memoryview, fmt: FrameFormat | None = None,
@@ -435,4 +532,4 @@ def decode_server_message(data: bytes | bytearray | memoryview, fmt: FrameFormat
 def frame_format(welcome: Welcome) -> FrameFormat:
     """The FrameFormat a `welcome` announces."""
     return FrameFormat(encoding=welcome.encoding, count=welcome.avatar.count, sparse=welcome.sparse,
-                       quant=welcome.quant)
+                       quant=welcome.quant, delta=welcome.delta)

@@ -9,6 +9,7 @@ with 1000 after `bye`.
 from __future__ import annotations
 
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -47,12 +48,14 @@ from .messages import (
     Blendshapes,
     Bye,
     ClientMessage,
+    DeltaFrame,
     ErrorMessage,
     Frame,
     Hello,
     Ping,
     Pong,
     Quant,
+    Resync,
     ServerMessage,
     Welcome,
 )
@@ -130,6 +133,11 @@ class ServerConnection:
                 raise ProtocolError(NOT_READY, "bs before hello: send hello first", True)
             if self.state is not ServerState.STREAMING:
                 raise ProtocolError(NOT_READY, "bs before welcome: wait for welcome", False)
+        elif isinstance(msg, Resync):
+            if self.state is ServerState.AWAITING_HELLO:
+                raise ProtocolError(NOT_READY, "resync before hello: send hello first", True)
+            if self.state is not ServerState.STREAMING or self.welcome is None or not self.welcome.delta:
+                raise ProtocolError(NOT_READY, "resync outside a delta session (hello.delta) is ignored", False)
         elif isinstance(msg, Bye):
             self.state = ServerState.CLOSED
         return msg
@@ -137,9 +145,10 @@ class ServerConnection:
     # -- sending
 
     def accept(self, session: str, avatar: AvatarInfo, *, encoding: str | None = None,
-               quant: Quant | None = None, server: str | None = None) -> bytes:
+               quant: Quant | None = None, server: str | None = None, delta: bool | None = None) -> bytes:
         """Accept the received hello: returns `welcome` and enters STREAMING. `encoding` defaults to
-        the one asked for; `quant` is required for q13 (see encodings.make_quant)."""
+        the one asked for; `quant` is required for q13 (see encodings.make_quant). `delta` defaults to
+        hello.delta where the encoding allows it (f16, q13); a delta session is dense (welcome.sparse false)."""
         if self.state is not ServerState.HELLO_RECEIVED or self.hello is None:
             raise LocalProtocolError(f"accept() needs a received hello (state {self.state.value})")
         encoding = encoding or self.hello.encoding
@@ -148,9 +157,11 @@ class ServerConnection:
         if self.hello.max_gaussians is not None and avatar.count > self.hello.max_gaussians:
             raise LocalProtocolError(f"avatar has {avatar.count} Gaussians, the client allows "
                                      f"{self.hello.max_gaussians}")
+        if delta is None:
+            delta = self.hello.delta and encoding in ("f16", "q13")
         welcome = Welcome(session=session, avatar=avatar, layout=self.hello.layout, encoding=encoding,
-                          coords=self.hello.coords, sparse=self.hello.sparse,
-                          quant=quant if encoding == "q13" else None, server=server)
+                          coords=self.hello.coords, sparse=self.hello.sparse and not delta,
+                          quant=quant if encoding == "q13" else None, server=server, delta=delta)
         try:
             self.format = frame_format(welcome)
         except ValueError as e:
@@ -230,12 +241,15 @@ class ClientConnection:
         self.avatar: Avatar | None = None
         self.gaussians: GaussianState | None = None
         self._assembler: AvatarAssembler | None = None
+        self.delta: Any = None  # delta.DeltaDecoder of a delta session (the codes this client holds)
+        self.resync_needed = False
+        """A delta frame could not be applied: send `resync()` (the server believes it was)."""
 
     # -- sending
 
     def hello(self, layout: str, avatar: str = DEFAULT_AVATAR, *, encoding: str = DEFAULT_ENCODING,
               coords: str = DEFAULT_COORDS, sparse: bool = False, device: str | None = None,
-              token: str | None = None, max_gaussians: int | None = None) -> bytes:
+              token: str | None = None, max_gaussians: int | None = None, delta: bool = False) -> bytes:
         if self.state is not ClientState.IDLE:
             raise LocalProtocolError("hello() may be sent once, first")
         for name, value, allowed in (("layout", layout, LAYOUTS), ("encoding", encoding, ENCODINGS),
@@ -243,7 +257,8 @@ class ClientConnection:
             if value not in allowed:
                 raise LocalProtocolError(f"unknown {name} {value!r}; expected one of {', '.join(allowed)}")
         msg = Hello(layout=layout, avatar=avatar, encoding=encoding, coords=coords, sparse=sparse,
-                    device=device, token=token, max_gaussians=max_gaussians, protocol=PROTOCOL_VERSION)
+                    device=device, token=token, max_gaussians=max_gaussians, protocol=PROTOCOL_VERSION,
+                    delta=delta)
         self.sent_hello = msg
         self.state = ClientState.AWAITING_WELCOME
         return encode(msg)
@@ -273,6 +288,13 @@ class ClientConnection:
         self.state = ClientState.CLOSED
         return encode(Bye())
 
+    def resync(self) -> bytes:
+        """Ask for a key frame (delta sessions); clears `resync_needed`."""
+        if self.state is ClientState.CLOSED:
+            raise LocalProtocolError("resync() on a closed connection")
+        self.resync_needed = False
+        return encode(Resync())
+
     # -- receiving
 
     def receive(self, data: bytes | bytearray | memoryview) -> ServerMessage:
@@ -284,6 +306,8 @@ class ClientConnection:
             msg = decode_server_message(data, self.format, self.max_message_size)
             return self._advance(msg)
         except ProtocolError as e:
+            if self.delta is not None and self.state is ClientState.STREAMING:
+                self.resync_needed = True  # whatever failed may have been a delta frame
             if self.state is not ClientState.STREAMING:
                 e = e.as_fatal()
             if e.fatal:
@@ -302,6 +326,10 @@ class ClientConnection:
             if msg.layout != self.sent_hello.layout or msg.coords != self.sent_hello.coords:
                 raise ProtocolError(BAD_FIELD, "welcome's layout/coords differ from hello's", True)
             self.welcome, self.format = msg, frame_format(msg)
+            if msg.delta:
+                from .delta import DeltaDecoder
+
+                self.delta = DeltaDecoder(self.format)
             self._assembler = AvatarAssembler(msg.avatar.count, msg.avatar.sh_degree)
             self.state = ClientState.RECEIVING_AVATAR
         elif isinstance(msg, AvatarChunk):
@@ -313,10 +341,14 @@ class ClientConnection:
                 if self.track_gaussians:
                     self.gaussians = GaussianState.from_avatar(self.avatar)
                 self.state = ClientState.STREAMING
-        elif isinstance(msg, Frame):
+        elif isinstance(msg, (Frame, DeltaFrame)):
             if self.state is not ClientState.STREAMING:
                 raise ProtocolError(NOT_READY, "frame before the avatar was complete "
                                     f"(state {self.state.value})")
+            if isinstance(msg, DeltaFrame):
+                msg = self.delta.apply(msg)  # absolute values of the changed Gaussians (sparse-like)
+            elif msg.key:
+                self.delta.key(msg)
             if self.gaussians is not None:
                 self.gaussians.apply(msg)
         elif isinstance(msg, ErrorMessage):

@@ -59,11 +59,12 @@ class FrameFormat:
     count: int
     sparse: bool = False
     quant: Quant | None = None
+    delta: bool = False  # key / delta frames (PROTOCOL.md 7.1); f16 and q13 only, never sparse
 
     def __hash__(self) -> int:  # usable as a dict key, e.g. to encode a frame once per format
         q = self.quant
         qkey = None if q is None else (q.pos_min.tobytes(), q.pos_max.tobytes(), q.log_scale.tobytes())
-        return hash((self.encoding, self.count, self.sparse, qkey))
+        return hash((self.encoding, self.count, self.sparse, qkey, self.delta))
 
     def __post_init__(self) -> None:
         if self.encoding not in ENCODINGS:
@@ -76,6 +77,9 @@ class FrameFormat:
             validate_quant(self.quant)
         else:
             object.__setattr__(self, "quant", None)
+        if self.delta and (self.encoding not in ("f16", "q13") or self.sparse):
+            raise ValueError(f"delta frames need encoding f16 or q13 and a dense session, not {self.encoding}"
+                             f"{' sparse' if self.sparse else ''}")
 
     def payload_bytes(self, n: int | None = None) -> int:
         """Array bytes of a frame: dense (n None) or sparse with n Gaussians (4 B of index each)."""

@@ -7,7 +7,7 @@ write each encoded field directly into its place in one buffer, selecting the fr
 (`gather`) and mirroring coordinates on the way. The bytes are identical to
 ``encode_frame(Frame(...), fmt)`` after ``to_coords`` and the gather (tests check it).
 
-Kernels are an object with five methods (:class:`NumpyKernels` is the plain numpy one; every value is
+Kernels are an object with seven methods (:class:`NumpyKernels` is the plain numpy one; every value is
 finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` per component):
 
     f32(src (N, k) f32, gather (M,) int64 | None, sign (k,) f32, dst (M k,) f32) -> bool finite
@@ -16,6 +16,7 @@ finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` 
                  [q = clip(rint((float64(p) - lo) * k), 0, 65535), see :func:`position_factors`]
     q13_rotation(src (N, 4), gather, sign (4,), dst (M,) uint32)
     q13_scale(src (N, 3), gather, thresholds (255,) f32, dst (M 3,) uint8)
+    delta_q13(...), delta_f16(...)  temporal delta selection, see :mod:`.delta` (reference: delta_*_reference)
 
 The protocol package stays importable with numpy and msgpack only: the numba kernels live in the
 server (``ofera.streaming.encode_fast.numba_kernels()``), which passes them in.
@@ -118,6 +119,18 @@ class NumpyKernels:
         code = np.searchsorted(thresholds, s, side="right")
         code[np.isnan(s)] = 0
         dst[...] = code.astype(np.uint8)
+
+    def delta_q13(self, *args) -> tuple[int, int]:
+        """Temporal delta selection in q13 (:func:`ofera_protocol.delta.delta_q13_reference`, the spec in code)."""
+        from .delta import delta_q13_reference
+
+        return delta_q13_reference(self, *args)
+
+    def delta_f16(self, *args) -> tuple[int, int]:
+        """Temporal delta selection in f16 (:func:`ofera_protocol.delta.delta_f16_reference`)."""
+        from .delta import delta_f16_reference
+
+        return delta_f16_reference(self, *args)
 
 
 def _bin_header(n: int) -> bytes:

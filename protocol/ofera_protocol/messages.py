@@ -21,6 +21,8 @@ class _ArrayEq:
         if type(other) is not type(self):
             return NotImplemented
         for f in fields(self):  # type: ignore[arg-type]
+            if not f.compare:
+                continue
             a, b = getattr(self, f.name), getattr(other, f.name)
             if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
                 if not (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)):
@@ -51,6 +53,7 @@ class Hello:
     token: str | None = None
     max_gaussians: int | None = None
     protocol: int = PROTOCOL_VERSION
+    delta: bool = False
 
 
 @dataclass(eq=False)
@@ -78,6 +81,13 @@ class Bye:
     """`bye`: the client ends the session; the server closes with 1000."""
 
     TYPE: ClassVar[str] = "bye"
+
+
+@dataclass
+class Resync:
+    """`resync`: a delta-session client asks for a key frame (its state is lost or a delta frame failed)."""
+
+    TYPE: ClassVar[str] = "resync"
 
 
 # ----------------------------------------------------------------------------- server -> client
@@ -121,6 +131,7 @@ class Welcome(_ArrayEq):
     quant: Quant | None = None  # present iff encoding == "q13"
     server: str | None = None
     protocol: int = PROTOCOL_VERSION
+    delta: bool = False  # frames are key or delta frames (PROTOCOL.md 7.1)
 
 
 @dataclass(eq=False)
@@ -167,11 +178,38 @@ class Frame(_ArrayEq):
     scale: np.ndarray
     index: np.ndarray | None = None
     timing: dict[str, int] = field(default_factory=dict)
+    key: bool | None = None  # delta sessions: True for a key frame, False for an applied delta frame
+    codes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, compare=False, repr=False)
+    """Key frames of a delta session: the wire codes (position, rotation, scale) the client holds from now."""
 
     @property
     def n(self) -> int:
         """Number of Gaussians carried."""
         return int(self.position.shape[0])
+
+
+@dataclass(eq=False)
+class DeltaFrame(_ArrayEq):
+    """`frame` with `key: false` in a delta session (PROTOCOL.md 7.1), as on the wire: `index` (n,) uint32 the
+    changed Gaussians (from the `changed` mask), `wide` (n,) bool; `position_delta` (n - w, 3) int8 code changes;
+    `position` (w, 3), `rotation` (n,) / (n, 4) and `scale` (n, 3) codes (q13: uint16, uint32, uint8; f16: float16
+    arrays whose bits are the codes). `DeltaDecoder.apply` turns it into a Frame."""
+
+    TYPE: ClassVar[str] = "frame"
+    seq: int
+    t: int
+    timing: dict[str, int]
+    index: np.ndarray
+    wide: np.ndarray
+    position_delta: np.ndarray
+    position: np.ndarray
+    rotation: np.ndarray
+    scale: np.ndarray
+    key: bool = False
+
+    @property
+    def n(self) -> int:
+        return int(self.index.shape[0])
 
 
 @dataclass
@@ -193,9 +231,9 @@ class Pong:
     t: int
 
 
-ClientMessage = Hello | Blendshapes | Ping | Bye
-ServerMessage = Welcome | AvatarChunk | Frame | ErrorMessage | Pong
+ClientMessage = Hello | Blendshapes | Ping | Bye | Resync
+ServerMessage = Welcome | AvatarChunk | Frame | DeltaFrame | ErrorMessage | Pong
 Message = ClientMessage | ServerMessage
 
-CLIENT_TYPES: dict[str, type] = {c.TYPE: c for c in (Hello, Blendshapes, Ping, Bye)}
+CLIENT_TYPES: dict[str, type] = {c.TYPE: c for c in (Hello, Blendshapes, Ping, Bye, Resync)}
 SERVER_TYPES: dict[str, type] = {c.TYPE: c for c in (Welcome, AvatarChunk, Frame, ErrorMessage, Pong)}

@@ -1202,6 +1202,48 @@ namespace Ofera.Client.Tests
         {
             Run("live client session", delegate { LiveClientSession(url, frames); });
             Run("live low-level sessions", delegate { LowLevelSessions(url); });
+            Run("live GPU-path session", delegate { LivePayloadSession(url); });
+        }
+
+        /// <summary>The GPU upload path against the real server: payload kept, no float decode on the receive thread.</summary>
+        static void LivePayloadSession(string url)
+        {
+            OferaClientOptions o = new OferaClientOptions();
+            o.Url = url; o.Layout = "ovr63"; o.Encoding = "q13"; o.Sparse = true; o.Coords = "unity";
+            o.KeepPayload = true; o.DecodeValues = false; o.HandshakeTimeoutSeconds = 120; o.PingIntervalSeconds = 0;
+            List<ClientEvent> events = new List<ClientEvent>();
+            OferaClient c = new OferaClient(o);
+            c.Start();
+            AvatarData avatar = null; Welcome welcome = null; int session = 0;
+            bool got = WaitFor(() => c.TryTakeAvatar(out avatar, out welcome, out session), 180, c, events);
+            Check(got, "live gpu: handshake and avatar", "status " + c.Status);
+            if (!got) { c.Stop(); return; }
+            int frames = 0;
+            string problems = "";
+            float[] pos = new float[3 * avatar.Count];
+            for (int k = 0; k < 10; k++)
+            {
+                c.SubmitBlendshapes(Sample(63, k), OferaClock.NowMicros());
+                FrameData f = null;
+                int want = k;
+                if (!WaitFor(() => { FrameData x = c.TryTakeFrame(); if (x != null && x.Seq >= want) { f = x; return true; } return false; }, 30, c, events)) break;
+                frames++;
+                FramePayload p = f.Payload;
+                if (f.HasValues) problems += " values decoded;";
+                if (p.N != f.N || p.Encoding != FrameEncoding.Q13 || p.HasIndex != f.HasIndex) problems += " header;";
+                if (p.Words != (p.HasIndex ? p.N : 0) + (6 * p.N + 3) / 4 + p.N + (3 * p.N + 3) / 4) problems += " size " + p.Words + ";";
+                for (int i = 0; i < p.N && p.HasIndex; i++)
+                    if (BitCast.ReadUInt32LE(p.Bytes, 4 * (p.IndexWord + i)) != f.Index[i]) { problems += " index;"; break; }
+                FrameCodec.DecodeQ13Positions(p.Bytes, 4 * p.PositionWord, p.N, welcome.Quant, pos, 0);
+                for (int i = 0; i < 3 * p.N; i++)
+                {
+                    int a = i % 3;
+                    if (!(pos[i] >= welcome.Quant.PosMin[a] - 1e-6f && pos[i] <= welcome.Quant.PosMax[a] + 1e-6f)) { problems += " position outside the box;"; break; }
+                }
+            }
+            c.Stop();
+            Check(frames == 10 && problems.Length == 0, "live gpu: 10 frames with their wire payload kept (no float decode), index and q13 positions read back",
+                  frames + " frames;" + problems);
         }
 
         static void LiveClientSession(string url, int frames)

@@ -46,6 +46,13 @@ class Settings(BaseSettings):
     fast: bool = Field(True, description="Fast paths: the avatar's numba deformation (moving Gaussians only) "
                        "and numba frame encoding; false: the numpy references (lbs + Deformer, codec.encode_frame).")
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
+    key_interval: int = Field(720, ge=0, description="Delta sessions (hello.delta): a key frame every this many "
+                              "frames sent (besides join and resync); 0: only on join and resync.")
+    delta_position_mm: float = Field(0.045, gt=0, description="Delta sessions: a Gaussian is re-sent once its "
+                                     "position is this far (mm, Euclidean) from what the client holds.")
+    delta_rotation_deg: float = Field(0.45, gt=0, description="Delta sessions: ... or its rotation this many "
+                                      "degrees from the held one.")
+    delta_log_scale: float = Field(0.02, gt=0, description="Delta sessions: ... or a scale axis this far in ln.")
     log_level: str = Field("info", description="uvicorn log level.")
 
     @field_validator("token", "avatars", "avatar_zip", "devices", "ssl_keyfile", "ssl_certfile", mode="before")

@@ -1,5 +1,6 @@
-"""numba frame-encoding kernels (the accelerator the server passes to the protocol's FrameWriter), and
-the "moved since last sent" q13 delta encoder.
+"""numba frame-encoding kernels (the accelerator the server passes to the protocol's FrameWriter and
+DeltaEncoder): the fast kernel set, same signatures and same bytes as the reference (plain numpy,
+``ofera_protocol.fast_encodings.NumpyKernels`` over ``ofera_protocol.encodings`` / ``.delta``).
 
 Why here and not in ``ofera_protocol``: the protocol package must stay importable with numpy and msgpack
 only, so it holds the buffer layout (:class:`ofera_protocol.fast_encodings.FrameWriter`) and a plain
@@ -16,31 +17,29 @@ reference encoder (:mod:`ofera_protocol.encodings`) exactly; tests compare them.
   (:func:`ofera_protocol.fast_encodings.scale_thresholds`) looked up by the float32 bit pattern
   (:func:`scale_table`), so no float32 logarithm has to match numpy's.
 
-:class:`DeltaQ13` keeps, per client, the values that client holds (decoded from what was sent to it)
-and sends a Gaussian only when the frame's value has moved away from them by more than a threshold,
-so the error the client sees is bounded by the threshold (see its docstring).
+Temporal deltas (PROTOCOL.md 7.1): :func:`delta_q13_kernel` / :func:`delta_f16_kernel` do the selection of
+``ofera_protocol.delta`` in one pass over the movable Gaussians (same float64 operations in the same order,
+so the same Gaussians are selected), encode them and update the codes the client holds.
+The client-side decoder is in ``ofera.client.fast_decode``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numba as nb
 import numpy as np
 from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
+from ofera_protocol.delta import DeltaEncoder, DeltaTolerance
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from ofera_protocol.fast_encodings import (
     F16_MAX,
     F32_MAX,
     FrameWriter,
     NumpyKernels,
-    position_factors,
-    scale_thresholds,
 )
-from ofera_protocol.messages import Quant
 
 _NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
 _SQRT2_511 = np.float32(np.sqrt(2.0) * ROT_LEVELS)  # the reference's float32 constant
@@ -296,6 +295,23 @@ class NumbaKernels:
         g, n = self._g(src, gather)
         q13_scale_kernel(src, g, n, table, dst)
 
+    def delta_q13(self, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, scale_lut, tol, *rest
+                  ) -> tuple[int, int]:
+        """ofera_protocol.delta.delta_q13_reference in one numba pass (same signature, same bytes)."""
+        table = self.table(thresholds)
+        if table is None:
+            return NumpyKernels().delta_q13(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds,
+                                            scale_lut, tol, *rest)
+        n, w = delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, tol, *rest)
+        return int(n), int(w)
+
+    def delta_f16(self, *args) -> tuple[int, int]:
+        """ofera_protocol.delta.delta_f16_reference in one numba pass."""
+        n, w, ok = delta_f16_kernel(*args)
+        if not ok:
+            raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
+        return int(n), int(w)
+
 
 _KERNELS: NumbaKernels | None = None
 
@@ -344,7 +360,6 @@ def warm_up() -> None:
                     k.f16(p, gather, -ones3, dst16[:6])
                     k.f32(p, gather, -ones3, dstf[:6])
     delta_kernel_warm()
-    decoder_warm()
 
 
 def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
@@ -353,180 +368,7 @@ def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | N
     return FrameWriter(fmt, coords, gather, index, kernels=numba_kernels(), pool=pool)
 
 
-# ============================================================================= delta (moved since last sent)
-
-
-@nb.njit(**_NB)
-def _delta_select(pos, rot, scale, ids, psign, rsign, lo, k, step, table, log_lo, log_step,
-                  held_pos, held_rot, held_slo, held_shi, pos_thr2, rot_dot, log_thr, force, sel, out_pos, out_rot,
-                  out_scale):
-    """For the M candidate rows ``ids``: quantise, compare with what the client holds, and for the ones
-    that moved (or all, if ``force``) write their codes to out_* and update the held values. Returns
-    how many were selected (their positions in ``ids`` are sel[:count])."""
-    count = 0
-    for m in range(ids.shape[0]):
-        r = ids[m]
-        px = pos[r, 0] * psign[0]
-        py = pos[r, 1] * psign[1]
-        pz = pos[r, 2] * psign[2]
-        dx = np.float64(px) - held_pos[m, 0]
-        dy = np.float64(py) - held_pos[m, 1]
-        dz = np.float64(pz) - held_pos[m, 2]
-        moved = force or dx * dx + dy * dy + dz * dz > pos_thr2
-        qx = rot[r, 0] * rsign[0]
-        qy = rot[r, 1] * rsign[1]
-        qz = rot[r, 2] * rsign[2]
-        qw = rot[r, 3] * rsign[3]
-        if not moved:
-            d = abs(qx * held_rot[m, 0] + qy * held_rot[m, 1] + qz * held_rot[m, 2] + qw * held_rot[m, 3])
-            moved = d < rot_dot
-        if not moved:
-            for c in range(3):
-                v = scale[r, c]
-                if not (held_slo[m, c] <= v <= held_shi[m, c]):  # ln distance > log_thr (or NaN)
-                    moved = True
-        if not moved:
-            continue
-        sel[count] = m
-        for c in range(3):
-            v = np.float64(pos[r, c] * psign[c])
-            q = np.rint((v - lo[c]) * k[c])
-            q = min(max(q, 0.0), POS_LEVELS)
-            out_pos[count * 3 + c] = np.uint16(q)
-            held_pos[m, c] = lo[c] + q * step[c]
-        packed = pack_rotation(qx, qy, qz, qw)
-        out_rot[count] = packed
-        _unpack_into(packed, held_rot, m)
-        for c in range(3):
-            code = _scale_code(scale[r, c], table)
-            out_scale[count * 3 + c] = np.uint8(code)
-            held = log_lo + code * log_step
-            held_slo[m, c] = math.exp(held - log_thr)
-            held_shi[m, c] = math.exp(held + log_thr)
-        count += 1
-    return count
-
-
-@nb.njit(**_NB)
-def _unpack_into(v, out, m):
-    """q13 rotation decode (PROTOCOL.md 6.3) of v into out[m] (x, y, z, w), float64."""
-    i = v >> 30
-    kept = np.empty(3, np.float64)
-    d = 1.0
-    for j in range(3):
-        f = np.int64((v >> (20 - 10 * j)) & 1023)
-        if f >= 512:
-            f -= 1024
-        c = max(f / ROT_LEVELS, -1.0) / math.sqrt(2.0)
-        kept[j] = c
-        d -= c * c
-    big = math.sqrt(max(d, 0.0))
-    j = 0
-    for c in range(4):
-        if c == i:
-            out[m, c] = big
-        else:
-            out[m, c] = kept[j]
-            j += 1
-
-
-_WARM_TABLE = scale_table(np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32))
-
-
-def delta_kernel_warm() -> None:
-    for readonly in (False, True):
-        z3, z4, s3 = np.zeros((1, 3), np.float32), np.zeros((1, 4), np.float32), np.full((1, 3), 1e-3, np.float32)
-        z4[0, 3] = 1
-        for a in (z3, z4, s3):
-            a.flags.writeable = not readonly
-        _delta_select(z3, z4, s3, np.zeros(1, np.int64), np.ones(3, np.float32), np.ones(4, np.float32),
-                      np.zeros(3), np.ones(3), np.ones(3), _WARM_TABLE, -9.0, 0.01,
-                      np.zeros((1, 3)), np.zeros((1, 4)), np.zeros((1, 3)), np.ones((1, 3)), 1e-10, 0.99, 0.01, True,
-                      np.zeros(1, np.int64), np.zeros(3, np.uint16), np.zeros(1, np.uint32), np.zeros(3, np.uint8))
-
-
-@dataclass(frozen=True)
-class DeltaThresholds:
-    """When a Gaussian counts as moved (any one suffices): its position is more than ``position_m``
-    (Euclidean, metres) from the position the client holds; its rotation is more than
-    ``rotation_deg`` degrees from the held one; or a scale axis differs from the held one by more than
-    ``log_scale`` in ln (0.02 = 2 %). The client's error is then at most the threshold, or the q13
-    quantisation error for Gaussians just sent, whichever is larger."""
-
-    position_m: float = 4.5e-5
-    rotation_deg: float = 0.5
-    log_scale: float = 0.02
-
-
-class DeltaQ13:
-    """Per-client sparse q13 frames of the Gaussians that moved since what this client last received.
-
-    candidates: (M,) int64 rows the server may send (the avatar's movable Gaussians); the rest never
-    change. The held state starts at ``neutral`` (what the `avatar` message gave the client, in FLAME
-    space, quantised like a frame). :meth:`select` must be called once per frame that is handed to this
-    client's socket (never for a frame that is then dropped): it updates the held state. PROTOCOL.md
-    section 7: a server that sends only what changed diffs against the last frame sent to that client.
-    """
-
-    def __init__(self, quant: Quant, candidates: np.ndarray, neutral_position: np.ndarray,
-                 neutral_rotation: np.ndarray, neutral_scale: np.ndarray, coords: str = "flame",
-                 thresholds: DeltaThresholds | None = None) -> None:
-        from ofera_protocol.fast_encodings import coord_signs
-
-        self.quant = quant
-        self.th = thresholds or DeltaThresholds()
-        self.ids = np.ascontiguousarray(candidates, np.int64)
-        self.psign, self.rsign = coord_signs(coords)
-        self.lo, self.k = position_factors(quant)
-        self.step = (quant.pos_max.astype(np.float64) - self.lo) / POS_LEVELS
-        self.scale_table = scale_table(scale_thresholds(quant))
-        lmin, lmax = float(quant.log_scale[0]), float(quant.log_scale[1])
-        self.log_lo, self.log_step = lmin, (lmax - lmin) / SCALE_LEVELS
-        m = self.ids.size
-        self.held_pos = np.zeros((m, 3))
-        self.held_rot = np.zeros((m, 4))
-        self.held_slo = np.zeros((m, 3))  # held scale x exp(-log_scale) .. x exp(+log_scale): not moved
-        self.held_shi = np.zeros((m, 3))
-        self._sel = np.zeros(m, np.int64)
-        self._pos = np.zeros(3 * m, np.uint16)
-        self._rot = np.zeros(m, np.uint32)
-        self._scale = np.zeros(3 * m, np.uint8)
-        # The client starts from the avatar message (float32, exact): hold those values.
-        self.held_pos[:] = neutral_position[self.ids] * self.psign
-        self.held_rot[:] = neutral_rotation[self.ids] * self.rsign
-        held = neutral_scale[self.ids].astype(np.float64)
-        self.held_slo[:] = held * math.exp(-self.th.log_scale)
-        self.held_shi[:] = held * math.exp(self.th.log_scale)
-        self._pos_thr2 = self.th.position_m ** 2
-        self._rot_dot = math.cos(math.radians(self.th.rotation_deg) / 2)
-        self.frames = 0
-
-    def select(self, position: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
-               force: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """FLAME-space float32 state (N, ...) -> (index (n,) uint32 avatar rows, position codes (n, 3)
-        uint16, rotation codes (n,) uint32, scale codes (n, 3) uint8) of the Gaussians to send; views of
-        internal buffers, valid until the next call. ``force`` sends every candidate."""
-        n = _delta_select(position, rotation, scale, self.ids, self.psign, self.rsign, self.lo, self.k, self.step,
-                          self.scale_table, self.log_lo, self.log_step, self.held_pos, self.held_rot, self.held_slo,
-                          self.held_shi,
-                          self._pos_thr2, self._rot_dot, self.th.log_scale, force, self._sel, self._pos, self._rot,
-                          self._scale)
-        self.frames += 1
-        index = self.ids[self._sel[:n]].astype(np.uint32)
-        return index, self._pos[:3 * n].reshape(n, 3), self._rot[:n], self._scale[:3 * n].reshape(n, 3)
-
-    def message(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
-                scale: np.ndarray, force: bool = False) -> bytes:
-        """The sparse q13 `frame` message of :meth:`select` (the session must be sparse, q13)."""
-        from ofera_protocol.codec import pack_map
-
-        index, p, r, s = self.select(position, rotation, scale, force)
-        return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "n": int(index.size),
-                         "index": index, "position": p.astype("<u2"), "rotation": r.astype("<u4"),
-                         "scale": s})
-
-
-# ============================================================================= decoding (clients, benchmarks)
+# ============================================================================= temporal deltas (PROTOCOL.md 7.1)
 
 
 @intrinsic
@@ -541,121 +383,178 @@ def f16_bits_to_f32(typingctx, h):
     return types.float32(h), codegen
 
 
-@nb.njit(**_NB)
-def f16_decode_kernel(src, dst):
-    """half bits (n,) -> float32 (n,); False if any is NaN or infinite (exponent all ones)."""
-    ok = True
-    for i in range(src.shape[0]):
-        h = src[i]
-        ok &= (h & 0x7C00) != 0x7C00
-        dst[i] = f16_bits_to_f32(h)
-    return ok
-
-
-@nb.njit(**_NB)
-def q13_decode_kernel(pos, rot, scale, lo, step, scale_lut, out_pos, out_rot, out_scale):
-    """q13 codes -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic)."""
-    kf = np.float32(math.sqrt(0.5) / ROT_LEVELS)
-    for m in range(rot.shape[0]):
-        for c in range(3):
-            out_pos[m, c] = np.float32(lo[c] + np.float64(pos[3 * m + c]) * step[c])
-            out_scale[m, c] = scale_lut[scale[3 * m + c]]
-        v = rot[m]
-        i = v >> 30
-        a0 = _q13_field(v, 20) * kf
-        a1 = _q13_field(v, 10) * kf
-        a2 = _q13_field(v, 0) * kf
-        d = a0 * a0
-        d = d + a1 * a1
-        d = d + a2 * a2
-        big = np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
-        out_rot[m, 0] = big if i == 0 else a0
-        out_rot[m, 1] = big if i == 1 else (a0 if i == 0 else a1)
-        out_rot[m, 2] = big if i == 2 else (a2 if i == 3 else a1)
-        out_rot[m, 3] = big if i == 3 else a2
+@nb.njit(inline="always", **_NB)
+def _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
+    """The selection rule of ofera_protocol.delta (same float64 operations, in the same order)."""
+    dx = np.float64(pos[r, 0] * psign[0]) - dec_p[j, 0]
+    dy = np.float64(pos[r, 1] * psign[1]) - dec_p[j, 1]
+    dz = np.float64(pos[r, 2] * psign[2]) - dec_p[j, 2]
+    if dx * dx + dy * dy + dz * dz > tol[0]:
+        return True
+    q0 = np.float64(rot[r, 0] * rsign[0])
+    q1 = np.float64(rot[r, 1] * rsign[1])
+    q2 = np.float64(rot[r, 2] * rsign[2])
+    q3 = np.float64(rot[r, 3] * rsign[3])
+    h0, h1, h2, h3 = dec_r[j, 0], dec_r[j, 1], dec_r[j, 2], dec_r[j, 3]
+    dot = h0 * q0 + h1 * q1 + h2 * q2 + h3 * q3
+    n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+    hh = h0 * h0 + h1 * h1 + h2 * h2 + h3 * h3
+    if dot * dot < tol[1] * n2 * hh:
+        return True
+    for c in range(3):
+        v = np.float64(scale[r, c])
+        if v > dec_s[j, c] * tol[2] or v < dec_s[j, c] * tol[3]:
+            return True
+    return False
 
 
 @nb.njit(inline="always", **_NB)
-def _q13_field(v, shift):
-    f = np.int32((v >> np.uint32(shift)) & 1023)
-    f = (f ^ 512) - 512
-    return np.float32(max(f, -ROT_LEVELS))
+def _emit_position(new, held_p, i, n, w, m, out_sel, out_wide, out_res, out_pos, j):
+    """Narrow (int8 change) or wide (whole codes) position of the n-th selected Gaussian; returns (w, m)."""
+    wide = False
+    for c in range(3):
+        d = np.int32(new[c]) - np.int32(held_p[i, c])
+        if d < -128 or d > 127:
+            wide = True
+    out_sel[n] = j
+    out_wide[n] = wide
+    if wide:
+        for c in range(3):
+            out_pos[w, c] = new[c]
+        w += 1
+    else:
+        for c in range(3):
+            out_res[m, c] = np.int8(np.int32(new[c]) - np.int32(held_p[i, c]))
+        m += 1
+    for c in range(3):
+        held_p[i, c] = new[c]
+    return w, m
 
 
-def decoder_warm() -> None:
-    """Compile the decoding kernels for message buffers (read-only uint views)."""
-    raw = bytes(64)
-    f16_decode_kernel(np.frombuffer(raw, "<u2", 6), np.zeros(6, np.float32))
-    out3, out4 = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32)
-    q13_decode_kernel(np.frombuffer(raw, "<u2", 6), np.frombuffer(raw, "<u4", 2), np.frombuffer(raw, np.uint8, 6),
-                      np.zeros(3), np.ones(3), np.ones(256, np.float32), out3, out4, out3.copy())
+@nb.njit(**_NB)
+def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, tol,
+                     held_p, held_r, held_s, dec_p, dec_r, dec_s, out_sel, out_wide, out_res, out_pos, out_rot,
+                     out_scale):
+    """ofera_protocol.delta.delta_q13_reference, one pass over the candidates. Returns (n, w)."""
+    n = 0
+    w = 0
+    m = 0
+    new = np.empty(3, np.uint16)
+    for j in range(rows.shape[0]):
+        r = rows[j]
+        if not _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
+            continue
+        i = ids[j]
+        for c in range(3):
+            q = (np.float64(pos[r, c] * psign[c]) - lo[c]) * k[c]
+            if abs(q) < 2.0**50:
+                q = _rint(q)
+            q = min(max(q, 0.0), POS_LEVELS)
+            new[c] = np.uint16(q)
+            dec_p[j, c] = lo[c] + np.float64(new[c]) * step[c]
+        w, m = _emit_position(new, held_p, i, n, w, m, out_sel, out_wide, out_res, out_pos, j)
+        packed = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
+        out_rot[n] = packed
+        held_r[i] = packed
+        _unpack_into(packed, dec_r, j)
+        for c in range(3):
+            code = _scale_code(scale[r, c], table)
+            out_scale[n, c] = np.uint8(code)
+            held_s[i, c] = np.uint8(code)
+            dec_s[j, c] = scale_lut[code]
+        n += 1
+    return n, w
 
 
-class FastFrameDecoder:
-    """Decodes the frames of one session (FrameFormat) into float32 buffers owned by the decoder (reused:
-    each call overwrites the previous frame's arrays), with the codec's checks (lengths, finiteness, index).
-    A benchmark / test client's fast path: ofera_protocol.decode_server_message is the reference."""
+@nb.njit(**_NB)
+def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
+                     out_sel, out_wide, out_res, out_pos, out_rot, out_scale):
+    """ofera_protocol.delta.delta_f16_reference, one pass. Returns (n, w, ok); ok False if a value sent is
+    NaN, infinite or beyond +-65504."""
+    n = 0
+    w = 0
+    m = 0
+    ok = True
+    new = np.empty(3, np.uint16)
+    for j in range(rows.shape[0]):
+        r = rows[j]
+        if not _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
+            continue
+        i = ids[j]
+        for c in range(3):
+            v = pos[r, c] * psign[c]
+            ok &= abs(v) <= F16_MAX
+            new[c] = f32_to_f16_bits(v)
+            dec_p[j, c] = np.float64(f16_bits_to_f32(new[c]))
+        w, m = _emit_position(new, held_p, i, n, w, m, out_sel, out_wide, out_res, out_pos, j)
+        for c in range(4):
+            v = rot[r, c] * rsign[c]
+            ok &= abs(v) <= F16_MAX
+            h = f32_to_f16_bits(v)
+            out_rot[n, c] = h
+            held_r[i, c] = h
+            dec_r[j, c] = np.float64(f16_bits_to_f32(h))
+        for c in range(3):
+            v = scale[r, c]
+            ok &= abs(v) <= F16_MAX
+            h = f32_to_f16_bits(v)
+            out_scale[n, c] = h
+            held_s[i, c] = h
+            dec_s[j, c] = np.float64(f16_bits_to_f32(h))
+        n += 1
+    return n, w, ok
 
-    def __init__(self, fmt: FrameFormat) -> None:
-        numba_kernels()  # compiled (or loaded from the cache) before the first frame
-        self.format = fmt
-        n = fmt.count
-        self._pos = np.zeros((n, 3), np.float32)
-        self._rot = np.zeros((n, 4), np.float32)
-        self._scale = np.zeros((n, 3), np.float32)
-        if fmt.encoding == "q13":
-            assert fmt.quant is not None
-            q = fmt.quant
-            self._lo = q.pos_min.astype(np.float64)
-            self._step = (q.pos_max.astype(np.float64) - self._lo) / POS_LEVELS
-            lmin, lmax = float(q.log_scale[0]), float(q.log_scale[1])
-            codes = np.arange(256, dtype=np.float64)
-            self._lut = np.exp(lmin + codes * ((lmax - lmin) / SCALE_LEVELS)).astype(np.float32)
 
-    def decode(self, data) -> object:
-        """A `frame` message -> ofera_protocol.Frame whose arrays are views of this decoder's buffers;
-        other messages are decoded by the reference codec. Raises ProtocolError like the codec."""
-        from ofera_protocol import _fields as F
-        from ofera_protocol.codec import decode_server_message, decode_timing, unpack_message
-        from ofera_protocol.constants import MAX_SERVER_MESSAGE, UINT32_MAX
-        from ofera_protocol.encodings import FIELD_BYTES
-        from ofera_protocol.errors import BAD_FIELD, BAD_LENGTH, NON_FINITE, ProtocolError
-        from ofera_protocol.messages import Frame
-
-        m = unpack_message(data, MAX_SERVER_MESSAGE)
-        if m.get("type") != "frame":
-            return decode_server_message(data, self.format)
-        fmt = self.format
-        seq = F.get_int(m, "seq", "frame", lo=0)
-        t = F.get_int(m, "t", "frame")
-        timing = decode_timing(m)
-        n = F.get_int(m, "n", "frame", lo=0, hi=UINT32_MAX)
-        index = F.get_array(m, "index", "frame", "<u4", (n,), required=False)
-        if index is None and n != fmt.count:
-            raise ProtocolError(BAD_LENGTH, f"frame: dense frame carries n={n} Gaussians, the avatar has {fmt.count}")
-        if index is not None:
-            if not fmt.sparse:
-                raise ProtocolError(BAD_FIELD, "frame: 'index' in a session that did not ask for sparse frames")
-            if n and (int(index[-1]) >= fmt.count or (n > 1 and not (index[1:] > index[:-1]).all())):
-                raise ProtocolError(BAD_FIELD, "frame: 'index' must be strictly ascending and below the count")
-        bufs = [F.get_bin(m, k, "frame") for k in ("position", "rotation", "scale")]
-        for name, buf, size in zip(("position", "rotation", "scale"), bufs, FIELD_BYTES[fmt.encoding]):
-            if len(buf) != n * size:
-                raise ProtocolError(BAD_LENGTH, f"frame field {name!r} has {len(buf)} bytes; {n} Gaussians in "
-                                    f"{fmt.encoding} need {n * size}")
-        p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
-        if fmt.encoding == "q13":
-            q13_decode_kernel(np.frombuffer(bufs[0], "<u2"), np.frombuffer(bufs[1], "<u4"),
-                              np.frombuffer(bufs[2], np.uint8), self._lo, self._step, self._lut, p, r, s)
+@nb.njit(**_NB)
+def _unpack_into(v, out, m):
+    """q13 rotation decode (PROTOCOL.md 6.3) of v into out[m] (x, y, z, w), float64 (as
+    ofera_protocol.delta.q13_decode_rotation64)."""
+    i = v >> 30
+    kept = np.empty(3, np.float64)
+    d = 1.0
+    for j in range(3):
+        f = np.int64((v >> (20 - 10 * j)) & 1023)
+        if f >= 512:
+            f -= 1024
+        c = max(f / ROT_LEVELS, -1.0) / math.sqrt(2.0)
+        kept[j] = c
+        d = d - c * c
+    big = math.sqrt(max(d, 0.0))
+    j = 0
+    for c in range(4):
+        if c == i:
+            out[m, c] = big
         else:
-            for name, buf, out in zip(("position", "rotation", "scale"), bufs, (p, r, s)):
-                if fmt.encoding == "f16":
-                    ok = f16_decode_kernel(np.frombuffer(buf, "<u2"), out.reshape(-1))
-                else:
-                    a = np.frombuffer(buf, "<f4")
-                    ok = bool(np.isfinite(a.min()) and np.isfinite(a.max())) if a.size else True
-                if not ok:
-                    raise ProtocolError(NON_FINITE, f"frame field {name!r} holds NaN or infinity")
-            if fmt.encoding == "f32":  # read-only views of the message, like the codec
-                p, r, s = (np.frombuffer(b, "<f4").reshape(n, w) for b, w in zip(bufs, (3, 4, 3)))
-        return Frame(seq=seq, t=t, timing=timing, index=index, position=p, rotation=r, scale=s)
+            out[m, c] = kept[j]
+            j += 1
+
+
+def delta_kernel_warm() -> None:
+    """Compile the delta kernels for writable and read-only float32 state arrays."""
+    k = NumbaKernels()
+    thr = np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32)
+    lut = np.exp(np.linspace(-9, -2, 256))
+    tol = np.array([1e-10, 0.99, 1.02, 0.98])
+    for readonly in (False, True):
+        p, r, s = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32), np.full((2, 3), 1e-3, np.float32)
+        r[:, 3] = 1
+        for a in (p, r, s):
+            a.flags.writeable = not readonly
+        rows = ids = np.arange(2, dtype=np.int64)
+        o = (np.zeros(2, np.int64), np.zeros(2, bool), np.zeros((2, 3), np.int8), np.zeros((2, 3), np.uint16))
+        k.delta_q13(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), np.zeros(3), np.ones(3),
+                    np.ones(3), thr, lut, tol, np.zeros((2, 3), np.uint16), np.zeros(2, np.uint32),
+                    np.zeros((2, 3), np.uint8), np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o,
+                    np.zeros(2, np.uint32), np.zeros((2, 3), np.uint8))
+        k.delta_f16(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), tol,
+                    np.zeros((2, 3), np.uint16), np.zeros((2, 4), np.uint16), np.zeros((2, 3), np.uint16),
+                    np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o, np.zeros((2, 4), np.uint16),
+                    np.zeros((2, 3), np.uint16))
+
+
+def delta_encoder(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
+                  candidates: np.ndarray | None = None, rows: np.ndarray | None = None,
+                  tolerance: DeltaTolerance | None = None, key_interval: int = 720) -> DeltaEncoder:
+    """A DeltaEncoder (ofera_protocol.delta) using the numba kernels."""
+    return DeltaEncoder(fmt, coords, gather, candidates, rows, kernels=numba_kernels(), tolerance=tolerance,
+                        key_interval=key_interval)

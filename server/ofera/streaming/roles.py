@@ -181,8 +181,6 @@ class Viewer:
     `writer` encodes a frame of this viewer's wire format (CodecWriter, or the numba FrameWriter of
     `encode_fast`); `key` names that format: viewers with equal keys share one encoding per frame."""
 
-    USES_FRAME_WRITER = True  # encodes through `writer` (benchmarks/_common.py must not patch _make)
-
     def __init__(self, send: SendBytes, writer: Any, key: tuple, executor: Executor, metrics: Metrics) -> None:
         self.send = send
         self.writer = writer

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 from ofera_protocol import AvatarInfo, Blendshapes, Bye, FrameFormat, Hello, Ping, ProtocolError, ServerConnection
+from ofera_protocol.delta import DELTA_ENCODINGS
+from ofera_protocol.messages import Resync
 from ofera_protocol import errors as E
 
 from .. import __version__
@@ -92,6 +94,22 @@ def make_writer(fmt: FrameFormat, coords: str, gather: Any, index: Any, fast: bo
     return CodecWriter(fmt, coords, gather, index)
 
 
+def make_delta_writer(fmt: FrameFormat, coords: str, gather: Any, movable: tuple, settings: Settings) -> Any:
+    """The DeltaEncoder of one delta session (PROTOCOL.md 7.1): numba kernels when `settings.fast`, else the numpy
+    reference; candidates = the avatar's movable Gaussians (`movable` = (state rows, session ids))."""
+    from ofera_protocol.delta import DeltaEncoder, DeltaTolerance
+
+    rows, ids = movable
+    tol = DeltaTolerance(settings.delta_position_mm * 1e-3, settings.delta_rotation_deg, settings.delta_log_scale)
+    kernels = None
+    if settings.fast:
+        from .encode_fast import numba_kernels
+
+        kernels = numba_kernels()
+    return DeltaEncoder(fmt, coords, gather, np.asarray(ids, np.int64), np.asarray(rows, np.int64), kernels=kernels,
+                        tolerance=tol, key_interval=settings.key_interval)
+
+
 def reduced_size(asked: int | None, count: int) -> int | None:
     """How many Gaussians to stream to a client that renders at most `asked` (hello.max_gaussians): None (the
     whole avatar) when it fits, else the largest count x 2^(-k/4), k >= 1, not above `asked` (at most 16 %
@@ -118,6 +136,7 @@ class Session:
         self.source: Source | None = None
         self.viewer: Viewer | None = None
         self.bucket = TokenBucket(hub.settings.bs_rate, hub.settings.burst)
+        self._movable: tuple | None = None
         self._last_rate_error = 0.0
 
     # ------------------------------------------------------------------ sending helpers
@@ -209,8 +228,11 @@ class Session:
             size = reduced_size(hello.max_gaussians, assets.count)
             wire = assets.wire_avatar(hello.coords, size)
             quant = assets.quant(hello.coords, size) if hello.encoding == "q13" else None
-            return assets, wire, quant, assets.selection(hello.sparse, size), device_bda, size
+            sel = assets.selection(hello.sparse and not delta, size)  # a delta session is dense
+            self._movable = assets.selection(True, size) if delta else None  # (state rows, session ids)
+            return assets, wire, quant, sel, device_bda, size
 
+        delta = hello.delta and hello.encoding in DELTA_ENCODINGS  # f32: welcome.delta false
         try:
             assets, wire, quant, (gather, index), device_bda, size = \
                 await asyncio.get_running_loop().run_in_executor(self.hub.executor, prepare)
@@ -229,9 +251,13 @@ class Session:
         pipeline = assets.pipeline(hello.layout, device_bda, s.confidence_threshold)
         self.source = Source(pipeline, self.hub.executor, self.metrics)
         assert self.conn.format is not None
-        key = (hello.encoding, hello.coords, hello.sparse, size)
-        self.viewer = Viewer(self.t.send, make_writer(self.conn.format, hello.coords, gather, index, s.fast), key,
-                             self.hub.executor, self.metrics)
+        key: tuple = (hello.encoding, hello.coords, hello.sparse, size)
+        if self.conn.format.delta:  # per client: deltas are against what this client's socket was handed
+            writer = make_delta_writer(self.conn.format, hello.coords, gather, self._movable, s)
+            key = (*key, "delta", self.id)
+        else:
+            writer = make_writer(self.conn.format, hello.coords, gather, index, s.fast)
+        self.viewer = Viewer(self.t.send, writer, key, self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full
@@ -297,6 +323,10 @@ class Session:
             elif isinstance(msg, Ping):
                 if await self._allow(None):
                     await self.t.send(self.conn.pong(msg.t))
+            elif isinstance(msg, Resync):  # delta sessions: the next frame sent is a key frame
+                request = getattr(self.viewer.writer if self.viewer else None, "request_key", None)
+                if request is not None:
+                    request()
             elif isinstance(msg, Bye):
                 await self.t.close(E.CLOSE_NORMAL, "bye")
                 return

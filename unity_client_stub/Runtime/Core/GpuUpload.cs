@@ -1,5 +1,5 @@
 // What the GPU upload path needs from the core: a frame's wire payload kept as it arrived (FramePayload,
-// the bytes OferaSplatUploader copies into a GraphicsBuffer once per frame), the q13 decode tables the
+// the bytes GaussianSplattingSink copies into a GraphicsBuffer once per frame), the q13 decode tables the
 // kernel reads (uploaded once per session), and the CPU reference of the kernel (UgsPacking.WriteFrame:
 // the same bytes, tested against the kernel on lavapipe by tests/test_unity_kernels.py).
 // UnityEngine-free, C# 7.2.

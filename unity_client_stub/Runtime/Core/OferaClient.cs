@@ -360,6 +360,7 @@ namespace Ofera.Client
                 CancellationTokenSource handshakeCts = CancellationTokenSource.CreateLinkedTokenSource(sessionCts.Token);
                 handshakeCts.CancelAfter(TimeSpan.FromSeconds(_opt.HandshakeTimeoutSeconds));
                 CancellationToken rxToken = handshakeCts.Token;
+                bool handshakeDone = false;
 
                 ServerMessage msg = new ServerMessage();
                 long lastSeq = -1;
@@ -413,7 +414,14 @@ namespace Ofera.Client
                             {
                                 MemberState ms = conn.CompletedMember;
                                 _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Joined, Member = ms.Id, Avatar = ms.Avatar, Join = ms.Join, Welcome = conn.Welcome.ForMember(ms.Join), Session = session });
-                                if (conn.State == ClientState.ReceivingAvatar) rxToken = sessionCts.Token; // watch-only rooms may never send an own avatar
+                                if (conn.State == ClientState.ReceivingAvatar && !handshakeDone)
+                                {
+                                    // a watch-only room may never send an own avatar: the members' streams end the handshake
+                                    handshakeDone = true;
+                                    rxToken = sessionCts.Token;
+                                    handshakeCts.Dispose();
+                                    SetStatus(ClientStatus.Streaming, "streaming (room members)");
+                                }
                             }
                             else if (conn.State == ClientState.Streaming && (msg.Avatar.Member == null || !conn.InRoom))
                             {
@@ -424,7 +432,8 @@ namespace Ofera.Client
                                     _pendingSession = session;
                                 }
                                 rxToken = sessionCts.Token; // handshake done: no more deadline
-                                handshakeCts.Dispose();
+                                if (!handshakeDone) handshakeCts.Dispose();
+                                handshakeDone = true;
                                 SetStatus(ClientStatus.Streaming, "streaming");
                             }
                             break;
