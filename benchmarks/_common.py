@@ -58,11 +58,12 @@ def bench_avatar(count: int | None) -> Path:
 
     path = cache_dir() / f"bench-{count or 'default'}-{default_avatar_key()}.npz"
     if not path.is_file():
+        from ofera.avatar import save_avatar
         from ofera.avatar.procedural import make_default_avatar
 
         avatar = make_default_avatar(count=count)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-        avatar.save(tmp)
+        save_avatar(avatar, tmp)
         os.replace(tmp, path)
     return path
 
@@ -397,6 +398,14 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(fig, path: Path, title: str) -> None:
+    """Title the figure, lay it out, write it to ``path`` (PNG, 110 dpi) and close it."""
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    pyplot().close(fig)
 
 
 if __name__ == "__main__" and len(sys.argv) >= 3 and sys.argv[1] == "serve":

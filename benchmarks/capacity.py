@@ -157,10 +157,7 @@ def plot(path: Path, runs: dict, budget: float, max_drop: float, title: str) -> 
     ax[2].axhline(100 * max_drop, color="grey", ls="--", lw=0.8, label=f"limit {100 * max_drop:g} %")
     ax[2].set_ylabel("bs dropped (%)")
     ax[2].legend(fontsize=8)
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save_figure(fig, path, title)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -216,10 +216,7 @@ def plot(path: Path, results: dict, title: str) -> None:
     axes[2].set_yscale("symlog", linthresh=1.0)
     axes[2].set_ylabel("server stage, median (ms, symlog)")
     axes[2].legend(fontsize=7, ncol=2)
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save_figure(fig, path, title)
 
 
 def main(argv: list[str] | None = None) -> dict:

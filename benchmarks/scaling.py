@@ -110,10 +110,7 @@ def plot(path: Path, rows: list[dict], title: str) -> None:
         ax[i].grid(alpha=0.3, which="both")
         ax[i].legend(fontsize=8)
     ax[0].axhline(2.0, color="grey", ls=":", lw=0.8)
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    C.save_figure(fig, path, title)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -32,7 +32,6 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent / "tests"))
 import _common as C  # noqa: E402
 
 
@@ -54,7 +53,7 @@ async def measured_session(url: str, weights: np.ndarray, layout: str, rate: flo
     """(send time since t_origin, round trip ms) of each frame of a session sending bs on a fixed schedule
     for `seconds`; the raw sockets in `stalled` (changed by the caller as it goes) get the same bs, written
     without blocking and never read."""
-    from test_reliability_support import ws_frame
+    from _raw import ws_frame
     from websockets.asyncio.client import connect
 
     async with connect(url, compression=None, max_size=None) as ws:
@@ -115,7 +114,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=C.RESULTS / "stalled_client.json")
     args = ap.parse_args()
 
-    from test_reliability_support import RawWebSocket
+    from _raw import RawWebSocket
 
     weights, layout, _, notes = C.capture()
     avatars, more = C.avatars_dir(args.gaussians)

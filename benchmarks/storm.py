@@ -4,7 +4,7 @@ close, half-sent HTTP upgrade), many at a time. Afterwards: no session left, RSS
 
     python benchmarks/storm.py --cycles 2000 --concurrency 32 --json out.json
 
-The kinds of cycle are those of tests/test_reliability_storm.py (200 cycles there). The server's RSS is
+The kinds of cycle are `_raw.KINDS`, also run by tests/test_reliability_storm.py (200 cycles there). The server's RSS is
 sampled every 0.25 s; /healthz gives the sessions (and asyncio tasks, where the server reports them).
 JSON: {cycles, seconds, cycles_per_s, failures, rss_mb {before, peak, after, growth}, health_before,
 health_after, good_session_after}, and a PNG of RSS over time.
@@ -23,7 +23,6 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-sys.path.insert(0, str(HERE.parent / "tests"))
 import _common as C  # noqa: E402
 
 
@@ -39,7 +38,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=C.RESULTS / "storm.json")
     args = ap.parse_args()
 
-    from test_reliability_storm import KINDS, cycle
+    from _raw import KINDS, cycle
 
     avatars, notes = C.avatars_dir(args.gaussians)
     rss: list[tuple[float, float]] = []

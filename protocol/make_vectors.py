@@ -1,15 +1,18 @@
 """Generate the golden vectors of protocol v1: `protocol/vectors/<name>.msgpack` + `<name>.json`.
 
-    python protocol/make_vectors.py          # write the vectors and refresh PROTOCOL.md's examples
+    python protocol/make_vectors.py          # write the vectors, tables.json, PROTOCOL.md's examples and tables
     python protocol/make_vectors.py --check  # exit 1 if anything on disk differs
 
 Every vector is built from fixed decimal inputs with deterministic arithmetic, so the bytes are the
-same on every machine. Each JSON file describes its message for implementations in other languages
-(the C# Unity client tests itself against them):
+same on every machine. `vectors/tables.json` holds the protocol's tables (`ofera_protocol.tables`: layouts,
+field sizes, limits, error and close codes); every other JSON file describes its message for implementations in
+other languages (the C# Unity client tests itself against them):
 
 - `name`, `direction` (`client_to_server` | `server_to_client`), `type`, `size` (bytes), `hex`.
 - `fields`: the msgpack map in wire order; a `bin` field is {"dtype", "shape", "values"} with dtype
-  one of float32, float16, uint8, uint16, uint32 (all little-endian) and values nested lists.
+  one of float32, float16, int8, uint8, uint16, uint32 (all little-endian) and values nested lists.
+- delta sessions (PROTOCOL.md 7.1): key, delta, and delta-after-a-dropped-frame vectors per encoding; a delta
+  frame's JSON has `after` (the vectors to apply first) and `decoded` = every Gaussian's state afterwards.
 - frames: `format` {"encoding", "count", "sparse", "quant"} and `decoded` {"position", "rotation",
   "scale"}: the float32 values a decoder must produce (q13 scale within 1e-6 relative).
 - invalid vectors (`invalid_*`): `expect_error` {"code"} and `context` (the `layout` or `format` the
@@ -51,6 +54,8 @@ from ofera_protocol import (  # noqa: E402
 from ofera_protocol.avatar import avatar_bytes_per_gaussian  # noqa: E402
 from ofera_protocol.codec import encode_avatar_chunk, pack_map  # noqa: E402
 from ofera_protocol.encodings import SCALE_LEVELS  # noqa: E402
+from ofera_protocol.messages import Resync  # noqa: E402
+from ofera_protocol.tables import tables, update_markdown  # noqa: E402
 
 VECTOR_DIR = HERE / "vectors"
 PROTOCOL_MD = HERE / "PROTOCOL.md"
@@ -69,6 +74,8 @@ BIN_SCHEMA: dict[str, dict[str, tuple[str, tuple[int, ...]]]] = {
     "frame.f32": {"position": (_F32, (3,)), "rotation": (_F32, (4,)), "scale": (_F32, (3,))},
     "frame.f16": {"position": ("float16", (3,)), "rotation": ("float16", (4,)), "scale": ("float16", (3,))},
     "frame.q13": {"position": ("uint16", (3,)), "rotation": ("uint32", ()), "scale": ("uint8", (3,))},
+    "frame.delta": {"changed": ("uint8", ()), "moved_position": ("uint8", ()), "moved_rotation": ("uint8", ()),
+                    "moved_scale": ("uint8", ()), "wide": ("uint8", ()), "position_delta": ("int8", (3,))},
 }
 
 # ----------------------------------------------------------------------------- fixed inputs
@@ -139,7 +146,8 @@ def describe(data: bytes, encoding: str | None = None) -> dict[str, Any]:
     t = m["type"]
     if t == "frame":
         assert encoding is not None
-        return _describe_bins(m, BIN_SCHEMA[f"frame.{encoding}"] | {"index": ("uint32", ())})
+        schema = BIN_SCHEMA[f"frame.{encoding}"] | {"index": ("uint32", ())} | BIN_SCHEMA["frame.delta"]
+        return _describe_bins(m, schema)
     if t == "welcome" and "quant" in m:
         m = dict(m, quant=_describe_bins(m["quant"], BIN_SCHEMA["welcome.quant"]))
     if t == "avatar":  # sh is n x K x 3
@@ -153,19 +161,24 @@ def _format_json(fmt: FrameFormat) -> dict[str, Any]:
     if fmt.quant is not None:
         q = {"pos_min": fmt.quant.pos_min.tolist(), "pos_max": fmt.quant.pos_max.tolist(),
              "log_scale": fmt.quant.log_scale.tolist()}
-    return {"encoding": fmt.encoding, "count": fmt.count, "sparse": fmt.sparse, "quant": q}
+    out = {"encoding": fmt.encoding, "count": fmt.count, "sparse": fmt.sparse, "quant": q}
+    if fmt.delta:
+        out["delta"] = True
+    return out
 
 
 # ----------------------------------------------------------------------------- the vectors
 
 
 def _valid(name: str, direction: str, data: bytes, note: str, fmt: FrameFormat | None = None,
-           decoded: Frame | None = None) -> tuple[str, bytes, dict[str, Any]]:
+           decoded: Frame | None = None, after: list[str] | None = None) -> tuple[str, bytes, dict[str, Any]]:
     d: dict[str, Any] = {"name": name, "direction": direction, "type": msgpack.unpackb(data)["type"],
                          "note": note, "size": len(data), "hex": data.hex()}
     if fmt is not None:
         d["format"] = _format_json(fmt)
     d["fields"] = describe(data, fmt.encoding if fmt else None)
+    if after is not None:
+        d["after"] = after  # delta frames: apply these vectors first; `decoded` is then every Gaussian's state
     if decoded is not None:
         d["decoded"] = {"position": decoded.position.tolist(), "rotation": decoded.rotation.tolist(),
                         "scale": decoded.scale.tolist()}
@@ -200,6 +213,9 @@ def build_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
                "ovr63 weights i/64 with the optional face confidence: lower 0.75, upper 0.25"),
         _valid("ping", C2S, encode(Ping(t=T)), "ping"),
         _valid("bye", C2S, encode(Bye()), "bye"),
+        _valid("hello_delta", C2S, encode(Hello(layout="arkit52", encoding="q13", delta=True)),
+               "hello asking for q13 temporal deltas"),
+        _valid("resync", C2S, encode(Resync()), "resync: a delta-session client asks for a key frame"),
         _valid("welcome", S2C, encode(Welcome(session="s-0001", avatar=AvatarInfo("default", COUNT, SH_DEGREE),
                                               layout="arkit52", server="ofera/0.1.0")),
                "welcome for an f32, dense, FLAME-coordinates session"),
@@ -207,6 +223,10 @@ def build_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
                                                   layout="ovr63", encoding="q13", coords="unity", sparse=True,
                                                   quant=QUANT, server="ofera/0.1.0")),
                "welcome for a q13, sparse, Unity-coordinates session, with quantisation parameters"),
+        _valid("welcome_delta", S2C, encode(Welcome(session="s-0003", avatar=AvatarInfo("default", COUNT, SH_DEGREE),
+                                                    layout="arkit52", encoding="q13", quant=QUANT, delta=True,
+                                                    server="ofera/0.1.0")),
+               "welcome for a q13 delta session (dense, FLAME coordinates)"),
     ]
     avatar = Avatar(opacity=OPACITY, sh=SH, position=POSITION, rotation=ROTATION, scale=SCALE)
     out.append(_valid("avatar", S2C, encode_avatar_chunk(split_avatar(avatar)[0]),
@@ -223,6 +243,7 @@ def build_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
             note = f"{'sparse' if sparse else 'dense'} frame in {encoding}" + (
                 ": Gaussians 1 and 3" if sparse else "")
             out.append(_valid(name, S2C, data, note, fmt, decoded))
+    out += _delta_vectors()
     out += [
         _valid("error", S2C, encode(ErrorMessage("bad_length", "bs: field 'w' has 204 bytes; layout arkit52 "
                                                  "needs 52 float32 = 208 bytes", False, seq=SEQ)),
@@ -233,6 +254,67 @@ def build_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
         _valid("pong", S2C, encode(Pong(t=T)), "pong"),
     ]
     out += _invalid_vectors()
+    return out
+
+
+def _delta_motion() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Inputs of the delta vectors: frames A (the avatar), B, C, D. From A to B Gaussian 1 moves 0.2 mm in x
+    (a narrow change), Gaussian 2 turns 2 degrees about z, Gaussian 3 moves 1 mm in y (wide) and grows 10 %;
+    C (dropped: never sent) moves Gaussian 0 by 0.5 mm in x; D moves it 0.6 mm in x from A and Gaussian 1
+    back by 0.1 mm, so D's delta is against B, what the client holds."""
+    a = (POSITION.astype(np.float64), _ROT64 / np.sqrt((_ROT64 ** 2).sum(1, keepdims=True)), SCALE.astype(np.float64))
+    half = np.radians(2.0) / 2
+    turn = np.array([0.0, 0.0, np.sin(half), np.cos(half)])
+
+    def hamilton(q: np.ndarray, r: np.ndarray) -> np.ndarray:  # q r, both (x, y, z, w)
+        (x1, y1, z1, w1), (x2, y2, z2, w2) = q, r
+        return np.array([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2, w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                         w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2, w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
+
+    p, r, s = (x.copy() for x in a)
+    p[1, 0] += 2e-4
+    r[2] = hamilton(turn, r[2])
+    p[3, 1] += 1e-3
+    s[3] *= 1.1
+    b = (p, r, s)
+    c = (p.copy(), r, s)
+    c[0][0, 0] += 5e-4
+    d = (p.copy(), r, s)
+    d[0][0, 0] += 6e-4
+    d[0][1, 0] -= 1e-4
+    return [tuple(x.astype(np.float32) for x in f) for f in (a, b, c, d)]
+
+
+def _delta_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
+    """Key frame, delta frame, and the delta frame after a drop, for q13 and f16 (reference encoder)."""
+    from ofera_protocol.codec import decode_frame, unpack_message
+    from ofera_protocol.delta import DeltaDecoder, DeltaEncoder
+
+    out = []
+    frames = _delta_motion()
+    for encoding in ("q13", "f16"):
+        fmt = FrameFormat(encoding=encoding, count=COUNT, quant=QUANT if encoding == "q13" else None, delta=True)
+        enc = DeltaEncoder(fmt, "flame", key_interval=0)
+        dec = DeltaDecoder(fmt)
+        names = [f"frame_{encoding}_key", f"frame_{encoding}_delta", f"frame_{encoding}_delta_drop"]
+        notes = [f"key frame of a {encoding} delta session (frame A: the avatar's values)",
+                 f"delta frame B against A in {encoding}: Gaussian 1 moved 0.2 mm (a narrow change), 2 turned 2 "
+                 "degrees (its rotation only), 3 moved 1 mm (wide) and grew 10 %",
+                 f"delta frame D in {encoding} after frame C was dropped (never sent): against B, what the client "
+                 "holds; Gaussian 0 moved 0.6 mm (wide), 1 moved back 0.1 mm"]
+        state = None
+        for i, f in enumerate((frames[0], frames[1], frames[3])):  # frames[2] (C) is dropped: never encoded
+            data = enc.encode(SEQ + (0, 1, 3)[i], T + (0, 1, 3)[i], TIMING, *f)
+            msg = decode_frame(unpack_message(data, len(data)), fmt)
+            if i == 0:
+                dec.key(msg)
+                state = [a.copy() for a in (msg.position, msg.rotation, msg.scale)]
+            else:
+                got = dec.apply(msg)
+                for a, b in zip(state, (got.position, got.rotation, got.scale), strict=True):
+                    a[got.index] = b
+            decoded = Frame(seq=0, t=0, position=state[0], rotation=state[1], scale=state[2])
+            out.append(_valid(names[i], S2C, data, notes[i], fmt, decoded, after=names[:i] if i else None))
     return out
 
 
@@ -247,6 +329,12 @@ def _invalid_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
     unsorted = pack_map({"type": "frame", "seq": 1, "t": 0, "timing": {}, "n": 2,
                          "index": np.array([3, 1], dtype="<u4"), "position": POSITION[:2],
                          "rotation": ROTATION[:2], "scale": SCALE[:2]})
+    q13_delta = FrameFormat(encoding="q13", count=COUNT, quant=QUANT, delta=True)
+    one, zero = np.array([1], np.uint8), np.array([0], np.uint8)
+    delta = {"type": "frame", "seq": 1, "t": 0, "timing": {}, "key": False, "n": 1,
+             "changed": np.array([0x01], np.uint8), "moved_position": one, "moved_rotation": one, "moved_scale": zero,
+             "wide": zero, "position_delta": np.array([[3, -2, 0]], np.int8), "position": np.zeros((0, 3), "<u2"),
+             "rotation": np.array([3 << 30], "<u4"), "scale": np.zeros((0, 3), np.uint8)}
     deep: Any = {"x": 1}
     for _ in range(5):
         deep = {"x": deep}
@@ -283,6 +371,12 @@ def _invalid_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
                                                      "position": nan_pos, "rotation": ROTATION, "scale": SCALE}),
                  "non_finite", "a NaN position", fmt=f32),
         _invalid("invalid_frame_index_unsorted", S2C, unsorted, "bad_field", "index [3, 1]", fmt=f32_sparse),
+        _invalid("invalid_delta_count", S2C, pack_map({**delta, "n": 2}), "bad_field",
+                 "delta frame with n = 2, 'changed' marks 1", fmt=q13_delta),
+        _invalid("invalid_delta_padding", S2C, pack_map({**delta, "changed": np.array([0x21], np.uint8)}),
+                 "bad_field", "delta frame with a bit set beyond the 4 Gaussians", fmt=q13_delta),
+        _invalid("invalid_delta_length", S2C, pack_map({**delta, "position_delta": np.zeros((2, 3), np.int8)}),
+                 "bad_length", "delta frame: 2 position changes for 1 narrow Gaussian", fmt=q13_delta),
     ]
 
 
@@ -342,7 +436,8 @@ def main(argv: list[str] | None = None) -> int:
         expected[VECTOR_DIR / f"{name}.msgpack"] = data
         expected[VECTOR_DIR / f"{name}.json"] = json_text(d).encode()
     md = PROTOCOL_MD.read_text(encoding="utf-8")
-    expected[PROTOCOL_MD] = update_protocol_md(md, render_examples(vectors)).encode()
+    expected[PROTOCOL_MD] = update_markdown(update_protocol_md(md, render_examples(vectors))).encode()
+    expected[VECTOR_DIR / "tables.json"] = json_text(tables()).encode()  # the tables the C# and JS tests check
     stale = [p for p, b in expected.items() if not p.exists() or p.read_bytes() != b]
     extra = [p for p in VECTOR_DIR.glob("*") if p not in expected] if VECTOR_DIR.exists() else []
     if args.check:

@@ -6,7 +6,8 @@ import json
 
 import numpy as np
 import pytest
-from ofera.avatar.render import Camera, composite, covariance_3d, face_camera, project_gaussians, render_state
+from ofera.avatar.camera import Camera
+from ofera.avatar.render import composite, covariance_3d, face_camera, project_gaussians, render_state
 from ofera.avatar.state import GaussianState
 from ofera.cli.main import app
 from plyfile import PlyData

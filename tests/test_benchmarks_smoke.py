@@ -74,12 +74,14 @@ def test_dropped_bs_take_the_latency_of_the_first_later_frame() -> None:
 @pytest.mark.timeout(300)
 def test_bandwidth_smoke(tmp_path) -> None:
     out = tmp_path / "bandwidth.json"
-    load("bandwidth").main(["--gaussians", SMALL, "--frames", "12", "--sweep-mm", "0.02", "--json", str(out)])
+    load("bandwidth").main(["--gaussians", SMALL, "--seconds", "1", "--warmup", "0.5", "--inputs", "sweep",
+                            "--schemes", "q13,q13+delta", "--json", str(out)])
     r = check_outputs(out)
-    assert {"f32", "f16", "q13", "f16+sparse", "q13+sparse"} <= set(r["schemes"])
-    assert all(s.get("identical_to_reference", True) for s in r["schemes"].values())
-    compact = r["compact"]
-    assert compact["position_error_mm_max"] <= 0.05 and compact["bytes_per_gaussian_mean"] < 13
+    assert set(r["schemes"]) == {"sweep/q13", "sweep/q13+delta"}
+    plain, delta = r["schemes"]["sweep/q13"], r["schemes"]["sweep/q13+delta"]
+    assert plain["identical_to_socket"] and plain["frames_received"] > 0 and delta["key_frames"] >= 0
+    assert delta["position_error_mm"]["max"] <= 0.05 and delta["rotation_error_deg"]["max"] <= 0.5
+    assert delta["bytes_per_frame_mean"] < plain["bytes_per_frame_mean"]
 
 
 @pytest.mark.timeout(300)

@@ -7,8 +7,6 @@ Needs /usr/bin/chromium and the `playwright` package, like tests/test_browser_pr
 
 from __future__ import annotations
 
-import os
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,38 +15,10 @@ from ofera.mapping.layouts import convert
 from ofera.sources import read_facelog
 from quest_logs import v1_names, write_quest_log
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--no-sandbox",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync", "--no-first-run"]
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator:
-    missing = None
-    if not Path(CHROMIUM).exists():
-        missing = f"{CHROMIUM} is missing (apt-get install chromium)"
-    else:
-        try:
-            import playwright.sync_api  # noqa: F401
-        except ImportError:
-            missing = "the playwright Python package is missing (pip install playwright)"
-    if missing:
-        if os.environ.get("CI"):
-            pytest.fail(f"browser test cannot run in CI: {missing}")
-        pytest.skip(missing)
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-        try:
-            yield b
-        finally:
-            b.close()
-
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from ofera.replay.testing import small_server
+    from replay_support import small_server
 
     with small_server(tmp_path_factory.getbasetemp() / "small-avatar-browser-quest", 1000) as s:
         yield s

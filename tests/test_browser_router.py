@@ -3,7 +3,9 @@ table the page builds its sliders and CSV conversion from."""
 
 from __future__ import annotations
 
+import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -59,3 +61,13 @@ def test_layout_table_is_the_servers(client: TestClient) -> None:
         for d, s, v in info["to_arkit52"]:
             dense[d, s] = v
         np.testing.assert_allclose(dense, conversion_matrix(name, "arkit52"), atol=1e-6, err_msg=name)
+
+
+def test_layout_table_has_the_protocols_layouts(client: TestClient) -> None:
+    """The page's layouts (generated from ofera.mapping.layouts) against protocol/vectors/tables.json, name by name."""
+    tables = json.loads((Path(__file__).resolve().parents[1] / "protocol" / "vectors" / "tables.json").read_text())
+    table = client.get("/static/layouts.json").json()
+    assert list(table["layouts"]) == list(tables["layouts"])
+    for name, row in tables["layouts"].items():
+        assert table["layouts"][name]["names"] == row["names"] and len(row["names"]) == row["length"], name
+    assert table["arkit52"] == tables["layouts"]["arkit52"]["names"]

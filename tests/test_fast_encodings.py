@@ -276,6 +276,35 @@ def test_delta_client_error_is_bounded_whatever_is_dropped(kernels, enc) -> None
         assert perr <= pos_bound + 1e-7 and rerr <= rot_bound + 1e-3 and serr <= s_bound + 1e-6, (f, perr, rerr, serr)
 
 
+@pytest.mark.parametrize("enc", ["f16", "q13"])
+def test_fast_delta_decoder_equals_the_reference(kernels, enc) -> None:
+    """ofera.client.fast_decode (numba) applies key and delta frames exactly like ofera_protocol.delta."""
+    from ofera.client.fast_decode import FastFrameDecoder
+
+    rng = np.random.default_rng(9)
+    n = 3000
+    cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
+    frames = moving(rng, n, 15, cand)
+    quant = make_quant(frames[0][0], frames[0][2])
+    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    encoder = delta_encoder(fmt, "unity", None, cand, key_interval=6)
+    ref, fast = DeltaDecoder(fmt), FastFrameDecoder(fmt)
+    for f, (p, r, s) in enumerate(frames):
+        data = encoder.encode(f, 0, {}, p, r, s)
+        msg = decode_server_message(data, fmt)
+        want = ref.apply(msg) if isinstance(msg, DeltaFrame) else msg
+        if not isinstance(msg, DeltaFrame):
+            ref.key(msg)
+        got = fast.decode(data)
+        assert got.key is want.key and (got.index is None) == (want.index is None)
+        if want.index is not None:
+            np.testing.assert_array_equal(got.index, want.index)
+        for name in ("position", "rotation", "scale"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+    for name in ("position", "rotation", "scale"):
+        np.testing.assert_array_equal(getattr(fast.delta, name), getattr(ref, name))
+
+
 def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
     from ofera_protocol import ProtocolError
     from ofera_protocol.codec import pack_map
@@ -283,10 +312,12 @@ def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
     n = 20
     fmt = FrameFormat("q13", n, False, make_quant(np.zeros((n, 3)), np.full((n, 3), 1e-3)), delta=True)
     dec = DeltaDecoder(fmt)
+    one, zero = np.ones(1, np.uint8), np.zeros(1, np.uint8)
     good = {"type": "frame", "seq": 2, "t": 0, "timing": {}, "key": False, "n": 1,
-            "changed": np.array([1, 0, 0], np.uint8), "wide": np.zeros(1, np.uint8),
-            "position_delta": np.array([[5, -3, 1]], np.int8), "position": np.zeros((0, 3), "<u2"),
-            "rotation": np.array([3 << 30], "<u4"), "scale": np.array([[9, 9, 9]], np.uint8)}
+            "changed": np.array([1, 0, 0], np.uint8), "moved_position": one, "moved_rotation": one,
+            "moved_scale": zero, "wide": zero, "position_delta": np.array([[5, -3, 1]], np.int8),
+            "position": np.zeros((0, 3), "<u2"), "rotation": np.array([3 << 30], "<u4"),
+            "scale": np.zeros((0, 3), np.uint8)}
     with pytest.raises(ProtocolError) as e:  # before any key frame
         dec.apply(decode_server_message(pack_map(good), fmt))
     assert e.value.code == "not_ready"
@@ -296,14 +327,24 @@ def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
                       (dict(good, changed=np.array([3, 0, 0], np.uint8)), "bad_field"),  # n = 1, two marked
                       (dict(good, changed=np.array([1, 0, 0x10], np.uint8)), "bad_field"),  # padding bit
                       (dict(good, position_delta=np.array([[-5, 0, 0]], np.int8)), "bad_field"),  # code < 0
-                      (dict(good, scale=np.zeros((2, 3), np.uint8)), "bad_length")):
+                      (dict(good, scale=np.zeros((1, 3), np.uint8)), "bad_length"),  # no scale moved
+                      (dict(good, moved_position=zero, moved_rotation=zero), "bad_field")):  # carries nothing
         with pytest.raises(ProtocolError) as e:
             dec.apply(decode_server_message(pack_map(bad), fmt))
         assert e.value.code == code
         np.testing.assert_array_equal(dec.position, before)
+    from ofera.client.fast_decode import FastFrameDecoder
+
+    fast = FastFrameDecoder(fmt)
+    fast.delta.has_key = True
+    with pytest.raises(ProtocolError) as e:
+        fast.decode(pack_map(dict(good, position_delta=np.array([[-5, 0, 0]], np.int8))))
+    assert e.value.code == "bad_field" and not fast.delta.position.any()
     dec.position[0] = [10, 10, 10]
+    dec.scale[0] = [7, 8, 9]
     got = dec.apply(decode_server_message(pack_map(good), fmt))
-    assert got.index.tolist() == [0] and dec.position[0].tolist() == [15, 7, 11]
+    assert got.index.tolist() == [0] and dec.position[0].tolist() == [15, 7, 11] and dec.scale[0].tolist() == [7, 8, 9]
+    assert dec.rotation[0] == 3 << 30
 
 
 @pytest.mark.parametrize("enc", ["f32", "f16", "q13"])

@@ -4,11 +4,7 @@ datagrams are counted and skipped."""
 from __future__ import annotations
 
 import asyncio
-import json
 import socket
-import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
@@ -79,7 +75,7 @@ def test_decoder_frames_on_apply_and_counts_malformed():
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from ofera.replay.testing import small_server
+    from replay_support import small_server
 
     with small_server(tmp_path_factory.getbasetemp() / "small-avatar") as s:
         yield s
@@ -119,34 +115,11 @@ def test_vmc_ingest_over_loopback(server):
 
 
 def test_cli_ingest_vmc(server, tmp_path):
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    out = tmp_path / "vmc.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-c", "from ofera.cli.main import main; main()", "ingest", "vmc", "--listen",
-         f"127.0.0.1:{port}", "--url", server.url, "--seconds", "2", "--status-every", "0.5", "--json", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        first = proc.stdout.readline()  # printed once the session is open and the port listens
-        assert " on udp 127.0.0.1" in first, first + proc.stdout.read()
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            t_end = time.monotonic() + 1.5
-            i = 0
-            while time.monotonic() < t_end and proc.poll() is None:
-                s.sendto(frame_bundle(i), ("127.0.0.1", port))
-                if i % 10 == 0:
-                    s.sendto(b"#bundle\x00junk", ("127.0.0.1", port))
-                i += 1
-                time.sleep(1 / 60)
-        output, _ = proc.communicate(timeout=30)
-        output = first + output
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 0, output
+    from replay_support import run_ingest_cli
+
+    code, output, s = run_ingest_cli("vmc", server.url, tmp_path / "vmc.json", frame_bundle, b"#bundle\x00junk")
+    assert code == 0, output
     assert "VMC on udp 127.0.0.1" in output
-    s = json.loads(out.read_text())
     assert s["layout"] == "arkit52" and s["packets_ok"] > 30 and s["packets_bad"] > 3
     assert s["sent"] > 20 and s["received"] >= 1 and s["errors"] == 0 and s["fatal_error"] is None
     assert s["last_seq_answered"] == s["last_seq_sent"]

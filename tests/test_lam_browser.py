@@ -8,23 +8,17 @@ Skipped without the real zip (../shared/data), /usr/bin/chromium or the playwrig
 from __future__ import annotations
 
 import os
-import re
-import signal
-import subprocess
-import sys
 import tempfile
-import time
 import zipfile
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from test_browser_preview import (  # noqa: F401 - `browser` is a fixture
+from test_browser_preview import (
     ROOT,
-    SERVER_START_S,
-    browser,
     canvas_pixels,
     foreground,
+    ofera_serve,
     open_page,
     wait,
     wait_settled,
@@ -36,39 +30,15 @@ pytestmark = pytest.mark.skipif(not STATUE.is_file(), reason=f"{STATUE} is absen
 
 
 @pytest.fixture(scope="module")
-def lam_server(browser) -> Iterator[str]:  # noqa: F811
+def lam_server(browser) -> Iterator[str]:
     """`ofera serve --port 0 --avatar-zip STATUE` (a private cache: the zip is imported at start-up)."""
     cache = tempfile.mkdtemp(prefix="ofera-lam-cache-")
-    env = dict(os.environ, OFERA_LOG_LEVEL="warning", PYTHONUNBUFFERED="1", OFERA_CACHE=cache)
-    cmd = [sys.executable, "-c", "from ofera.cli.main import main; main()", "serve", "--port", "0",
-           "--avatar-zip", str(STATUE)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    try:
-        lines: list[str] = []
-        url = None
-        deadline = time.monotonic() + SERVER_START_S
-        while url is None and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
-            m = re.search(r"health\s+(http://\S+)/healthz", line)
-            if m:
-                url = m.group(1)
-        assert url, "ofera serve did not start:\n" + "".join(lines)
+    with ofera_serve("--avatar-zip", str(STATUE), env={"OFERA_CACHE": cache}) as (url, lines):
         assert any("lam_statue" in line for line in lines), lines
         yield url
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
 
 
-def test_statue_is_shown_and_its_jaw_opens(browser, lam_server) -> None:  # noqa: F811
+def test_statue_is_shown_and_its_jaw_opens(browser, lam_server) -> None:
     page = open_page(browser, f"{lam_server}/?auto=0")
     try:
         info = page.evaluate("({count: __ofera.count, expression: __ofera.expression, errors: __ofera.errors})")
@@ -95,7 +65,7 @@ def test_statue_is_shown_and_its_jaw_opens(browser, lam_server) -> None:  # noqa
         page.close()
 
 
-def test_lam_bsdata_track_plays(browser, lam_server) -> None:  # noqa: F811
+def test_lam_bsdata_track_plays(browser, lam_server) -> None:
     with zipfile.ZipFile(STATUE) as zf:
         text = zf.read("arkitWithBSData/bsData.json").decode()
     page = open_page(browser, f"{lam_server}/?auto=0")

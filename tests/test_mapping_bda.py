@@ -89,7 +89,7 @@ def test_cli_fit_on_paired_npz_reports_errors(tmp_path):
     from ofera.cli.main import app
     from ofera.mapping.flame_values import neutral_flame_values
     from ofera.mapping.layouts import to_arkit51
-    from ofera.mapping.paired import PairedData
+    from ofera.training.paired import PairedData
     from typer.testing import CliRunner
 
     rng = np.random.default_rng(4)

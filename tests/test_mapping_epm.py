@@ -8,7 +8,8 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("onnx")
 
-from ofera.mapping.epm import (  # noqa: E402
+from ofera.training.epm.export import check_onnx, export_checkpoint, export_onnx, fold_batchnorm  # noqa: E402
+from ofera.training.epm.model import (  # noqa: E402
     EPM,
     EPMConfig,
     SubjectSampler,
@@ -17,7 +18,6 @@ from ofera.mapping.epm import (  # noqa: E402
     subject_keys,
     train_epm,
 )
-from ofera.mapping.export import check_onnx, export_checkpoint, export_onnx, fold_batchnorm  # noqa: E402
 
 
 @pytest.fixture(autouse=True)
@@ -119,7 +119,7 @@ def test_export_of_untrained_model_in_eval_mode(tmp_path):
 
 def test_bad_inputs():
     x, y, g = _toy()
-    from ofera.mapping.epm import EPMError
+    from ofera.training.epm.model import EPMError
 
     with pytest.raises(EPMError, match="expected x"):
         train_epm(x[:, :50], y, g, x, y, progress=False)

@@ -6,10 +6,10 @@ import json
 
 import numpy as np
 import pytest
-from ofera.mapping import evaluate as ev
 from ofera.mapping.flame_values import neutral_flame_values
-from ofera.mapping.paired import make_benchmark, region_masks, vertices_from_flame
 from ofera.mapping.runtime import Mapper
+from ofera.training.epm import evaluate as ev
+from ofera.training.paired import make_benchmark, region_masks, vertices_from_flame
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +21,8 @@ def tiny():
 def epm_path(tmp_path_factory):
     try:
         import torch
-        from ofera.mapping.epm import EPM
-        from ofera.mapping.export import export_onnx
+        from ofera.training.epm.export import export_onnx
+        from ofera.training.epm.model import EPM
     except ImportError:
         from ofera.assets import default_epm_path
 

@@ -18,8 +18,8 @@ def epm_onnx(tmp_path_factory):
     """A small exported EPM (torch), or the shipped default when torch is not installed."""
     try:
         import torch
-        from ofera.mapping.epm import EPM
-        from ofera.mapping.export import export_onnx
+        from ofera.training.epm.export import export_onnx
+        from ofera.training.epm.model import EPM
     except ImportError:
         from ofera.assets import default_epm_path
 

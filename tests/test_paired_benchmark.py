@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from ofera.mapping.flame_values import split_flame_values
 from ofera.mapping.layouts import to_arkit51
-from ofera.mapping.paired import SPLITS, PairedData, PairedDataError, concat, make_benchmark
-from ofera.mapping.paired.benchmark import assign_splits
-from ofera.mapping.paired.observe import ovr_from_arkit
-from ofera.mapping.paired.rig import IDX
-from ofera.mapping.paired.sequences import SequenceStyle, blink_layer, generate_weights
+from ofera.training.paired import SPLITS, PairedData, PairedDataError, concat, make_benchmark
+from ofera.training.paired.benchmark import assign_splits
+from ofera.training.paired.observe import ovr_from_arkit
+from ofera.training.paired.rig import IDX
+from ofera.training.paired.sequences import SequenceStyle, blink_layer, generate_weights
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,7 @@ def test_splits_are_subject_disjoint(tiny):
 
 
 def test_each_source_has_its_own_estimator_and_headset():
-    from ofera.mapping.paired.benchmark import HOLDOUT, SOURCES, source_models
+    from ofera.training.paired.benchmark import HOLDOUT, SOURCES, source_models
 
     models = [source_models(0, i, src) for i, src in enumerate(SOURCES + HOLDOUT)]
     for i in range(len(models)):
@@ -72,7 +72,7 @@ def test_each_source_has_its_own_estimator_and_headset():
 
 
 def test_validation_sample_digest_is_stable_and_sensitive():
-    from ofera.mapping.paired.benchmark import SAMPLE_STEP, sample_digest, validation_sample
+    from ofera.training.paired.benchmark import SAMPLE_STEP, sample_digest, validation_sample
 
     sample = validation_sample(frames=10)
     assert sample["bs"].shape == (10, 51) and sample["flame"].shape == (10, 68)

@@ -7,8 +7,8 @@ import pytest
 from ofera.head import HeadSubject, lbs, pose_rotations
 from ofera.head.rotations import axis_angle_to_matrix, euler_xy_to_matrix
 from ofera.mapping.flame_values import join_flame_values, split_flame_values
-from ofera.mapping.paired import FlameFitter, fit_vertices, region_masks, vertices_from_flame
-from ofera.mapping.paired.fit import pose_blend, unpose_blend
+from ofera.training.paired import FlameFitter, fit_vertices, region_masks, vertices_from_flame
+from ofera.training.paired.fit import pose_blend, unpose_blend
 
 
 @pytest.fixture(scope="module")

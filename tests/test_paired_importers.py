@@ -7,7 +7,7 @@ import pytest
 from ofera.head.rotations import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_rot6d
 from ofera.mapping.flame_values import join_flame_values
 from ofera.mapping.layouts import ARKIT51_NAMES, MEDIAPIPE52_NAMES
-from ofera.mapping.paired import (
+from ofera.training.paired import (
     PairedDataError,
     import_insta,
     import_metrical_tracker,

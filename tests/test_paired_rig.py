@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ofera.mapping.paired.rig import CORRECTIVES, IDX, Rig, RigBasis, RigStyle, saturate
+from ofera.training.paired.rig import CORRECTIVES, IDX, Rig, RigBasis, RigStyle, saturate
 
 
 @pytest.fixture(scope="module")

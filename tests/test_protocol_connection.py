@@ -327,3 +327,59 @@ def test_client_without_state_tracking() -> None:
     for b in srv.avatar(avatar):
         cli.receive(b)
     assert cli.receive(srv.frame(frame_for(avatar, 0))).n == N and cli.gaussians is None
+
+
+# ----------------------------------------------------------------------------- delta sessions (PROTOCOL.md 7.1)
+
+
+@pytest.mark.parametrize("encoding,want", [("q13", True), ("f16", True), ("f32", False)])
+def test_delta_is_negotiated_for_compact_encodings(encoding: str, want: bool) -> None:
+    avatar = make_avatar()
+    srv, cli = ServerConnection(), ClientConnection()
+    hello = srv.receive(cli.hello("arkit52", encoding=encoding, sparse=True, delta=True))
+    assert hello.delta
+    quant = make_quant(avatar.position, avatar.scale) if encoding == "q13" else None
+    welcome = cli.receive(srv.accept("s", AvatarInfo("default", avatar.count, avatar.sh_degree), quant=quant))
+    assert welcome.delta is want and welcome.sparse is (not want)  # a delta session is dense
+    assert cli.format.delta is want and (cli.delta is not None) is want
+
+
+def test_resync_is_accepted_only_in_a_delta_session() -> None:
+    from ofera_protocol.messages import Resync
+
+    srv = ServerConnection()
+    with pytest.raises(ProtocolError) as e:  # before hello: fatal
+        srv.receive(encode(Resync()))
+    assert e.value.code == "not_ready" and e.value.fatal
+    srv, cli, _ = handshake("q13")
+    with pytest.raises(ProtocolError) as e:  # not a delta session: non-fatal
+        srv.receive(cli.resync())
+    assert e.value.code == "not_ready" and not e.value.fatal and srv.state is ServerState.STREAMING
+
+
+def test_delta_session_client_applies_key_and_delta_frames_and_asks_for_resync() -> None:
+    from ofera_protocol.codec import pack_map
+    from ofera_protocol.delta import DeltaEncoder
+    from ofera_protocol.messages import Resync
+
+    avatar = make_avatar()
+    srv, cli = ServerConnection(), ClientConnection()
+    srv.receive(cli.hello("arkit52", encoding="q13", delta=True))
+    quant = make_quant(avatar.position, avatar.scale)
+    cli.receive(srv.accept("s", AvatarInfo("default", avatar.count, avatar.sh_degree), quant=quant))
+    for b in srv.avatar(avatar):
+        cli.receive(b)
+    enc = DeltaEncoder(srv.format, key_interval=0)
+    key = cli.receive(enc.encode(1, 0, {}, avatar.position, avatar.rotation, avatar.scale))
+    assert key.key is True and key.index is None
+    moved = avatar.position.copy()
+    moved[3] += np.float32(1e-3)
+    got = cli.receive(enc.encode(2, 0, {}, moved, avatar.rotation, avatar.scale))
+    assert got.key is False and got.index.tolist() == [3]
+    assert np.abs(cli.gaussians.position[3] - moved[3]).max() < 1e-5
+    bad = pack_map({"type": "frame", "seq": 3, "t": 0, "timing": {}, "key": False, "n": 5,
+                    "changed": np.zeros(2, np.uint8)})
+    with pytest.raises(ProtocolError):
+        cli.receive(bad)
+    assert cli.resync_needed and cli.state is ClientState.STREAMING
+    assert isinstance(srv.receive(cli.resync()), Resync) and not cli.resync_needed

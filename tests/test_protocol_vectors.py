@@ -28,6 +28,7 @@ from ofera_protocol import (  # noqa: E402
     decode_server_message,
     encode,
 )
+from ofera_protocol.messages import DeltaFrame  # noqa: E402
 
 
 def _load_make_vectors() -> Any:
@@ -68,12 +69,12 @@ def _close(a: Any, b: Any, rel: float = 1e-6) -> bool:
 def _fmt(d: dict[str, Any]) -> FrameFormat:
     q = d["quant"]
     quant = None if q is None else Quant(*(np.array(q[k], np.float32) for k in ("pos_min", "pos_max", "log_scale")))
-    return FrameFormat(d["encoding"], d["count"], d["sparse"], quant)
+    return FrameFormat(d["encoding"], d["count"], d["sparse"], quant, delta=d.get("delta", False))
 
 
 def test_every_message_type_and_encoding_has_a_vector() -> None:
     types = {_json(n)["type"] for n in VALID}
-    assert types == {"hello", "bs", "ping", "bye", "welcome", "avatar", "frame", "error", "pong"}
+    assert types == {"hello", "bs", "ping", "bye", "resync", "welcome", "avatar", "frame", "error", "pong"}
     frames = {(_json(n)["format"]["encoding"], _json(n)["format"]["sparse"]) for n in VALID if n.startswith("frame")}
     assert frames == {(e, s) for e in ("f32", "f16", "q13") for s in (False, True)}
     codes = {_json(n)["expect_error"]["code"] for n in INVALID}
@@ -83,7 +84,7 @@ def test_every_message_type_and_encoding_has_a_vector() -> None:
 
 def test_regenerating_gives_identical_files() -> None:
     on_disk = {p.name for p in VECTOR_DIR.iterdir()}
-    assert on_disk == {f"{n}.{ext}" for n in NAMES for ext in ("msgpack", "json")}
+    assert on_disk == {f"{n}.{ext}" for n in NAMES for ext in ("msgpack", "json")} | {"tables.json"}
     for name, data, desc in BUILT:
         assert _bytes(name) == data, f"{name}.msgpack differs: run python protocol/make_vectors.py"
         assert _close(_json(name), json.loads(MV.json_text(desc))), f"{name}.json differs"
@@ -130,7 +131,11 @@ def test_decoding_matches_json(name: str) -> None:
     else:
         msg = decode_server_message(data, _fmt(d["format"]) if "format" in d else None)
     assert msg.TYPE == d["type"]
-    if isinstance(msg, Frame):
+    if isinstance(msg, DeltaFrame):  # its values need the frames before it: test_delta_sequences_decode
+        changed = np.unpackbits(np.array(d["fields"]["changed"]["values"], np.uint8), bitorder="little")
+        assert msg.index.tolist() == np.flatnonzero(changed).tolist() and msg.n == d["fields"]["n"]
+        assert msg.key is False and msg.seq == d["fields"]["seq"]
+    elif isinstance(msg, Frame):
         for k in ("position", "rotation", "scale"):
             np.testing.assert_allclose(getattr(msg, k), np.array(d["decoded"][k], np.float32), rtol=1e-6, atol=0)
         n = d["fields"]["n"]
@@ -154,6 +159,31 @@ def test_decoding_matches_json(name: str) -> None:
                 assert all(getattr(got, q).tolist() == v[q]["values"] for q in v)
             else:
                 assert got == v, k
+
+
+def test_delta_sequences_decode() -> None:
+    """Key, delta, and delta-after-a-drop vectors applied in order give the `decoded` state of every Gaussian."""
+    from ofera_protocol.delta import DeltaDecoder
+
+    seqs = [n for n in VALID if _json(n).get("after")]
+    assert {n for n in seqs} == {f"frame_{e}_delta{x}" for e in ("q13", "f16") for x in ("", "_drop")}
+    for name in seqs:
+        d = _json(name)
+        fmt = _fmt(d["format"])
+        dec = DeltaDecoder(fmt)
+        state = None
+        for step in [*d["after"], name]:
+            msg = decode_server_message(_bytes(step), fmt)
+            if isinstance(msg, DeltaFrame):
+                got = dec.apply(msg)
+                for a, k in zip(state, ("position", "rotation", "scale"), strict=True):
+                    a[got.index] = getattr(got, k)
+            else:
+                assert msg.key is True
+                dec.key(msg)
+                state = [np.array(getattr(msg, k)) for k in ("position", "rotation", "scale")]
+        for a, k in zip(state, ("position", "rotation", "scale"), strict=True):
+            np.testing.assert_allclose(a, np.array(d["decoded"][k], np.float32), rtol=1e-6, atol=0)
 
 
 @pytest.mark.parametrize("name", [n for n in VALID if n != "hello_minimal"])

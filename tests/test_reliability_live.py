@@ -22,13 +22,14 @@ from test_reliability_support import (
     bs,
     health,
     hello,
+    open_streaming,
     pack,
+    recv_msg,
     rel_server,
     rel_server_process,
     rel_settings,
     rss_mb,
     start_server,
-    unpack,
     wait_idle,
     wait_idle_process,
 )
@@ -43,22 +44,6 @@ HUGE = struct.pack(">I", 0xFFFFFFFF)
 def limited_server():
     """bs_rate 50/s (bursts of 5), and browsers only from https://ok.example."""
     return start_server(bs_rate=50.0, bs_burst=5.0, allowed_origins=["https://ok.example"])
-
-
-async def recv_msg(ws, timeout: float = 15.0) -> dict:
-    return unpack(await asyncio.wait_for(ws.recv(), timeout))
-
-
-async def open_streaming(url: str, **hello_fields) -> tuple:
-    ws = await connect(url, compression=None, max_size=None)
-    await ws.send(hello(**hello_fields))
-    welcome = await recv_msg(ws)
-    assert welcome["type"] == "welcome", welcome
-    while True:
-        m = await recv_msg(ws)
-        assert m["type"] == "avatar", m
-        if m["chunk"] == m["chunks"] - 1:
-            return ws, welcome
 
 
 async def good_frame(ws, seq: int, n: int = 52, **kw) -> dict:

@@ -10,16 +10,15 @@ from __future__ import annotations
 
 import asyncio
 import random
-import socket
-import struct
 import threading
 
 from test_reliability_support import (
     FRAME_F32_BYTES,
-    RawWebSocket,
+    KINDS,
     bs,
+    cycle,
     health,
-    hello,
+    open_streaming,
     rel_server,
     rel_server_process,
     rss_mb,
@@ -30,63 +29,8 @@ from test_reliability_support import (
     wait_until,
 )
 from test_server_support import metric, run
-from websockets.asyncio.client import connect
 
 CYCLES = 200
-
-
-def cycle(server, kind: str, rng: random.Random) -> None:
-    if kind == "bye":
-        async def main() -> None:
-            async with connect(server.url, compression=None, max_size=None) as ws:
-                await ws.send(hello(max_gaussians=200))
-                while True:
-                    m = unpack(await ws.recv())
-                    if m["type"] == "avatar" and m["chunk"] == m["chunks"] - 1:
-                        break
-                await ws.send(bs(1))
-                assert unpack(await ws.recv())["type"] == "frame"
-                await ws.send(b"\x81\xa4type\xa3bye")
-                await ws.wait_closed()
-
-        run(main())
-        return
-    if kind == "half_http":  # TCP reset in the middle of the HTTP upgrade request
-        s = socket.create_connection(("127.0.0.1", server.port), 5)
-        s.sendall(b"GET /v1/stream HTTP/1.1\r\nHost: x\r\nUpgrade: websock")
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-        s.close()
-        return
-    c = RawWebSocket(server)
-    assert c.status == 101, c.status
-    if kind == "no_hello":
-        c.close()
-    elif kind == "reset_after_hello":  # before the welcome is even sent
-        c.send(hello())
-        c.abort()
-    elif kind == "reset_after_welcome":  # in the middle of the avatar transfer (32 KiB chunks)
-        c.send(hello())
-        assert c.recv_msg()["type"] == "welcome"
-        c.abort()
-    elif kind == "reset_streaming":
-        c.handshake()
-        for i in range(rng.randrange(1, 5)):
-            c.send(bs(i))
-        c.recv_msg()
-        c.abort()
-    elif kind == "vanish_streaming":  # FIN without a WebSocket close frame
-        c.handshake(max_gaussians=500)
-        c.send(bs(0))
-        c.vanish()
-    elif kind == "vanish_after_hello":
-        c.send(hello())
-        c.vanish()
-    else:
-        raise ValueError(kind)
-
-
-KINDS = ["bye", "half_http", "no_hello", "reset_after_hello", "reset_after_welcome", "reset_streaming",
-         "vanish_streaming", "vanish_after_hello"]
 
 
 def storm(server, cycles: int, seed: int) -> list[str]:
@@ -131,12 +75,8 @@ def test_connection_storm_leaves_nothing_behind() -> None:
     assert health(server)["sessions"] == 0
 
     async def good() -> None:
-        async with connect(server.url, compression=None, max_size=None) as ws:
-            await ws.send(hello())
-            while True:
-                m = unpack(await ws.recv())
-                if m["type"] == "avatar" and m["chunk"] == m["chunks"] - 1:
-                    break
+        ws, _ = await open_streaming(server.url)
+        async with ws:
             await ws.send(bs(5))
             assert unpack(await asyncio.wait_for(ws.recv(), 10))["seq"] == 5
 
@@ -175,12 +115,8 @@ def test_sessions_are_freed_without_the_cycle_collector() -> None:
     refs: list = []
 
     async def session(kind: str) -> None:
-        async with connect(server.url, compression=None, max_size=None) as ws:
-            await ws.send(hello())
-            while True:
-                m = unpack(await ws.recv())
-                if m["type"] == "avatar" and m["chunk"] == m["chunks"] - 1:
-                    break
+        ws, _ = await open_streaming(server.url)
+        async with ws:
             for i in range(3):
                 await ws.send(bs(i))
                 assert unpack(await ws.recv())["type"] == "frame"

@@ -22,7 +22,7 @@ runner = CliRunner()
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    from ofera.replay.testing import small_server
+    from replay_support import small_server
 
     with small_server(tmp_path_factory.getbasetemp() / "small-avatar-quest") as s:
         yield s

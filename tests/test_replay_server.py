@@ -116,7 +116,7 @@ def logs(tmp_path_factory) -> dict[str, tuple[Path, str, int]]:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """The streaming server on a free 127.0.0.1 port, in a thread (the server package's ServerThread)."""
-    from ofera.replay.testing import small_server
+    from replay_support import small_server
 
     with small_server(tmp_path_factory.getbasetemp() / "small-avatar") as s:
         yield s
@@ -285,7 +285,7 @@ def test_livelink_csv_at_speed_4_through_ofera_serve(tmp_path, tmp_path_factory)
     (or the sender) is held up for the rest of a period. On a shared 2-core machine that happened to 2 % of
     the bs when idle and to up to 23 % while other jobs kept the load average between 2 and 5: hence the margin.
     Newest-wins answers about one bs per frame cost: a server whose frames cost two periods fails."""
-    from ofera.replay.testing import serve_args
+    from replay_support import serve_args
 
     csv = tmp_path / "face.csv"
     write_livelink_csv(csv, 8.0, seed=11)

@@ -104,9 +104,9 @@ def test_region_hold():
 
 
 def test_pipeline_holds_a_low_confidence_region(tmp_path):
-    from ofera.replay.testing import small_avatar_dir
     from ofera.streaming.config import Settings
     from ofera.streaming.registry import registry_for
+    from replay_support import small_avatar_dir
 
     reg = registry_for(Settings(avatars=small_avatar_dir(tmp_path, 500), default_avatar="small", warmup=False))
     assets = reg.get("small")
@@ -132,8 +132,8 @@ def test_pipeline_holds_a_low_confidence_region(tmp_path):
 
 def test_server_answers_bad_conf_with_a_non_fatal_error(tmp_path):
     from ofera.client import connect
-    from ofera.replay.testing import small_server
     from ofera_protocol import ErrorMessage, Frame
+    from replay_support import small_server
 
     async def session(url: str) -> tuple[ErrorMessage, Frame]:
         client = await connect(url, layout="ovr63")

@@ -1,4 +1,5 @@
-"""A client written only from DESIGN.md's wire skeleton: raw `websockets` + `msgpack`, no OFERA code.
+"""A client written only from the design card's wire skeleton (the user's DESIGN.md, not in this repository;
+PROTOCOL.md extends it): raw `websockets` + `msgpack`, no OFERA code.
 
 Acceptance: hello (protocol 1, arkit52, avatar default, f32) -> welcome with avatar.count -> the avatar
 data -> for 200 bs sent at 72 Hz, frames in increasing seq order, each with count x 3 finite float32

@@ -28,7 +28,7 @@ DEVICE = "testset"
 
 def make_small_avatar(path: Path) -> None:
     """The built-in procedural avatar subsampled to SMALL_COUNT Gaussians, written as an avatar .npz."""
-    from ofera.avatar import load_avatar
+    from ofera.avatar import load_avatar, save_avatar
 
     full = load_avatar("default")
     keep = np.sort(np.random.default_rng(7).choice(full.count, size=min(SMALL_COUNT, full.count), replace=False))
@@ -37,7 +37,7 @@ def make_small_avatar(path: Path) -> None:
                     if f.name != "face_scale_canonical" and isinstance(getattr(b, f.name), np.ndarray)}
     small = dataclasses.replace(full, binding=dataclasses.replace(b, **per_gaussian), opacity=full.opacity[keep],
                                 sh=full.sh[keep], name=SMALL)
-    small.save(path)
+    save_avatar(small, path)
 
 
 def make_device_bda(path: Path) -> None:

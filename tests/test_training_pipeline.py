@@ -169,8 +169,7 @@ def test_corrected_head_equals_torch_head_and_binding_matches_avatar_reference(h
 
 
 def test_export_round_trip_through_the_avatar_format(tmp_path, tiny):
-    pytest.importorskip("ofera.avatar.io")
-    from ofera.avatar.io import load_avatar, save_avatar
+    from ofera.avatar import load_avatar, save_avatar
     from ofera.training.convert import from_gaussian_avatar, to_gaussian_avatar
 
     av = tiny[2]
@@ -265,9 +264,13 @@ def test_mia_experiment_smoke(tmp_path):
 
     res = run_experiment(cfg, grid=tmp_path / "grid.png", log=lambda s: None, mapper=Mapper())
     assert calls["n"] == 7
-    for key in ("psnr", "ssim", "val_psnr"):
-        assert set(res[key]) == {"mia", "without_mia"}
-        assert all(np.isfinite(v) for v in res[key].values())
+    for part in (res, res["epm_selected"]):
+        for key in ("psnr", "ssim", "val_psnr"):
+            assert set(part[key]) == {"mia", "without_mia"}
+            assert all(np.isfinite(v) for v in part[key].values())
+    for arm in ("mia", "without_mia"):  # the step kept is one of the validation checks (every step here)
+        assert res["extra"][arm]["chosen"]["best_step"] in (1, 2)
+    assert res["epm_selected"]["chosen"]["mia"] == res["extra"]["mia"]["chosen"]  # MiA validates EPM-driven anyway
     assert (tmp_path / "grid.png").stat().st_size > 1000
     out = write_json(res, tmp_path / "r.json")
     assert json.loads(out.read_text())["psnr"] == res["psnr"]

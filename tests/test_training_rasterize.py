@@ -7,7 +7,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from ofera.training.rasterize import SUPPORT_ALPHA, Camera, project, quat_to_matrix, rasterize  # noqa: E402
+from ofera.avatar.camera import Camera  # noqa: E402
+from ofera.training.rasterize import SUPPORT_ALPHA, project, quat_to_matrix, rasterize  # noqa: E402
 
 torch.set_num_threads(1)
 
@@ -51,7 +52,7 @@ def reference(means, quats, scales, opac, cols, cam: Camera, bg, alpha_min):
 
 
 def test_gradcheck_tiny_scene():
-    cam = Camera.look_at((0.02, -0.01, 0.25), (0, 0, 0), fov_deg=20, width=8, height=8)
+    cam = Camera.look_at((0.02, -0.01, 0.25), (0, 0, 0), fov_x_deg=20, width=8, height=8)
     means, quats, scales, opac, cols = scene(4, seed=1)
     inputs = tuple(t.clone().requires_grad_(True) for t in (means, quats, scales, opac, cols))
 
@@ -63,7 +64,7 @@ def test_gradcheck_tiny_scene():
 
 
 def test_gradients_reach_every_attribute():
-    cam = Camera.look_at((0.0, 0.0, 0.3), (0, 0, 0), fov_deg=25, width=16, height=16)
+    cam = Camera.look_at((0.0, 0.0, 0.3), (0, 0, 0), fov_x_deg=25, width=16, height=16)
     inputs = tuple(t.clone().requires_grad_(True) for t in scene(6, seed=2))
     rasterize(*inputs, cam).image.square().sum().backward()
     for t in inputs:
@@ -72,7 +73,7 @@ def test_gradients_reach_every_attribute():
 
 @pytest.mark.parametrize("alpha_min", [0.0, 1 / 255])
 def test_matches_bruteforce_reference(alpha_min):
-    cam = Camera.look_at((0.05, 0.03, 0.3), (0, 0, 0), fov_deg=25, width=20, height=16)
+    cam = Camera.look_at((0.05, 0.03, 0.3), (0, 0, 0), fov_x_deg=25, width=20, height=16)
     sc = scene(12, seed=3)
     ours = rasterize(*sc, cam, background=0.5, alpha_min=alpha_min).image.numpy()
     ref = reference(*sc, cam, 0.5, alpha_min)
@@ -81,7 +82,7 @@ def test_matches_bruteforce_reference(alpha_min):
 
 
 def test_chunking_does_not_change_the_image():
-    cam = Camera.look_at((0.0, 0.0, 0.3), (0, 0, 0), fov_deg=25, width=24, height=24)
+    cam = Camera.look_at((0.0, 0.0, 0.3), (0, 0, 0), fov_x_deg=25, width=24, height=24)
     sc = scene(40, seed=4, dtype=torch.float32)
     a = rasterize(*sc, cam).image
     b = rasterize(*sc, cam, max_elements=50).image
@@ -89,7 +90,7 @@ def test_chunking_does_not_change_the_image():
 
 
 def test_projection_of_centre_and_culling():
-    cam = Camera.look_at((0.0, 0.0, 1.0), (0, 0, 0), fov_deg=40, width=32, height=32)
+    cam = Camera.look_at((0.0, 0.0, 1.0), (0, 0, 0), fov_x_deg=40, width=32, height=32)
     means = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])  # on axis; behind the camera
     quats = torch.tensor([[1.0, 0, 0, 0]] * 2)
     scales = torch.full((2, 3), 0.01)
@@ -102,7 +103,7 @@ def test_projection_of_centre_and_culling():
 
 
 def test_camera_json_round_trip(tmp_path):
-    from ofera.training.rasterize import load_cameras, save_cameras
+    from ofera.avatar.camera import load_cameras, save_cameras
 
     cams = [Camera.look_at((0.3, 0.1, 0.5), (0, 0, 0), width=40, height=30, name="a"),
             Camera.look_at((-0.3, 0.0, 0.5), (0, 0, 0), width=64, height=64, name="b")]
@@ -118,12 +119,11 @@ def test_camera_json_round_trip(tmp_path):
 def test_matches_avatar_preview_renderer():
     """Close agreement with the numpy preview renderer ``ofera.avatar.render`` (independent implementation)."""
     prev = pytest.importorskip("ofera.avatar.render")
-    cam = Camera.look_at((0.03, 0.02, 0.3), (0, 0, 0), fov_deg=25, width=40, height=32)
+    cam = Camera.look_at((0.03, 0.02, 0.3), (0, 0, 0), fov_x_deg=25, width=40, height=32)
     means, quats, scales, opac, cols = (t.numpy() for t in scene(60, seed=5))
     ours = rasterize(*(torch.as_tensor(a) for a in (means, quats, scales, opac, cols)), cam, background=1.0)
-    pcam = prev.Camera(cam.R, cam.t, cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2], cam.width, cam.height)
     xyzw = np.concatenate([quats[:, 1:], quats[:, :1]], 1) / np.linalg.norm(quats, axis=1, keepdims=True)
-    proj = prev.project_gaussians(means, prev.covariance_3d(xyzw, scales), pcam)
+    proj = prev.project_gaussians(means, prev.covariance_3d(xyzw, scales), cam)
     theirs = prev.composite(proj, cols, opac, (1.0, 1.0, 1.0), (cam.width, cam.height))
     diff = np.abs(ours.image.numpy() - theirs)
     assert diff.mean() < 1e-3 and diff.max() < 0.02, (diff.mean(), diff.max())
@@ -134,7 +134,7 @@ def test_gsplat_agrees_on_cuda():
     pytest.importorskip("gsplat")
     from ofera.training.rasterize import rasterize_gsplat
 
-    cam = Camera.look_at((0.03, 0.02, 0.3), (0, 0, 0), fov_deg=25, width=32, height=32)
+    cam = Camera.look_at((0.03, 0.02, 0.3), (0, 0, 0), fov_x_deg=25, width=32, height=32)
     sc = [t.float().cuda() for t in scene(30, seed=6)]
     ours = rasterize(*sc, cam, background=0.0).image
     theirs = rasterize_gsplat(*sc, cam, background=0.0).image

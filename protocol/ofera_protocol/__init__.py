@@ -1,7 +1,8 @@
 """OFERA wire protocol v1: sans-I/O codec (no sockets, no asyncio; numpy + msgpack only).
 
-The normative text is protocol/PROTOCOL.md. Modules: `constants` (versions, layouts, limits),
-`errors` (codes, close codes, ProtocolError), `messages` (typed messages), `encodings` (frame array
+The normative text is protocol/PROTOCOL.md. Modules: `constants` (versions, limits, field sizes), `layouts`
+(names in wire order), `errors` (codes, close codes, ProtocolError, ConnectionUsageError), `tables` (all of
+these as tables.json and PROTOCOL.md tables), `messages` (typed messages), `encodings` (frame array
 encodings f32/f16/q13), `coords` (FLAME <-> Unity), `avatar` (chunks, client state), `codec`
 (bytes <-> messages), `connection` (ServerConnection / ClientConnection state machines).
 """
@@ -28,7 +29,7 @@ from .constants import (
 )
 from .coords import mirror_x_position, mirror_x_rotation, mirror_x_sh, to_coords
 from .encodings import FrameFormat, decode_arrays, encode_arrays, make_quant
-from .errors import CLOSE_NORMAL, ERRORS, LocalProtocolError, ProtocolError, close_code
+from .errors import CLOSE_NORMAL, ERRORS, ConnectionUsageError, LocalProtocolError, ProtocolError, close_code
 from .messages import (
     AvatarChunk,
     AvatarInfo,
@@ -50,8 +51,8 @@ __all__ = [
     "BYTES_PER_GAUSSIAN", "CLOSE_NORMAL", "COORDS", "ENCODINGS", "ENDPOINT", "ERRORS", "LAYOUTS",
     "MAX_CLIENT_MESSAGE", "MAX_SERVER_MESSAGE", "PROTOCOL_VERSION",
     "Avatar", "AvatarAssembler", "AvatarChunk", "AvatarInfo", "Blendshapes", "Bye", "ClientConnection",
-    "ClientMessage", "ClientState", "ErrorMessage", "Frame", "FrameFormat", "GaussianState", "Hello",
-    "LocalProtocolError", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
+    "ClientMessage", "ClientState", "ConnectionUsageError", "ErrorMessage", "Frame", "FrameFormat", "GaussianState",
+    "Hello", "LocalProtocolError", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
     "ServerMessage", "ServerState", "Welcome",
     "close_code", "decode_arrays", "decode_client_message", "decode_server_message", "encode",
     "encode_arrays", "encode_avatar_chunk", "encode_frame", "frame_format", "make_quant",

@@ -103,6 +103,21 @@ def pack_map(items: dict[str, Any]) -> bytes:
     return b"".join(parts)
 
 
+def pack_bits(mask: np.ndarray) -> np.ndarray:
+    """(n,) bool -> ceil(n / 8) uint8, bit i in byte i >> 3 at position i & 7 (LSB first)."""
+    return np.packbits(np.asarray(mask, bool), bitorder="little")
+
+
+def unpack_bits(buf: bytes, n: int, what: str) -> np.ndarray:
+    """The inverse of :func:`pack_bits`; ProtocolError if the length is not ceil(n / 8) or a padding bit is set."""
+    if len(buf) != (n + 7) // 8:
+        raise ProtocolError(BAD_LENGTH, f"frame: '{what}' has {len(buf)} bytes, a mask of {n} needs {(n + 7) // 8}")
+    bits = np.unpackbits(np.frombuffer(buf, np.uint8), bitorder="little")
+    if bits[n:].any():
+        raise ProtocolError(BAD_FIELD, f"frame: '{what}' has bits set beyond its {n} entries")
+    return bits[:n].astype(bool)
+
+
 def _le(a: Any, dtype: str, shape: tuple[int, ...], name: str) -> np.ndarray:
     out = np.ascontiguousarray(a, dtype=dtype)
     if out.shape != shape:
@@ -197,13 +212,13 @@ def encode_frame(m: Frame, fmt: FrameFormat) -> bytes:
 
 def encode_delta_frame(m: DeltaFrame, fmt: FrameFormat) -> bytes:
     """A delta frame (PROTOCOL.md 7.1) from its wire arrays (see DeltaFrame)."""
-    from .delta import pack_bits
-
     changed = np.zeros(fmt.count, bool)
     changed[np.asarray(m.index, np.int64)] = True
+    moved = np.asarray(m.moved, bool).reshape(-1, 3)
     return pack_map({"type": "frame", "seq": m.seq, "t": m.t, "timing": m.timing, "key": False, "n": m.n,
-                     "changed": pack_bits(changed), "wide": pack_bits(m.wide),
-                     "position_delta": np.ascontiguousarray(m.position_delta, np.int8),
+                     "changed": pack_bits(changed), "moved_position": pack_bits(moved[:, 0]),
+                     "moved_rotation": pack_bits(moved[:, 1]), "moved_scale": pack_bits(moved[:, 2]),
+                     "wide": pack_bits(m.wide), "position_delta": np.ascontiguousarray(m.position_delta, np.int8),
                      "position": np.ascontiguousarray(m.position), "rotation": np.ascontiguousarray(m.rotation),
                      "scale": np.ascontiguousarray(m.scale)})
 
@@ -423,8 +438,8 @@ _CODE_WIDTH = {"q13": (3, 1, 3), "f16": (3, 4, 3)}
 
 def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, timing: dict[str, int]) -> DeltaFrame:
     """The wire arrays of a delta frame (`key: false`), checked: mask lengths and padding, n = the number of
-    changed Gaussians, array lengths; f16 codes sent whole must be finite. Raises ProtocolError."""
-    from .delta import unpack_bits
+    changed Gaussians, every one carrying something, array lengths; f16 codes sent whole must be finite.
+    Raises ProtocolError."""
     from .encodings import FIELD_BYTES
 
     w = "frame"
@@ -433,14 +448,19 @@ def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, ti
     index = np.flatnonzero(changed).astype(np.uint32)
     if index.size != n:
         raise ProtocolError(BAD_FIELD, f"frame: n = {n} but 'changed' marks {index.size} Gaussians")
-    wide = unpack_bits(F.get_bin(m, "wide", w), n, "wide")
+    moved = np.stack([unpack_bits(F.get_bin(m, k, w), n, k) for k in ("moved_position", "moved_rotation",
+                                                                      "moved_scale")], axis=1)
+    if n and not moved.any(axis=1).all():
+        raise ProtocolError(BAD_FIELD, "frame: a changed Gaussian carries nothing (all its 'moved_*' bits are 0)")
+    n_p, n_r, n_s = (int(c) for c in moved.sum(axis=0))
+    wide = unpack_bits(F.get_bin(m, "wide", w), n_p, "wide")
     nw = int(wide.sum())
-    res = F.get_array(m, "position_delta", w, "i1", (n - nw, 3))
+    res = F.get_array(m, "position_delta", w, "i1", (n_p - nw, 3))
     pb, rb, sb = FIELD_BYTES[fmt.encoding]
     dts = _CODE_DTYPES[fmt.encoding] if fmt.encoding == "q13" else ("<f2", "<f2", "<f2")
+    fields = (("position", nw, pb, dts[0], 3), ("rotation", n_r, rb, dts[1], 4 if rb == 8 else 1),
+              ("scale", n_s, sb, dts[2], 3))
     arrays = []
-    fields = (("position", nw, pb, dts[0], 3), ("rotation", n, rb, dts[1], 4 if rb == 8 else 1),
-              ("scale", n, sb, dts[2], 3))
     for key, count, size, dt, width in fields:
         buf = F.get_bin(m, key, w)
         if len(buf) != count * size:
@@ -450,8 +470,8 @@ def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, ti
         arrays.append(a.reshape(count, width) if width > 1 else a)
         if fmt.encoding == "f16" and ((a.view(np.uint16) & 0x7C00) == 0x7C00).any():
             raise ProtocolError(NON_FINITE, f"frame field {key!r} holds NaN or infinity")
-    return DeltaFrame(seq=seq, t=t, timing=timing, index=index, wide=wide, position_delta=res, position=arrays[0],
-                      rotation=arrays[1], scale=arrays[2])
+    return DeltaFrame(seq=seq, t=t, timing=timing, index=index, moved=moved, wide=wide, position_delta=res,
+                      position=arrays[0], rotation=arrays[1], scale=arrays[2])
 
 
 FrameParts = tuple[int, int, dict[str, int], bool | None, int, Any, list[bytes]]

@@ -39,7 +39,7 @@ from .errors import (
     DUPLICATE_HELLO,
     NOT_READY,
     TEXT_FRAME,
-    LocalProtocolError,
+    ConnectionUsageError,
     ProtocolError,
 )
 from .messages import (
@@ -105,7 +105,7 @@ class ServerConnection:
         """Decode one binary message and advance the state. Raises ProtocolError; a fatal one (any
         error while awaiting hello, or an always-fatal code) moves the connection to CLOSED."""
         if self.state is ServerState.CLOSED:
-            raise LocalProtocolError("receive() on a closed connection")
+            raise ConnectionUsageError("receive() on a closed connection")
         try:
             layout = self.hello.layout if self.hello else None
             msg = decode_client_message(data, layout, self.max_message_size)
@@ -150,12 +150,12 @@ class ServerConnection:
         the one asked for; `quant` is required for q13 (see encodings.make_quant). `delta` defaults to
         hello.delta where the encoding allows it (f16, q13); a delta session is dense (welcome.sparse false)."""
         if self.state is not ServerState.HELLO_RECEIVED or self.hello is None:
-            raise LocalProtocolError(f"accept() needs a received hello (state {self.state.value})")
+            raise ConnectionUsageError(f"accept() needs a received hello (state {self.state.value})")
         encoding = encoding or self.hello.encoding
         if encoding not in ENCODINGS:
-            raise LocalProtocolError(f"unknown encoding {encoding!r}")
+            raise ConnectionUsageError(f"unknown encoding {encoding!r}")
         if self.hello.max_gaussians is not None and avatar.count > self.hello.max_gaussians:
-            raise LocalProtocolError(f"avatar has {avatar.count} Gaussians, the client allows "
+            raise ConnectionUsageError(f"avatar has {avatar.count} Gaussians, the client allows "
                                      f"{self.hello.max_gaussians}")
         if delta is None:
             delta = self.hello.delta and encoding in ("f16", "q13")
@@ -165,7 +165,7 @@ class ServerConnection:
         try:
             self.format = frame_format(welcome)
         except ValueError as e:
-            raise LocalProtocolError(str(e)) from None
+            raise ConnectionUsageError(str(e)) from None
         data = encode(welcome)
         self.welcome = welcome
         self.state = ServerState.STREAMING
@@ -192,7 +192,7 @@ class ServerConnection:
         assert self.welcome is not None
         info = self.welcome.avatar
         if avatar.count != info.count or avatar.sh_degree != info.sh_degree:
-            raise LocalProtocolError(f"avatar has {avatar.count} Gaussians of SH degree {avatar.sh_degree}, "
+            raise ConnectionUsageError(f"avatar has {avatar.count} Gaussians of SH degree {avatar.sh_degree}, "
                                      f"welcome announced {info.count} of degree {info.sh_degree}")
         out = [encode_avatar_chunk(c) for c in split_avatar(avatar, max_chunk_bytes)]
         self.avatar_sent = True
@@ -202,18 +202,18 @@ class ServerConnection:
         """Encode a frame for this session (for many viewers, call codec.encode_frame once instead)."""
         self._require_streaming("frame()")
         if not self.avatar_sent:
-            raise LocalProtocolError("frame() before avatar(): the client needs the avatar first")
+            raise ConnectionUsageError("frame() before avatar(): the client needs the avatar first")
         assert self.format is not None
         return encode_frame(frame, self.format)
 
     def pong(self, t: int) -> bytes:
         if self.state is ServerState.CLOSED:
-            raise LocalProtocolError("pong() on a closed connection")
+            raise ConnectionUsageError("pong() on a closed connection")
         return encode(Pong(t=t))
 
     def _require_streaming(self, what: str) -> None:
         if self.state is not ServerState.STREAMING:
-            raise LocalProtocolError(f"{what} needs state streaming, not {self.state.value}")
+            raise ConnectionUsageError(f"{what} needs state streaming, not {self.state.value}")
 
 
 # ============================================================================= client side
@@ -251,11 +251,11 @@ class ClientConnection:
               coords: str = DEFAULT_COORDS, sparse: bool = False, device: str | None = None,
               token: str | None = None, max_gaussians: int | None = None, delta: bool = False) -> bytes:
         if self.state is not ClientState.IDLE:
-            raise LocalProtocolError("hello() may be sent once, first")
+            raise ConnectionUsageError("hello() may be sent once, first")
         for name, value, allowed in (("layout", layout, LAYOUTS), ("encoding", encoding, ENCODINGS),
                                      ("coords", coords, COORDS)):
             if value not in allowed:
-                raise LocalProtocolError(f"unknown {name} {value!r}; expected one of {', '.join(allowed)}")
+                raise ConnectionUsageError(f"unknown {name} {value!r}; expected one of {', '.join(allowed)}")
         msg = Hello(layout=layout, avatar=avatar, encoding=encoding, coords=coords, sparse=sparse,
                     device=device, token=token, max_gaussians=max_gaussians, protocol=PROTOCOL_VERSION,
                     delta=delta)
@@ -267,21 +267,21 @@ class ClientConnection:
         """A blendshape sample: `w` (L,) weights of the session's layout, `t` client clock in µs, `conf`
         optional (2,) [lower, upper] face confidence in [0, 1]."""
         if self.state not in (ClientState.RECEIVING_AVATAR, ClientState.STREAMING):
-            raise LocalProtocolError(f"bs() needs a welcome first (state {self.state.value})")
+            raise ConnectionUsageError(f"bs() needs a welcome first (state {self.state.value})")
         assert self.sent_hello is not None
         w = np.asarray(w, dtype=np.float32).reshape(-1)
         n = LAYOUTS[self.sent_hello.layout]
         if w.shape != (n,):
-            raise LocalProtocolError(f"layout {self.sent_hello.layout} needs {n} weights, got {w.shape[0]}")
+            raise ConnectionUsageError(f"layout {self.sent_hello.layout} needs {n} weights, got {w.shape[0]}")
         if conf is not None:
             conf = np.asarray(conf, dtype=np.float32).reshape(-1)
             if conf.shape != (2,) or not ((conf >= 0.0) & (conf <= 1.0)).all():
-                raise LocalProtocolError(f"conf must be 2 values [lower, upper] in [0, 1], got {conf.tolist()}")
+                raise ConnectionUsageError(f"conf must be 2 values [lower, upper] in [0, 1], got {conf.tolist()}")
         return encode(Blendshapes(seq=seq, t=t, w=w, conf=conf))
 
     def ping(self, t: int) -> bytes:
         if self.state is ClientState.CLOSED:
-            raise LocalProtocolError("ping() on a closed connection")
+            raise ConnectionUsageError("ping() on a closed connection")
         return encode(Ping(t=t))
 
     def bye(self) -> bytes:
@@ -291,7 +291,7 @@ class ClientConnection:
     def resync(self) -> bytes:
         """Ask for a key frame (delta sessions); clears `resync_needed`."""
         if self.state is ClientState.CLOSED:
-            raise LocalProtocolError("resync() on a closed connection")
+            raise ConnectionUsageError("resync() on a closed connection")
         self.resync_needed = False
         return encode(Resync())
 
@@ -301,7 +301,7 @@ class ClientConnection:
         """Decode one server message and advance the state. Raises ProtocolError (fatal before the
         stream starts; a bad frame is non-fatal)."""
         if self.state is ClientState.CLOSED:
-            raise LocalProtocolError("receive() on a closed connection")
+            raise ConnectionUsageError("receive() on a closed connection")
         try:
             msg = decode_server_message(data, self.format, self.max_message_size)
             return self._advance(msg)

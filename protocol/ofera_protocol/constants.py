@@ -2,26 +2,24 @@
 
 from __future__ import annotations
 
+from .layouts import LAYOUT_NAMES
+
 PROTOCOL_VERSION = 1
 """The only protocol version this codec speaks."""
 
 ENDPOINT = "/v1/stream"
 """WebSocket path of the streaming endpoint."""
 
-LAYOUTS: dict[str, int] = {
-    "arkit52": 52,
-    "arkit51": 51,
-    "mediapipe52": 52,
-    "ovr63": 63,
-    "ovr70": 70,
-    "livelink61": 61,
-}
-"""Blendshape layout name -> number of float32 weights in a `bs` message."""
+LAYOUTS: dict[str, int] = {name: len(names) for name, names in LAYOUT_NAMES.items()}
+"""Blendshape layout name -> number of float32 weights in a `bs` message (the names: `layouts.LAYOUT_NAMES`)."""
 
 ENCODINGS: tuple[str, ...] = ("f32", "f16", "q13")
 """Frame encodings, in order of decreasing size."""
 
-BYTES_PER_GAUSSIAN: dict[str, int] = {"f32": 40, "f16": 20, "q13": 13}
+FIELD_BYTES: dict[str, tuple[int, int, int]] = {"f32": (12, 16, 12), "f16": (6, 8, 6), "q13": (6, 4, 3)}
+"""Frame payload bytes per Gaussian of `position`, `rotation` and `scale` in each encoding (PROTOCOL.md section 6)."""
+
+BYTES_PER_GAUSSIAN: dict[str, int] = {e: sum(sizes) for e, sizes in FIELD_BYTES.items()}
 """Frame payload bytes per Gaussian (position + rotation + scale), excluding a sparse `index`."""
 
 COORDS: tuple[str, ...] = ("flame", "unity")

@@ -2,14 +2,14 @@
 
 A delta session (``hello.delta``, encodings f16 and q13) sends a *key* frame (every Gaussian's codes,
 an ordinary dense frame plus ``key: true``) on join, every N frames and on ``resync``; the frames in
-between are *delta* frames carrying only the Gaussians whose value moved away from what the client holds
-by more than the session's tolerance, as code changes:
+between are *delta* frames carrying, for the Gaussians whose position, rotation or scale moved away from
+what the client holds by more than the session's tolerance, the new codes of exactly what moved:
 
 - ``changed``: bitmask over the avatar (bit i of byte i >> 3, LSB first) of the n Gaussians carried;
-- ``wide``: bitmask over those n (same bit order): 1 = its position is sent whole (``position``, the
-  encoding's position codes), 0 = as a change of its codes (``position_delta``, 3 int8: new code =
-  held code + change, per axis);
-- ``rotation`` and ``scale``: the n Gaussians' new codes, whole.
+- ``moved_position``, ``moved_rotation``, ``moved_scale``: bitmasks over those n: which attributes each carries;
+- ``wide``: bitmask over the n_p carrying a position: 1 = sent whole (``position``, the encoding's position
+  codes), 0 = as a change of its codes (``position_delta``, 3 int8: new code = held code + change, per axis);
+- ``rotation`` (n_r) and ``scale`` (n_s): new codes, whole.
 
 Codes are integers: q13's (uint16 position, uint32 rotation, uint8 scale) and f16's bit patterns
 (uint16 each); so the client reconstructs exactly what the server computed, and the server, which keeps
@@ -17,11 +17,12 @@ the codes it has handed to *this* client's socket, decides against what the clie
 the client's error is at most max(tolerance, the encoding's own error) after any number of frames, and a
 frame that is never sent (newest-wins drop) changes nothing on either side.
 
-The selection arithmetic (all float64, +, -, * and comparisons only, so numba reproduces it bit for bit)::
+The selection arithmetic (all float64, +, -, *, table look-ups and comparisons, so numba reproduces it bit for
+bit), per attribute::
 
-    moved  = |p - h_p|^2 > T_p^2                          (p, h_p: position, held decoded position)
-          or (h_r . q)^2 < cos^2(T_r / 2) |q|^2 |h_r|^2  (q, h_r: rotation, held decoded rotation)
-          or any axis s > h_s e^{T_s} or s < h_s e^{-T_s}  (scale)
+    position moved  |p - h_p|^2 > T_p^2                          (p, h_p: position, held decoded position)
+    rotation moved  (h_r . q)^2 < cos^2(T_r / 2) |q|^2 |h_r|^2  (q, h_r: rotation, held decoded rotation)
+    scale moved     on some axis s > h_s e^{T_s} or s < h_s e^{-T_s}
 
 Kernels (``NumpyKernels.delta_q13`` / ``delta_f16`` here, the numba set in the server) fill the selection;
 :class:`DeltaEncoder` builds messages around them. Only numpy and msgpack are needed.
@@ -35,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from .codec import pack_map
+from .codec import pack_bits, pack_map, unpack_bits  # noqa: F401 - pack_bits, unpack_bits: re-exported
 from .encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
-from .errors import BAD_FIELD, BAD_LENGTH, NON_FINITE, NOT_READY, ProtocolError
+from .errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
 from .messages import DeltaFrame, Frame
 
 DELTA_ENCODINGS: tuple[str, ...] = ("f16", "q13")
@@ -67,22 +68,17 @@ class DeltaTolerance:
 # ----------------------------------------------------------------------------- bitmasks
 
 
-def pack_bits(mask: np.ndarray) -> np.ndarray:
-    """(n,) bool -> ceil(n / 8) uint8, bit i in byte i >> 3 at position i & 7 (LSB first)."""
-    return np.packbits(np.asarray(mask, bool), bitorder="little")
-
-
-def unpack_bits(buf: bytes, n: int, what: str) -> np.ndarray:
-    """The inverse of :func:`pack_bits`; ProtocolError if the length is not ceil(n / 8) or a padding bit is set."""
-    if len(buf) != (n + 7) // 8:
-        raise ProtocolError(BAD_LENGTH, f"frame: '{what}' has {len(buf)} bytes, a mask of {n} needs {(n + 7) // 8}")
-    bits = np.unpackbits(np.frombuffer(buf, np.uint8), bitorder="little")
-    if bits[n:].any():
-        raise ProtocolError(BAD_FIELD, f"frame: '{what}' has bits set beyond its {n} entries")
-    return bits[:n].astype(bool)
-
-
 # ----------------------------------------------------------------------------- decoded codes (float64)
+
+
+def _rot_field_lut() -> np.ndarray:
+    f = np.arange(1024, dtype=np.int64)
+    f = np.where(f >= 512, f - 1024, f)
+    return np.maximum(f / ROT_LEVELS, -1.0) / math.sqrt(2.0)
+
+
+ROT_FIELD64 = _rot_field_lut()
+"""(1024,) float64: the component a q13 rotation's 10-bit field decodes to (PROTOCOL.md 6.3, in float64)."""
 
 
 def q13_decode_rotation64(codes: np.ndarray) -> np.ndarray:
@@ -92,9 +88,7 @@ def q13_decode_rotation64(codes: np.ndarray) -> np.ndarray:
     kept = np.empty((v.size, 3), np.float64)
     d = np.ones(v.size, np.float64)
     for j in range(3):
-        f = ((v >> np.uint32(20 - 10 * j)) & 1023).astype(np.int64)
-        f = np.where(f >= 512, f - 1024, f)
-        c = np.maximum(f / ROT_LEVELS, -1.0) / math.sqrt(2.0)
+        c = ROT_FIELD64[(v >> np.uint32(20 - 10 * j)) & 1023]
         kept[:, j] = c
         d = d - c * c
     big = np.sqrt(np.maximum(d, 0.0))
@@ -120,84 +114,110 @@ def half_to_f64(bits: np.ndarray) -> np.ndarray:
 
 
 def _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s) -> np.ndarray:
-    """(K,) bool: the selection rule of the module docstring, vectorised (the spec in code)."""
+    """(K, 3) bool: position, rotation, scale moved (the rule of the module docstring, vectorised: the spec)."""
     p = (np.asarray(pos, np.float32)[rows] * psign).astype(np.float64)
     d = p - dec_p
     d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
-    moved = d2 > tol[0]
+    out = np.empty((rows.size, 3), bool)
+    out[:, 0] = d2 > tol[0]
     q = (np.asarray(rot, np.float32)[rows] * rsign).astype(np.float64)
     dot = dec_r[:, 0] * q[:, 0] + dec_r[:, 1] * q[:, 1] + dec_r[:, 2] * q[:, 2] + dec_r[:, 3] * q[:, 3]
     n2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
     h2 = dec_r[:, 0] * dec_r[:, 0] + dec_r[:, 1] * dec_r[:, 1] + dec_r[:, 2] * dec_r[:, 2] + dec_r[:, 3] * dec_r[:, 3]
-    moved |= dot * dot < tol[1] * n2 * h2
+    out[:, 1] = dot * dot < tol[1] * n2 * h2
     s = np.asarray(scale, np.float32)[rows].astype(np.float64)
-    moved |= ((s > dec_s * tol[2]) | (s < dec_s * tol[3])).any(axis=1)
-    return moved
+    out[:, 2] = ((s > dec_s * tol[2]) | (s < dec_s * tol[3])).any(axis=1)
+    return out
 
 
-def _split(sel, ids, new_p, held_p, out_sel, out_wide, out_res, out_pos) -> tuple[int, int]:
-    """Narrow / wide position changes of the selected rows; writes out_sel, out_wide, out_res, out_pos."""
+def _select(moved, out_sel, out_moved):
+    """Write the selection; returns (sel, n, and the candidate positions of the moved positions, rotations, scales)."""
+    sel = np.flatnonzero(moved.any(axis=1))
     n = sel.size
-    change = new_p.astype(np.int32) - held_p[ids[sel]].astype(np.int32)
-    wide = ~((change >= -NARROW - 1) & (change <= NARROW)).all(axis=1)
     out_sel[:n] = sel
-    out_wide[:n] = wide
-    m = int(n - wide.sum())
+    out_moved[:n] = moved[sel]
+    p_sel, r_sel, s_sel = (sel[moved[sel, c]] for c in range(3))
+    return sel, n, p_sel, r_sel, s_sel
+
+
+def _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos) -> tuple[int, int]:
+    """Narrow (int8 changes) / wide (whole codes) positions; holds the new codes; returns (n_p, w)."""
+    change = new_p.astype(np.int32) - held_p[ids[p_sel]].astype(np.int32)
+    wide = ~((change >= -NARROW - 1) & (change <= NARROW)).all(axis=1)
+    n_p = p_sel.size
+    out_wide[:n_p] = wide
+    m = int(n_p - wide.sum())
     out_res[:m] = change[~wide].astype(np.int8)
-    out_pos[:n - m] = new_p[wide]
-    return n, n - m
+    out_pos[:n_p - m] = new_p[wide]
+    held_p[ids[p_sel]] = new_p
+    return n_p, n_p - m
 
 
 def delta_q13_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, scale_lut,
-                        tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
-                        out_sel, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, int]:
+                        rot_lut, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
+                        out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
     """q13 delta kernel (reference). For the K candidates (session ids ``ids``, state rows ``rows``) with held
-    codes ``held_*`` (indexed by session id) and their float64 decodings ``dec_*`` (indexed by candidate):
-    select the moved ones, encode them with ``kern`` (the frame kernels), write the selection (candidate
-    positions ``out_sel[:n]``, ``out_wide[:n]``), the narrow changes ``out_res[:n - w]``, the wide position
-    codes ``out_pos[:w]``, rotation and scale codes ``out_rot[:n]``, ``out_scale[:n]``, update the held codes and
-    decodings, and return (n, w)."""
-    sel = np.flatnonzero(_moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s))
-    n = sel.size
-    g = rows[sel]
-    new_p = np.empty((n, 3), np.uint16)
-    kern.q13_position(pos, g, psign, lo, k, new_p.reshape(-1))
-    kern.q13_rotation(rot, g, rsign, out_rot[:n])
-    kern.q13_scale(scale, g, thresholds, out_scale[:n].reshape(-1))
-    n, w = _split(sel, ids, new_p, held_p, out_sel, out_wide, out_res, out_pos)
-    s_ids = ids[sel]
-    held_p[s_ids] = new_p
-    held_r[s_ids] = out_rot[:n]
-    held_s[s_ids] = out_scale[:n]
-    dec_p[sel] = lo + new_p.astype(np.float64) * step
-    dec_r[sel] = q13_decode_rotation64(out_rot[:n])
-    dec_s[sel] = scale_lut[out_scale[:n]]
-    return n, w
+    codes ``held_*`` (indexed by session id) and their float64 decodings ``dec_*`` (indexed by candidate): find
+    what moved, encode it with ``kern`` (the frame kernels), write the selection (candidate positions
+    ``out_sel[:n]``, ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``,
+    the wide position codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``,
+    update the held codes and decodings, and return (n, n_p, w, n_r, n_s)."""
+    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s)
+    sel, n, p_sel, r_sel, s_sel = _select(moved, out_sel, out_moved)
+    new_p = np.empty((p_sel.size, 3), np.uint16)
+    kern.q13_position(pos, rows[p_sel], psign, lo, k, new_p.reshape(-1))
+    n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
+    dec_p[p_sel] = lo + new_p.astype(np.float64) * step
+    n_r, n_s = r_sel.size, s_sel.size
+    kern.q13_rotation(rot, rows[r_sel], rsign, out_rot[:n_r])
+    held_r[ids[r_sel]] = out_rot[:n_r]
+    dec_r[r_sel] = q13_decode_rotation64(out_rot[:n_r])
+    kern.q13_scale(scale, rows[s_sel], thresholds, out_scale[:n_s].reshape(-1))
+    held_s[ids[s_sel]] = out_scale[:n_s]
+    dec_s[s_sel] = scale_lut[out_scale[:n_s]]
+    return n, n_p, w, n_r, n_s
 
 
 def delta_f16_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s,
-                        dec_p, dec_r, dec_s, out_sel, out_wide, out_res, out_pos, out_rot, out_scale
-                        ) -> tuple[int, int]:
-    """f16 delta kernel (reference): :func:`delta_q13_reference` with f16 bit patterns as codes. Returns (n, w);
-    ValueError if a selected value is beyond the half range."""
-    sel = np.flatnonzero(_moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s))
-    n = sel.size
-    g = rows[sel]
-    new_p = np.empty((n, 3), np.uint16)
-    ok = kern.f16(pos, g, psign, new_p.reshape(-1))
-    ok &= kern.f16(rot, g, rsign, out_rot[:n].reshape(-1))
-    ok &= kern.f16(scale, g, np.ones(3, np.float32), out_scale[:n].reshape(-1))
+                        dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale
+                        ) -> tuple[int, ...]:
+    """f16 delta kernel (reference): :func:`delta_q13_reference` with f16 bit patterns as codes. Returns
+    (n, n_p, w, n_r, n_s); ValueError if a value sent is beyond the half range."""
+    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s)
+    sel, n, p_sel, r_sel, s_sel = _select(moved, out_sel, out_moved)
+    n_r, n_s = r_sel.size, s_sel.size
+    new_p = np.empty((p_sel.size, 3), np.uint16)
+    ok = kern.f16(pos, rows[p_sel], psign, new_p.reshape(-1))
+    ok &= kern.f16(rot, rows[r_sel], rsign, out_rot[:n_r].reshape(-1))
+    ok &= kern.f16(scale, rows[s_sel], np.ones(3, np.float32), out_scale[:n_s].reshape(-1))
     if not ok:
         raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
-    n, w = _split(sel, ids, new_p, held_p, out_sel, out_wide, out_res, out_pos)
-    s_ids = ids[sel]
-    held_p[s_ids] = new_p
-    held_r[s_ids] = out_rot[:n]
-    held_s[s_ids] = out_scale[:n]
-    dec_p[sel] = half_to_f64(new_p)
-    dec_r[sel] = half_to_f64(out_rot[:n])
-    dec_s[sel] = half_to_f64(out_scale[:n])
-    return n, w
+    n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
+    dec_p[p_sel] = half_to_f64(new_p)
+    held_r[ids[r_sel]] = out_rot[:n_r]
+    dec_r[r_sel] = half_to_f64(out_rot[:n_r])
+    held_s[ids[s_sel]] = out_scale[:n_s]
+    dec_s[s_sel] = half_to_f64(out_scale[:n_s])
+    return n, n_p, w, n_r, n_s
+
+
+class ReferenceKernels:
+    """The reference kernel set of :class:`DeltaEncoder`: ``fast_encodings.NumpyKernels`` (frames) plus the delta
+    kernels of this module, all plain numpy (the spec in code). The server's numba set has the same methods."""
+
+    def __init__(self) -> None:
+        from .fast_encodings import NumpyKernels
+
+        self._frames = NumpyKernels()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._frames, name)
+
+    def delta_q13(self, *args) -> tuple[int, ...]:
+        return delta_q13_reference(self._frames, *args)
+
+    def delta_f16(self, *args) -> tuple[int, ...]:
+        return delta_f16_reference(self._frames, *args)
 
 
 # ----------------------------------------------------------------------------- encoder (server)
@@ -209,8 +229,8 @@ class DeltaEncoder:
     fmt: the session's FrameFormat (``delta`` set, f16 or q13, dense); coords: ``flame`` or ``unity``;
     gather: (count,) int64 state rows of the session's Gaussians (None: all, in order); candidates: (K,)
     int64 ascending session ids that can move (the rest keep their key-frame value: they never change);
-    rows: (K,) their state rows. kernels: the frame kernel set (``fast_encodings.NumpyKernels`` by default; the
-    server passes the numba set), which also provides ``delta_q13`` / ``delta_f16``.
+    rows: (K,) their state rows. kernels: frame and delta kernels (:class:`ReferenceKernels` by default; the
+    server passes the numba set).
 
     :meth:`encode` must be called only for frames that are then handed to the client's socket: it advances
     the held state. ``key_interval``: a key frame every that many frames (0: only on join and resync).
@@ -219,13 +239,13 @@ class DeltaEncoder:
     def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
                  candidates: np.ndarray | None = None, rows: np.ndarray | None = None, kernels: Any = None,
                  tolerance: DeltaTolerance | None = None, key_interval: int = 720) -> None:
-        from .fast_encodings import NumpyKernels, coord_signs, position_factors, scale_thresholds
+        from .fast_encodings import coord_signs, position_factors, scale_thresholds
 
         if not fmt.delta or fmt.encoding not in DELTA_ENCODINGS or fmt.sparse:
             raise ValueError(f"a delta encoder needs a dense delta session in {DELTA_ENCODINGS}, got {fmt}")
         n = fmt.count
         self.format, self.coords = fmt, coords
-        self.kernels = kernels if kernels is not None else NumpyKernels()
+        self.kernels = kernels if kernels is not None else ReferenceKernels()
         self.gather = None if gather is None else np.ascontiguousarray(gather, np.int64)
         if self.gather is not None and self.gather.shape != (n,):
             raise ValueError(f"gather has shape {self.gather.shape}, the session has {n} Gaussians")
@@ -255,6 +275,7 @@ class DeltaEncoder:
         m = self.ids.size
         self.dec_p, self.dec_r, self.dec_s = np.zeros((m, 3)), np.zeros((m, 4)), np.zeros((m, 3))
         self._sel = np.zeros(m, np.int64)
+        self._moved = np.zeros((m, 3), bool)
         self._wide = np.zeros(m, bool)
         self._res = np.zeros((m, 3), np.int8)
         self._pos = np.zeros((m, 3), np.uint16)
@@ -304,20 +325,22 @@ class DeltaEncoder:
             return data
         self.since_key += 1
         args = (position, rotation, scale, self.rows, self.ids, self.psign, self.rsign)
+        out = (self._sel, self._moved, self._wide, self._res, self._pos, self._rot, self._scale)
         if self.format.encoding == "q13":
-            n, w = self.kernels.delta_q13(*args, self.lo, self.k, self.step, self.thresholds, self.lut, self.tol,
-                                          self.held_p, self.held_r, self.held_s, self.dec_p, self.dec_r, self.dec_s,
-                                          self._sel, self._wide, self._res, self._pos, self._rot, self._scale)
+            n, n_p, w, n_r, n_s = self.kernels.delta_q13(
+                *args, self.lo, self.k, self.step, self.thresholds, self.lut, ROT_FIELD64, self.tol,
+                self.held_p, self.held_r, self.held_s, self.dec_p, self.dec_r, self.dec_s, *out)
         else:
-            n, w = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s,
-                                          self.dec_p, self.dec_r, self.dec_s,
-                                          self._sel, self._wide, self._res, self._pos, self._rot, self._scale)
+            n, n_p, w, n_r, n_s = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s,
+                                                         self.dec_p, self.dec_r, self.dec_s, *out)
         changed = np.zeros(self.format.count, bool)
         changed[self.ids[self._sel[:n]]] = True
+        moved = self._moved[:n]
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
-                         "changed": pack_bits(changed), "wide": pack_bits(self._wide[:n]),
-                         "position_delta": self._res[:n - w], "position": self._pos[:w],
-                         "rotation": self._rot[:n], "scale": self._scale[:n]})
+                         "changed": pack_bits(changed), "moved_position": pack_bits(moved[:, 0]),
+                         "moved_rotation": pack_bits(moved[:, 1]), "moved_scale": pack_bits(moved[:, 2]),
+                         "wide": pack_bits(self._wide[:n_p]), "position_delta": self._res[:n_p - w],
+                         "position": self._pos[:w], "rotation": self._rot[:n_r], "scale": self._scale[:n_s]})
 
 
 # ----------------------------------------------------------------------------- decoder (client)
@@ -360,18 +383,23 @@ class DeltaDecoder:
         if not self.has_key:
             raise ProtocolError(NOT_READY, "frame: a delta frame before any key frame (send resync)")
         ids = d.index.astype(np.int64)
-        narrow = ids[~d.wide]
+        moved = d.moved
+        narrow = ids[moved[:, 0]][~d.wide]
         new = self.position[narrow].astype(np.int32) + d.position_delta.astype(np.int32)
         if new.size and (new.min() < 0 or new.max() > 65535):
             raise ProtocolError(BAD_FIELD, "frame: 'position_delta' takes a code outside 0..65535")
-        pos = np.empty((ids.size, 3), np.uint16)
-        pos[~d.wide] = new
-        pos[d.wide] = d.position.view(np.uint16).reshape(-1, 3)
-        rot = d.rotation.view(self.rotation.dtype)
-        scale = d.scale.view(self.scale.dtype)
-        if self.format.encoding == "f16" and ((pos & 0x7C00) == 0x7C00).any():
+        pos = self.position[ids].copy()  # every carried Gaussian: held codes, then what it carries
+        rot = self.rotation[ids].copy()
+        scale = self.scale[ids].copy()
+        p_new = np.empty((int(moved[:, 0].sum()), 3), np.uint16)
+        p_new[~d.wide] = new
+        p_new[d.wide] = d.position.view(np.uint16).reshape(-1, 3)
+        pos[moved[:, 0]] = p_new
+        rot[moved[:, 1]] = d.rotation.view(self.rotation.dtype).reshape(rot[moved[:, 1]].shape)
+        scale[moved[:, 2]] = d.scale.view(self.scale.dtype)
+        if self.format.encoding == "f16" and ((p_new & 0x7C00) == 0x7C00).any():
             raise ProtocolError(NON_FINITE, "frame: a position change gives NaN or infinity")
-        p, r, s = _decode_codes(self.format, pos, rot, scale)  # raises on non-finite f16 values
+        p, r, s = _decode_codes(self.format, pos, rot, scale)
         self.position[ids] = pos
         self.rotation[ids] = rot
         self.scale[ids] = scale

@@ -137,7 +137,11 @@ def quantize_positions(position: np.ndarray, quant: Quant) -> np.ndarray:
 
     Computed in float64, so the result is exact up to ties."""
     lo = quant.pos_min.astype(np.float64)
-    k = POS_LEVELS / (quant.pos_max.astype(np.float64) - lo)
+    return quantize_positions_lk(position, lo, POS_LEVELS / (quant.pos_max.astype(np.float64) - lo))
+
+
+def quantize_positions_lk(position: np.ndarray, lo: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """:func:`quantize_positions` with its float64 factors: q = clip(rint((p - lo) * k), 0, 65535)."""
     q = np.asarray(position, dtype=np.float64).reshape(-1, 3) - lo
     q *= k
     np.rint(q, out=q)

@@ -49,40 +49,43 @@ class ErrorSpec:
 ERRORS: dict[str, ErrorSpec] = {
     s.code: s
     for s in (
-        ErrorSpec(MALFORMED, Fatality.HANDSHAKE, 4000, "not msgpack, trailing bytes, not a map, "
-                  "non-string keys, ext types, or nesting deeper than allowed"),
-        ErrorSpec(UNKNOWN_TYPE, Fatality.HANDSHAKE, 4001, "`type` is not a known message type"),
-        ErrorSpec(BAD_FIELD, Fatality.HANDSHAKE, 4002, "a field is missing, has the wrong type, or is "
-                  "out of range"),
-        ErrorSpec(BAD_LENGTH, Fatality.HANDSHAKE, 4003, "a bin field has the wrong number of bytes"),
+        ErrorSpec(MALFORMED, Fatality.HANDSHAKE, 4000, "not msgpack, trailing bytes, not a map, non-string keys, "
+                  "ext types, too deep, too many entries"),
+        ErrorSpec(UNKNOWN_TYPE, Fatality.HANDSHAKE, 4001, "`type` is not a known message type (for this direction)"),
+        ErrorSpec(BAD_FIELD, Fatality.HANDSHAKE, 4002, "a field is missing, has the wrong type, or is out of range"),
+        ErrorSpec(BAD_LENGTH, Fatality.HANDSHAKE, 4003, "a `bin` has the wrong number of bytes for its type and shape"),
         ErrorSpec(NON_FINITE, Fatality.HANDSHAKE, 4004, "a float array holds NaN or infinity"),
-        ErrorSpec(NOT_READY, Fatality.HANDSHAKE, 4005, "a message arrived in a state that does not allow it "
-                  "(e.g. `bs` before `hello`)"),
-        ErrorSpec(DUPLICATE_HELLO, Fatality.NEVER, None, "a second `hello` in a session; it is ignored"),
-        ErrorSpec(UNSUPPORTED_PROTOCOL, Fatality.ALWAYS, 4010, "`protocol` is not 1"),
-        ErrorSpec(UNKNOWN_LAYOUT, Fatality.ALWAYS, 4011, "`layout` is not a known blendshape layout"),
+        ErrorSpec(NOT_READY, Fatality.HANDSHAKE, 4005, "a message not allowed in this state (e.g. `bs` before "
+                  "`hello`)"),
+        ErrorSpec(DUPLICATE_HELLO, Fatality.NEVER, None, "a second `hello`; ignored, the first stays in force"),
+        ErrorSpec(UNSUPPORTED_PROTOCOL, Fatality.ALWAYS, 4010, "`hello.protocol` is not 1"),
+        ErrorSpec(UNKNOWN_LAYOUT, Fatality.ALWAYS, 4011, "`hello.layout` is not a known layout"),
         ErrorSpec(UNKNOWN_AVATAR, Fatality.ALWAYS, 4012, "the server has no avatar with that id"),
         ErrorSpec(UNKNOWN_ENCODING, Fatality.ALWAYS, 4013, "the server does not offer that encoding"),
-        ErrorSpec(UNAUTHORIZED, Fatality.ALWAYS, 1008, "missing or invalid `token`"),
-        ErrorSpec(MESSAGE_TOO_LARGE, Fatality.ALWAYS, 1009, "a message exceeds the receiver's size limit"),
-        ErrorSpec(RATE_LIMITED, Fatality.NEVER, None, "`bs` or `ping` sent faster than the server allows; "
-                  "the excess is dropped"),
-        ErrorSpec(SERVER_FULL, Fatality.ALWAYS, 1013, "the server has no capacity for another session"),
+        ErrorSpec(UNAUTHORIZED, Fatality.ALWAYS, 1008, "missing or invalid `token` (policy violation)"),
+        ErrorSpec(MESSAGE_TOO_LARGE, Fatality.ALWAYS, 1009, "a message exceeds the receiver's size limit (section 1)"),
+        ErrorSpec(RATE_LIMITED, Fatality.NEVER, None, "`bs` or `ping` faster than the server allows; the excess is "
+                  "dropped"),
+        ErrorSpec(SERVER_FULL, Fatality.ALWAYS, 1013, "no capacity for another session (try again later)"),
         ErrorSpec(TEXT_FRAME, Fatality.ALWAYS, 1003, "a WebSocket text message (only binary is allowed)"),
         ErrorSpec(INTERNAL, Fatality.ALWAYS, 1011, "the server failed; not the client's fault"),
     )
 }
-"""Every error code of protocol v1, in documentation order."""
+"""Every error code of protocol v1, in documentation order (PROTOCOL.md section 10 is generated from it)."""
 
 CLOSE_NORMAL = 1000
-"""WebSocket close code after `bye` or a clean shutdown."""
+"""WebSocket close code after `bye` or a client's normal close."""
+CLOSE_GOING_AWAY = 1001
+"""WebSocket close code when the server shuts down."""
+CLOSE_UNKNOWN_FATAL = 4000
+"""Close code of a fatal error code unknown to v1 (`close_code`)."""
 
 
 def close_code(code: str) -> int:
     """WebSocket close code that follows a fatal error `code` (4000 for codes unknown to v1)."""
     spec = ERRORS.get(code)
     if spec is None or spec.close_code is None:
-        return 4000
+        return CLOSE_UNKNOWN_FATAL
     return spec.close_code
 
 
@@ -114,5 +117,15 @@ class ProtocolError(Exception):
         return f"ProtocolError({self.code!r}, {self.message!r}, fatal={self.fatal})"
 
 
-class LocalProtocolError(RuntimeError):
-    """The local application misused a connection (e.g. sent a frame before `welcome`)."""
+class ConnectionUsageError(RuntimeError):
+    """The local application used a connection wrongly (e.g. sent a frame before `welcome`, or asked for an encoding
+    that does not exist): a bug of the caller, found before anything is sent.
+
+    Not a `ProtocolError`: that one carries a wire error code and blames the peer (a server answers it with an
+    `error` message and a close code); this one blames the caller and never goes on the wire. (h11's
+    `LocalProtocolError` is an HTTP protocol violation by the local side, hence the different name.)
+    """
+
+
+LocalProtocolError = ConnectionUsageError
+"""The former name, kept while callers move to `ConnectionUsageError`."""

@@ -7,7 +7,7 @@ write each encoded field directly into its place in one buffer, selecting the fr
 (`gather`) and mirroring coordinates on the way. The bytes are identical to
 ``encode_frame(Frame(...), fmt)`` after ``to_coords`` and the gather (tests check it).
 
-Kernels are an object with seven methods (:class:`NumpyKernels` is the plain numpy one; every value is
+Kernels are an object with five methods (:class:`NumpyKernels` is the plain numpy one; every value is
 finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` per component):
 
     f32(src (N, k) f32, gather (M,) int64 | None, sign (k,) f32, dst (M k,) f32) -> bool finite
@@ -16,7 +16,7 @@ finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` 
                  [q = clip(rint((float64(p) - lo) * k), 0, 65535), see :func:`position_factors`]
     q13_rotation(src (N, 4), gather, sign (4,), dst (M,) uint32)
     q13_scale(src (N, 3), gather, thresholds (255,) f32, dst (M 3,) uint8)
-    delta_q13(...), delta_f16(...)  temporal delta selection, see :mod:`.delta` (reference: delta_*_reference)
+    (and, for :class:`.delta.DeltaEncoder`, delta_q13 / delta_f16: see :class:`.delta.ReferenceKernels`)
 
 The protocol package stays importable with numpy and msgpack only: the numba kernels live in the
 server (``ofera.streaming.encode_fast.numba_kernels()``), which passes them in.
@@ -39,7 +39,14 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from .encodings import POS_LEVELS, SCALE_LEVELS, FrameFormat, pack_smallest_three, quantize_log_scale
+from .encodings import (
+    POS_LEVELS,
+    SCALE_LEVELS,
+    FrameFormat,
+    pack_smallest_three,
+    quantize_log_scale,
+    quantize_positions_lk,
+)
 from .messages import Quant
 
 _SIGN = {"flame": (np.ones(3, np.float32), np.ones(4, np.float32)),
@@ -83,7 +90,9 @@ def scale_thresholds(quant: Quant) -> np.ndarray:
 
 
 class NumpyKernels:
-    """Plain vectorised numpy kernels (the same arithmetic as :mod:`.encodings`)."""
+    """The reference frame kernels: the functions of :mod:`.encodings` (plain numpy, the spec in code) behind the
+    kernel signatures (:class:`.delta.ReferenceKernels` adds the delta kernels); the server's numba set
+    (``ofera.streaming.encode_fast.NumbaKernels``) has the same signatures and is tested byte for byte against it."""
 
     @staticmethod
     def _take(src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray) -> np.ndarray:
@@ -105,32 +114,17 @@ class NumpyKernels:
         return True
 
     def q13_position(self, src, gather, sign, lo, k, dst) -> None:
-        q = self._take(src, gather, sign).astype(np.float64) - lo
-        q *= k
-        np.rint(q, out=q)
-        np.clip(q, 0, POS_LEVELS, out=q)
-        dst[...] = q.reshape(-1).astype(np.uint16)
+        dst[...] = quantize_positions_lk(self._take(src, gather, sign), lo, k).reshape(-1)
 
     def q13_rotation(self, src, gather, sign, dst) -> None:
         dst[...] = pack_smallest_three(self._take(src, gather, sign))
 
     def q13_scale(self, src, gather, thresholds, dst) -> None:
+        # The reference quantiser tabulated: thresholds[c-1] is its smallest scale of code c (scale_thresholds).
         s = np.asarray(src if gather is None else src[gather], np.float32).reshape(-1)
         code = np.searchsorted(thresholds, s, side="right")
         code[np.isnan(s)] = 0
         dst[...] = code.astype(np.uint8)
-
-    def delta_q13(self, *args) -> tuple[int, int]:
-        """Temporal delta selection in q13 (:func:`ofera_protocol.delta.delta_q13_reference`, the spec in code)."""
-        from .delta import delta_q13_reference
-
-        return delta_q13_reference(self, *args)
-
-    def delta_f16(self, *args) -> tuple[int, int]:
-        """Temporal delta selection in f16 (:func:`ofera_protocol.delta.delta_f16_reference`)."""
-        from .delta import delta_f16_reference
-
-        return delta_f16_reference(self, *args)
 
 
 def _bin_header(n: int) -> bytes:

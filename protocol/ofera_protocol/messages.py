@@ -191,15 +191,17 @@ class Frame(_ArrayEq):
 @dataclass(eq=False)
 class DeltaFrame(_ArrayEq):
     """`frame` with `key: false` in a delta session (PROTOCOL.md 7.1), as on the wire: `index` (n,) uint32 the
-    changed Gaussians (from the `changed` mask), `wide` (n,) bool; `position_delta` (n - w, 3) int8 code changes;
-    `position` (w, 3), `rotation` (n,) / (n, 4) and `scale` (n, 3) codes (q13: uint16, uint32, uint8; f16: float16
-    arrays whose bits are the codes). `DeltaDecoder.apply` turns it into a Frame."""
+    changed Gaussians (the `changed` mask); `moved` (n, 3) bool: which of position, rotation, scale each carries
+    (the `moved_*` masks); `wide` (n_p,) bool over the n_p carrying a position; `position_delta` (n_p - w, 3) int8
+    code changes; `position` (w, 3), `rotation` (n_r,) / (n_r, 4) and `scale` (n_s, 3) codes (q13: uint16, uint32,
+    uint8; f16: float16 arrays whose bits are the codes). `DeltaDecoder.apply` turns it into a Frame."""
 
     TYPE: ClassVar[str] = "frame"
     seq: int
     t: int
     timing: dict[str, int]
     index: np.ndarray
+    moved: np.ndarray
     wide: np.ndarray
     position_delta: np.ndarray
     position: np.ndarray

@@ -197,6 +197,7 @@ namespace Ofera.Client.Tests
                 else if (args[i] == "--frames") frames = int.Parse(args[++i]);
             }
             Console.WriteLine("OFERA Unity client core tests (mono " + Environment.Version + ")");
+            if (vectors != null) Run("tables", delegate { TableTests(vectors); });
             if (vectors != null) VectorTests(vectors);
             UnitTests(python);
             if (vectors != null) SessionTests(vectors);
@@ -244,8 +245,76 @@ namespace Ofera.Client.Tests
             foreach (string path in files)
             {
                 string name = Path.GetFileNameWithoutExtension(path);
+                if (name == "tables") continue; // the protocol's tables, not a vector: TableTests
                 Run("vector " + name, delegate { OneVector(dir, name); });
             }
+        }
+
+        // ============================================================ the protocol's tables (vectors/tables.json)
+
+        /// <summary>This client's copies of the protocol's tables (Protocol.cs, Layouts.cs) against tables.json,
+        /// which protocol/make_vectors.py writes from the one Python source (ofera_protocol.tables).</summary>
+        static List<string> Keys(Dictionary<string, object> d) { return (List<string>)d["\u0000order"]; }
+
+        static void TableTests(string dir)
+        {
+            Dictionary<string, object> t = J.O(Json.Parse(File.ReadAllText(Path.Combine(dir, "tables.json"))));
+            Check(J.I(t["protocol"]) == Protocol.Version && (string)t["endpoint"] == Protocol.Endpoint,
+                  "tables: protocol version and endpoint");
+            Dictionary<string, object> layouts = J.O(t["layouts"]);
+            Check(string.Join(",", Protocol.Layouts) == string.Join(",", Keys(layouts)), "tables: layout names",
+                  string.Join(",", Protocol.Layouts) + " vs " + string.Join(",", Keys(layouts)));
+            foreach (string name in Keys(layouts))
+            {
+                Dictionary<string, object> lay = J.O(layouts[name]);
+                List<string> want = new List<string>();
+                foreach (object n in J.L(lay["names"])) want.Add((string)n);
+                string[] got = Layouts.Names(name);
+                Check(Protocol.LayoutLength(name) == J.I(lay["length"]) && got != null
+                      && string.Join(",", got) == string.Join(",", want), "tables: layout " + name,
+                      got == null ? "unknown to Layouts.Names" : got.Length + " names");
+            }
+            Dictionary<string, object> encodings = J.O(t["encodings"]);
+            Check(string.Join(",", Protocol.Encodings) == string.Join(",", Keys(encodings)), "tables: encoding names");
+            foreach (string name in Keys(encodings))
+            {
+                Dictionary<string, object> e = J.O(encodings[name]);
+                FrameEncoding fe;
+                bool known = Protocol.TryParseEncoding(name, out fe);
+                int p = 0, r = 0, sc = 0;
+                if (known) Protocol.FieldBytes(fe, out p, out r, out sc);
+                Check(known && Protocol.EncodingName(fe) == name && p == J.I(e["position"]) && r == J.I(e["rotation"])
+                      && sc == J.I(e["scale"]) && p + r + sc == J.I(e["bytes_per_gaussian"]), "tables: field sizes of " + name,
+                      p + "+" + r + "+" + sc);
+            }
+            List<string> coords = new List<string>();
+            foreach (object c in J.L(t["coords"])) coords.Add((string)c);
+            Check(string.Join(",", Protocol.CoordsNames) == string.Join(",", coords), "tables: coords");
+            Dictionary<string, object> errors = J.O(t["errors"]);
+            List<string> declared = new List<string>();
+            foreach (System.Reflection.FieldInfo f in typeof(ErrorCodes).GetFields())
+                if (f.IsLiteral && f.FieldType == typeof(string)) declared.Add((string)f.GetRawConstantValue());
+            declared.Sort(StringComparer.Ordinal);
+            List<string> codes = new List<string>(Keys(errors));
+            codes.Sort(StringComparer.Ordinal);
+            Check(string.Join(",", declared) == string.Join(",", codes), "tables: error codes",
+                  string.Join(",", declared) + " vs " + string.Join(",", codes));
+            foreach (string code in Keys(errors))
+            {
+                Dictionary<string, object> e = J.O(errors[code]);
+                string fatality = (string)e["fatality"];
+                bool closeOk = !J.Has(e, "close_code") ? fatality == "never" : ErrorCodes.CloseCode(code) == J.I(e["close_code"]);
+                Check(ErrorCodes.AlwaysFatal(code) == (fatality == "always") && closeOk
+                      && new ProtocolException(code, "x").Fatal == (fatality == "always"), "tables: error " + code, fatality);
+            }
+            Check(ErrorCodes.CloseCode("not_a_v1_code") == J.I(J.O(t["close_codes"])["unknown_fatal"]),
+                  "tables: close code of an unknown fatal error");
+            Dictionary<string, object> lim = J.O(t["limits"]);
+            Check(J.I(lim["max_client_message"]) == Protocol.MaxClientMessage && J.I(lim["max_server_message"]) == Protocol.MaxServerMessage
+                  && J.I(lim["max_depth"]) == Protocol.MaxDepth && J.I(lim["max_container_len"]) == Protocol.MaxContainerLength
+                  && J.I(lim["max_str_len"]) == Protocol.MaxStringBytes && J.I(lim["max_id_len"]) == Protocol.MaxIdLength
+                  && J.I(lim["max_timing_stages"]) == Protocol.MaxTimingStages && J.I(lim["max_sh_degree"]) == Protocol.MaxShDegree,
+                  "tables: limits");
         }
 
         static void OneVector(string dir, string name)
@@ -258,6 +327,7 @@ namespace Ofera.Client.Tests
                 Check(false, "vector " + name, ".msgpack file differs from the JSON's hex/size");
                 return;
             }
+            if (DeltaTests.Handles(name, v)) { DeltaTests.Vector(dir, name, v, Check); return; } // PROTOCOL.md 7.1
             bool toServer = (string)v["direction"] == "client_to_server";
             if (J.Has(v, "expect_error"))
             {
@@ -1203,6 +1273,7 @@ namespace Ofera.Client.Tests
             Run("live client session", delegate { LiveClientSession(url, frames); });
             Run("live low-level sessions", delegate { LowLevelSessions(url); });
             Run("live GPU-path session", delegate { LivePayloadSession(url); });
+            Run("live delta session", delegate { DeltaTests.Live(url, Check, Sample, WaitFor); }); // PROTOCOL.md 7.1
         }
 
         /// <summary>The GPU upload path against the real server: payload kept, no float decode on the receive thread.</summary>

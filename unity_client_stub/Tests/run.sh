@@ -48,7 +48,7 @@ if ! mcs -langversion:7.2 -nologo -warn:4 -target:library -r:System.dll \
     echo "0 passed, 1 failed"; exit 1
 fi
 if ! mcs -langversion:7.2 -nologo -warn:4 -r:System.dll -r:"$BUILD/Ofera.Client.Core.dll" \
-        -out:"$BUILD/TestMain.exe" "$HERE/TestMain.cs"; then
+        -out:"$BUILD/TestMain.exe" "$HERE/TestMain.cs" "$HERE/DeltaTests.cs"; then
     echo "0 passed, 1 failed"; exit 1
 fi
 # The Unity-side scripts need UnityEngine.dll, which this machine does not have: they are type-checked

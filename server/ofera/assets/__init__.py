@@ -28,9 +28,10 @@ def default_epm_path() -> Path:
     return path
 
 
-def cache_dir(*parts: str) -> Path:
-    """``$OFERA_CACHE`` or ``~/.cache/ofera`` (plus ``parts``), created on demand."""
+def cache_dir(*parts: str, create: bool = True) -> Path:
+    """``$OFERA_CACHE`` or ``~/.cache/ofera`` (plus ``parts``), created on demand (``create``)."""
     root = Path(os.environ.get("OFERA_CACHE") or Path.home() / ".cache" / "ofera")
     path = root.joinpath(*parts)
-    path.mkdir(parents=True, exist_ok=True)
+    if create:
+        path.mkdir(parents=True, exist_ok=True)
     return path

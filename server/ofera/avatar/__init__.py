@@ -10,14 +10,17 @@ Public API::
     import_fate(checkpoint, head)                        # FATE torch checkpoint
     import_lam(zip)                                      # LAM export: skin.glb + offset.ply (ARKit morph head)
     export_state_ply(path, state, opacity, sh)           # standard world-space 3DGS PLY
-    ofera.avatar.render: Camera, project_gaussians, composite, render_state, face_camera
+    ofera.avatar.camera: Camera (OpenCV pinhole; cameras.json); ofera.avatar.render: project_gaussians, composite,
+    render_state, face_camera
 """
 
-from .binding import AvatarError, BarycentricBinding, TriangleBinding, VertexBinding
+from .binding import BarycentricBinding, TriangleBinding, VertexBinding
+from .catalog import load_avatar
 from .deform import BarycentricDeformer, Deformer, TriangleDeformer, VertexDeformer
+from .errors import AvatarError
 from .fate import import_fate
 from .gaussianavatars import import_gaussianavatars
-from .io import load_avatar, save_avatar
+from .io import save_avatar
 from .lam import import_lam
 from .model import GaussianAvatar
 from .ply import export_state_ply

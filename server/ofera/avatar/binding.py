@@ -32,11 +32,8 @@ from typing import ClassVar
 import numpy as np
 
 from ..head.rotations import matrix_to_quaternion, quaternion_multiply
+from .errors import AvatarError
 from .frames import face_frames
-
-
-class AvatarError(ValueError):
-    """An avatar file or array set is invalid; the message says what and where."""
 
 
 def _check(name: str, arr: np.ndarray, shape: tuple) -> None:

@@ -10,20 +10,15 @@ Writing a new file removes the files of earlier versions.
 from __future__ import annotations
 
 import hashlib
-import os
 import sys
 from functools import lru_cache
 from pathlib import Path
 
-from .binding import AvatarError
+from ..assets import cache_dir
+from .errors import AvatarError
 from .io import FORMAT_VERSION, load_avatar_npz, save_avatar
 from .model import GaussianAvatar
-
-
-def cache_dir() -> Path:
-    """``$OFERA_CACHE`` if set, else ``~/.cache/ofera``."""
-    env = os.environ.get("OFERA_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "ofera"
+from .procedural import make_default_avatar
 
 
 def default_avatar_key() -> str:
@@ -38,7 +33,7 @@ def default_avatar_key() -> str:
 
 
 def default_avatar_path() -> Path:
-    return cache_dir() / f"avatar-default-{default_avatar_key()}.npz"
+    return cache_dir(create=False) / f"avatar-default-{default_avatar_key()}.npz"
 
 
 @lru_cache(maxsize=4)
@@ -48,8 +43,6 @@ def _cached(path: Path) -> GaussianAvatar:
             return load_avatar_npz(path)
         except AvatarError as exc:
             print(f"warning: regenerating the default avatar ({exc})", file=sys.stderr)
-    from .procedural import make_default_avatar
-
     avatar = make_default_avatar()
     try:
         save_avatar(avatar, path)

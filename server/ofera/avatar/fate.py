@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from ..head.model import HeadModel
-from .binding import AvatarError, BarycentricBinding, normalize_quaternions
+from .binding import BarycentricBinding, normalize_quaternions
+from .errors import AvatarError
 from .model import GaussianAvatar
-from .ply import sigmoid
+from .ply import checked_file, sigmoid
 
 MAX_CHECKPOINT_BYTES = 4 * 1024**3
 REQUIRED = ("_offset", "_features_dc", "_features_rest", "_scaling", "_rotation", "_opacity", "face_index",
@@ -37,12 +38,7 @@ EXPR_BY_TOTAL = {150: 50, 200: 100, 350: 50, 400: 100}  # FATE's (n_shape, n_exp
 
 def read_checkpoint(path: str | Path, max_bytes: int = MAX_CHECKPOINT_BYTES) -> dict[str, np.ndarray]:
     """The checkpoint's model state as numpy arrays (float64 / int64)."""
-    path = Path(path)
-    if not path.is_file():
-        raise AvatarError(f"{path}: no such file")
-    size = path.stat().st_size
-    if size > max_bytes:
-        raise AvatarError(f"{path}: {size / 1e9:.1f} GB is larger than the {max_bytes / 1e9:.1f} GB limit")
+    path = checked_file(path, max_bytes)
     try:
         import torch
     except ImportError:

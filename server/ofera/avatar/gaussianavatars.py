@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ..head.model import HeadModel
-from .binding import AvatarError, TriangleBinding, normalize_quaternions
+from .binding import TriangleBinding, normalize_quaternions
+from .errors import AvatarError
 from .model import GaussianAvatar
 from .ply import read_gaussian_ply, sigmoid
 from .teeth import FLAME_FACES, FLAME_VERTICES, add_teeth

@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from ..head.model import HeadModel, HeadModelError
-from .binding import AvatarError, BarycentricBinding, TriangleBinding, VertexBinding
+from .binding import BarycentricBinding, TriangleBinding, VertexBinding
+from .errors import AvatarError
 from .model import GaussianAvatar
 
 FORMAT = "ofera-avatar"
@@ -50,21 +51,8 @@ _HEAD_ARRAYS = ("v_template", "shapedirs", "exprdirs", "posedirs", "j_regressor"
 
 
 def head_arrays(head: HeadModel, prefix: str = "head/") -> dict[str, np.ndarray]:
-    """The head's arrays in :meth:`HeadModel.save`'s layout and dtypes, keys prefixed."""
-    arrays = {
-        "name": np.array(head.name),
-        "v_template": head.v_template.astype(np.float32),
-        "shapedirs": head.shapedirs.astype(np.float32),
-        "exprdirs": head.exprdirs.astype(np.float32),
-        "posedirs": head.posedirs.astype(np.float32),
-        "j_regressor": head.j_regressor.astype(np.float32),
-        "parents": head.parents.astype(np.int64),
-        "weights": head.weights.astype(np.float32),
-        "faces": head.faces.astype(np.int32),
-    }
-    arrays |= {f"landmark/{k}": np.asarray(v, np.float32) for k, v in head.landmarks.items()}
-    arrays |= {f"label/{k}": np.asarray(v, bool) for k, v in head.vertex_labels.items()}
-    return {prefix + k: v for k, v in arrays.items()}
+    """The head's arrays in :meth:`HeadModel.save`'s layout and dtypes (:meth:`HeadModel.arrays`), keys prefixed."""
+    return {prefix + k: v for k, v in head.arrays().items()}
 
 
 def head_from_arrays(z, prefix: str = "head/") -> HeadModel:
@@ -172,25 +160,3 @@ def load_avatar_npz(path: str | Path) -> GaussianAvatar:
         raise AvatarError(f"{path}: {exc}") from None
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, HeadModelError) as exc:
         raise AvatarError(f"{path}: cannot read avatar ({type(exc).__name__}: {exc})") from None
-
-
-def load_avatar(source: str | Path) -> GaussianAvatar:
-    """``"default"`` (the procedural avatar, cached on disk), an OFERA avatar ``.npz`` or a LAM export ``.zip``
-    (imported once, then read from the cache: :func:`ofera.avatar.lam.import_lam_cached`)."""
-    if str(source) == "default":
-        from .cache import default_avatar
-
-        return default_avatar()
-    path = Path(source)
-    if not path.is_file():
-        raise AvatarError(f"{path}: no such file (give 'default' or an OFERA avatar .npz)")
-    if path.suffix.lower() == ".zip":
-        from .lam import import_lam_cached
-
-        return import_lam_cached(path)
-    if path.suffix != ".npz":
-        raise AvatarError(
-            f"{path}: unknown avatar format {path.suffix!r}: expected an OFERA avatar .npz or a LAM .zip "
-            "(convert GaussianAvatars / FATE outputs with `ofera avatar import`)"
-        )
-    return load_avatar_npz(path)

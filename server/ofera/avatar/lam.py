@@ -38,16 +38,20 @@ import hashlib
 import io
 import json
 import posixpath
+import sys
 import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from ofera_protocol.layouts import ARKIT51_NAMES, ARKIT52_NAMES
 
+from ..assets import cache_dir
 from ..head.model import FLAME_PARENTS, HeadModel
-from ..mapping.layouts import ARKIT51_NAMES, ARKIT52_NAMES
-from .binding import AvatarError, VertexBinding, normalize_quaternions
+from .binding import VertexBinding, normalize_quaternions
+from .errors import AvatarError
+from .io import load_avatar_npz, save_avatar
 from .model import GaussianAvatar
 from .ply import sigmoid
 from .sh import rgb_to_dc
@@ -602,19 +606,13 @@ def zip_digest(path: str | Path) -> str:
 
 def lam_cache_path(path: str | Path, cache: Path | None = None) -> Path:
     """Where the imported ``.npz`` of a zip is cached: ``<cache dir>/lam/<stem>-<digest>.npz``."""
-    from .cache import cache_dir
-
     path = Path(path)
-    return (cache or cache_dir()) / "lam" / f"{path.stem.split('.', 1)[0]}-{zip_digest(path)}.npz"
+    return (cache or cache_dir(create=False)) / "lam" / f"{path.stem.split('.', 1)[0]}-{zip_digest(path)}.npz"
 
 
 def import_lam_cached(path: str | Path, name: str | None = None, cache: Path | None = None) -> GaussianAvatar:
     """Import a LAM zip once: later calls (any process) load the cached ``.npz`` keyed by the zip's content. A
     cache that cannot be written is not an error (the import is then redone next time)."""
-    import sys
-
-    from .io import load_avatar_npz, save_avatar
-
     path = Path(path)
     if not path.is_file():
         raise AvatarError(f"{path}: no such file")

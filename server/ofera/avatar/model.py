@@ -10,13 +10,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from pathlib import Path
 
 import numpy as np
 
 from ..head.model import HeadModel
-from .binding import AvatarError, Binding
+from .binding import Binding
 from .deform import Deformer, make_deformer
+from .errors import AvatarError
 from .movable import movable_gaussians, movable_vertices
 from .sh import sh_degree
 from .state import GaussianState
@@ -101,12 +101,6 @@ class GaussianAvatar:
     def neutral(self) -> GaussianState:
         """Gaussians on the neutral head (zero expression, identity pose: the head's ``v_template``)."""
         return self.deformer().deform(self.head.v_template)
-
-    def save(self, path: str | Path) -> None:
-        """Write the project's avatar ``.npz`` (see ``FORMAT.md``)."""
-        from .io import save_avatar
-
-        save_avatar(self, path)
 
     def info(self) -> dict:
         """Summary for ``ofera avatar info``."""

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .binding import AvatarError
+from .errors import AvatarError
 from .sh import sh_count, sh_degree
 from .state import GaussianState
 
@@ -26,6 +26,17 @@ MAX_PLY_BYTES = 2 * 1024**3
 def _logit(p: np.ndarray) -> np.ndarray:
     p = np.clip(np.asarray(p, np.float64), 1e-6, 1 - 1e-6)
     return np.log(p / (1 - p))
+
+
+def checked_file(path: str | Path, max_bytes: int) -> Path:
+    """``path`` if it is a file of at most ``max_bytes`` (an importer's input), else an :class:`AvatarError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise AvatarError(f"{path}: no such file")
+    size = path.stat().st_size
+    if size > max_bytes:
+        raise AvatarError(f"{path}: {size / 1e9:.1f} GB is larger than the {max_bytes / 1e9:.1f} GB limit")
+    return path
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
@@ -91,12 +102,7 @@ def read_gaussian_ply(path: str | Path, max_bytes: int = MAX_PLY_BYTES) -> dict[
     ``opacity_logit`` (N,), ``sh`` (N,K,3), and every other property by name (e.g. ``binding_0``)."""
     from plyfile import PlyData
 
-    path = Path(path)
-    if not path.is_file():
-        raise AvatarError(f"{path}: no such file")
-    size = path.stat().st_size
-    if size > max_bytes:
-        raise AvatarError(f"{path}: {size / 1e9:.1f} GB is larger than the {max_bytes / 1e9:.1f} GB limit")
+    path = checked_file(path, max_bytes)
     try:
         ply = PlyData.read(str(path))
         vertex = ply["vertex"].data

@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..head.model import HeadModel
-from ..head.procedural import EYE_HALF_OPENING, MOUTH_Y
+from ..head.procedural import EYE_HALF_OPENING, MOUTH_Y, smoothstep
 from ..head.rotations import matrix_to_quaternion
 from .binding import TriangleBinding
 from .frames import face_areas, face_frames, face_normals_unnormalised
@@ -49,11 +49,6 @@ TONGUE = np.array([0.42, 0.17, 0.19])
 NOSTRIL = np.array([0.30, 0.15, 0.13])
 TEETH = np.array([0.93, 0.91, 0.84])
 LIGHT = np.array([0.35, 0.55, 1.0]) / np.linalg.norm([0.35, 0.55, 1.0])
-
-
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    t = np.clip(x, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -160,8 +155,8 @@ def lip_masks(pos: np.ndarray, lm: dict[str, np.ndarray]) -> tuple[np.ndarray, n
     top = MOUTH_Y + 0.0066 * np.sqrt(1 - u**2) - 0.0011 * np.exp(-((x / 0.0032) ** 2))
     bottom = MOUTH_Y - 0.0088 * (1 - u**2) ** 0.6
     soft = 0.0007
-    inside = _smoothstep((top - y) / soft + 0.5) * _smoothstep((y - bottom) / soft + 0.5)
-    front = _smoothstep((z - 0.05) / 0.01) * (np.abs(x) < hw)
+    inside = smoothstep((top - y) / soft + 0.5) * smoothstep((y - bottom) / soft + 0.5)
+    front = smoothstep((z - 0.05) / 0.01) * (np.abs(x) < hw)
     seam = np.exp(-(((y - MOUTH_Y) / 0.0006) ** 2)) * front * (1 - u**4)
     return inside * front, seam
 
@@ -173,8 +168,8 @@ def brow_mask(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     tc = np.clip(t, 0, 1)
     centre = 0.0458 + 0.0034 * np.sin(np.pi * (0.15 + 0.7 * tc))
     half = 0.0037 * (1 - 0.55 * tc)
-    mask = _smoothstep((half - np.abs(y - centre)) / 0.0009 + 0.5)
-    mask *= _smoothstep(t / 0.08) * _smoothstep((1 - t) / 0.12) * _smoothstep((z - 0.03) / 0.01)
+    mask = smoothstep((half - np.abs(y - centre)) / 0.0009 + 0.5)
+    mask *= smoothstep(t / 0.08) * smoothstep((1 - t) / 0.12) * smoothstep((z - 0.03) / 0.01)
     return mask, tc
 
 
@@ -184,14 +179,14 @@ def _eye_colours(m: _Mesh, pos: np.ndarray, side: str, rng: np.random.Generator)
     d = _unit(pos - centre)
     ang = np.degrees(np.arccos(np.clip(d[:, 2], -1, 1)))
     streak = 0.8 + 0.4 * rng.random(len(pos))
-    iris = IRIS[None] * streak[:, None] * (0.75 + 0.25 * _smoothstep((ang - 10) / 8))[:, None]
-    iris *= (1 - 0.55 * _smoothstep((ang - 27.0) / 3.0))[:, None]  # dark limbal ring
-    sclera = SCLERA + (np.array([-0.02, -0.10, -0.10]) * _smoothstep((ang - 45) / 30)[:, None])
+    iris = IRIS[None] * streak[:, None] * (0.75 + 0.25 * smoothstep((ang - 10) / 8))[:, None]
+    iris *= (1 - 0.55 * smoothstep((ang - 27.0) / 3.0))[:, None]  # dark limbal ring
+    sclera = SCLERA + (np.array([-0.02, -0.10, -0.10]) * smoothstep((ang - 45) / 30)[:, None])
     rgb = np.where((ang < 31)[:, None], iris, sclera)
     rgb = np.where((ang < 11.5)[:, None], PUPIL, rgb)
     # Lid shadow on the top of the eyeball, catch-light near the pupil.
     hh = EYE_HALF_OPENING[1]
-    shade = 1 - 0.45 * _smoothstep((pos[:, 1] - centre[1] - 0.3 * hh) / (0.8 * hh))
+    shade = 1 - 0.45 * smoothstep((pos[:, 1] - centre[1] - 0.3 * hh) / (0.8 * hh))
     glint = np.exp(-((d[:, 0] - 0.10) ** 2 + (d[:, 1] - 0.12) ** 2) / (2 * 0.03**2))
     return np.clip(rgb * shade[:, None] + 0.8 * glint[:, None], 0, 1)
 
@@ -200,7 +195,7 @@ def _surface(m: _Mesh, rng: np.random.Generator, total: int = SURFACE_COUNT) -> 
     """Flat discs over the whole head, denser on the face and the front of the eyes."""
     c = m.centroid
     x, y, z = c.T
-    weight = 0.7 + 2.6 * _smoothstep(z / 0.04) * _smoothstep((y + 0.10) / 0.02) * _smoothstep((0.075 - y) / 0.02)
+    weight = 0.7 + 2.6 * smoothstep(z / 0.04) * smoothstep((y + 0.10) / 0.02) * smoothstep((0.075 - y) / 0.02)
     face_label = {k: m.labels[k][m.f].mean(axis=1) for k in m.labels}
     if "neck" in face_label:
         weight *= 1 - 0.4 * face_label["neck"]
@@ -230,12 +225,12 @@ def _surface(m: _Mesh, rng: np.random.Generator, total: int = SURFACE_COUNT) -> 
     rgb += nose[:, None] * np.array([0.01, -0.04, -0.03])
     lips, seam = lip_masks(pos, m.lm)
     brows, brow_t = brow_mask(pos)
-    scalp = _smoothstep((m.field("scalp", face, bary) + 0.12 * rng.standard_normal(len(face)) - 0.3) / 0.4)
+    scalp = smoothstep((m.field("scalp", face, bary) + 0.12 * rng.standard_normal(len(face)) - 0.3) / 0.4)
     rgb = rgb * (1 - lips[:, None]) + LIPS * lips[:, None]
     rgb *= 1 - 0.45 * seam[:, None]
     for sx in (1.0, -1.0):  # nostrils: dark ovals on the underside of the nose
         d2 = ((px - sx * 0.0062) / 0.0024) ** 2 + ((py - m.lm["nose_tip"][1] + 0.0085) / 0.0016) ** 2
-        nostril = 0.8 * np.exp(-d2) * _smoothstep((-normal[:, 1] - 0.1) / 0.3)
+        nostril = 0.8 * np.exp(-d2) * smoothstep((-normal[:, 1] - 0.1) / 0.3)
         rgb = rgb * (1 - nostril[:, None]) + NOSTRIL * nostril[:, None]
     rgb = rgb * (1 - brows[:, None]) + BROW * (0.85 + 0.3 * rng.random((len(face), 1))) * brows[:, None]
     rgb = rgb * (1 - scalp[:, None]) + HAIR * (0.8 + 0.4 * rng.random((len(face), 1))) * scalp[:, None]
@@ -257,8 +252,8 @@ def _surface(m: _Mesh, rng: np.random.Generator, total: int = SURFACE_COUNT) -> 
     sheen[on_eye] = 0.12
     opacity[on_eye] = 0.99
     in_cavity = cavity[face]
-    depth = _smoothstep((pz - (m.lm["mouth_centre"][2] - 0.035)) / 0.025)
-    tongue = _smoothstep((MOUTH_Y - 0.005 - py) / 0.006)
+    depth = smoothstep((pz - (m.lm["mouth_centre"][2] - 0.035)) / 0.025)
+    tongue = smoothstep((MOUTH_Y - 0.005 - py) / 0.006)
     mouth_rgb = (MOUTH * (1 - tongue[:, None]) + TONGUE * tongue[:, None]) * (0.35 + 0.65 * depth)[:, None]
     rgb[in_cavity] = mouth_rgb[in_cavity]
     sheen[in_cavity] = 0.0
@@ -318,7 +313,7 @@ def _teeth(m: _Mesh, rng: np.random.Generator, total: int = TEETH_COUNT) -> _Par
     axes = np.stack([t, np.tile([0.0, 1.0, 0.0], (2 * n, 1)), normal], axis=-1)
     scale = np.tile([0.0009, 0.0012, 0.0002], (2 * n, 1))
     phase = np.abs(((x + np.where(upper, 0.0, 0.0012)) / np.where(np.abs(x) < 0.008, 0.0042, 0.0036)) % 1.0 - 0.5)
-    rgb = TEETH * (0.72 + 0.28 * _smoothstep((0.5 - phase) / 0.12))[:, None] * 0.88
+    rgb = TEETH * (0.72 + 0.28 * smoothstep((0.5 - phase) / 0.12))[:, None] * 0.88
     # Bind to the nearest cavity face skinned only to the head (upper) or only to the jaw (lower).
     cav = np.flatnonzero(m.labels["mouth_cavity"][m.f].min(axis=1) > 0.99)
     jaw = m.head.weights[m.f[cav], 2]

@@ -10,8 +10,8 @@ The maths is split into small array functions that a torch version can mirror on
   ``C = sum_i c_i a_i prod_{j<i} (1 - a_j)`` with ``a_i = min(0.99, o_i exp(-0.5 d^T Sigma_2D^-1 d))``,
   splats below 1/255 skipped, as in 3DGS.
 
-Camera convention: OpenCV (x right, y down, z forward), pixel (i, j) covers [i, i+1) x [j, j+1), its centre
-at (i + 0.5, j + 0.5). Colours: SH evaluated for the camera-to-Gaussian direction (degree 0 .. the avatar's).
+Camera (:class:`.camera.Camera`): OpenCV (x right, y down, z forward), pixel (i, j) covers [i, i+1) x [j, j+1), its
+centre at (i + 0.5, j + 0.5). Colours: SH evaluated for the camera-to-Gaussian direction (degree 0 .. the avatar's).
 """
 
 from __future__ import annotations
@@ -22,51 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from ..head.rotations import quaternion_to_matrix
+from .camera import Camera
 from .sh import eval_sh
 from .state import GaussianState
 
 ALPHA_MIN, ALPHA_MAX, T_MIN = 1.0 / 255.0, 0.99, 1e-4
 DILATION_PX = 0.3
-
-
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole camera. rotation (3, 3) and translation (3,) map world to camera: x_c = R x_w + t."""
-
-    rotation: np.ndarray
-    translation: np.ndarray
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-    width: int
-    height: int
-
-    @property
-    def position(self) -> np.ndarray:
-        """Camera centre in world coordinates (3,)."""
-        return -self.rotation.T @ self.translation
-
-    @classmethod
-    def look_at(
-        cls,
-        eye: np.ndarray,
-        target: np.ndarray,
-        up: np.ndarray = (0.0, 1.0, 0.0),
-        fov_y_deg: float = 25.0,
-        width: int = 512,
-        height: int = 512,
-    ) -> Camera:
-        """A camera at ``eye`` looking at ``target`` with ``up`` pointing up in the image."""
-        eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
-        forward = target - eye
-        forward /= np.linalg.norm(forward)
-        right = np.cross(forward, up)
-        right /= np.linalg.norm(right)
-        down = np.cross(forward, right)
-        rot = np.stack([right, down, forward])  # rows: camera axes in world coordinates
-        f = 0.5 * height / np.tan(np.radians(fov_y_deg) / 2)
-        return cls(rot, -rot @ eye, f, f, width / 2, height / 2, width, height)
 
 
 @dataclass(frozen=True)
@@ -97,8 +58,8 @@ def project_gaussians(
     dilation: float = DILATION_PX,
 ) -> Projected:
     """EWA splatting projection of Gaussians with means (N, 3) and covariances (N, 3, 3), world space."""
-    w = camera.rotation
-    t = np.asarray(position, np.float64) @ w.T + camera.translation  # camera space (N, 3)
+    w = camera.R
+    t = np.asarray(position, np.float64) @ w.T + camera.t  # camera space (N, 3)
     z = t[:, 2]
     zs = np.where(z > near, z, 1.0)
     # 3DGS clamps the tangent of the Jacobian's point to 1.3 x the half field of view (stability off-screen).
@@ -216,7 +177,7 @@ def render_state(
 ) -> np.ndarray:
     """Image (H, W, 3) float of world-space Gaussians with SH colour for this camera."""
     proj = project_gaussians(state.position, covariance_3d(state.rotation, state.scale), camera)
-    dirs = state.position.astype(np.float64) - camera.position
+    dirs = state.position.astype(np.float64) - camera.centre
     dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
     colour = eval_sh(sh.astype(np.float64), dirs, sh_degree)
     return composite(proj, colour, opacity, background, (camera.width, camera.height))

@@ -41,11 +41,6 @@ def rgb_to_dc(rgb: np.ndarray) -> np.ndarray:
     return (np.asarray(rgb) - 0.5) / C0
 
 
-def dc_to_rgb(dc: np.ndarray) -> np.ndarray:
-    """DC coefficient (..., 3) -> colour (the view-independent part)."""
-    return np.asarray(dc) * C0 + 0.5
-
-
 def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
     """Basis values (N, (degree+1)^2) for unit directions (N, 3)."""
     x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]

@@ -26,7 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..head.model import HeadModel
-from .binding import AvatarError
+from .errors import AvatarError
 
 FLAME_VERTICES, FLAME_FACES = 5023, 9976
 TEETH_VERTICES, TEETH_FACES = 120, 168

@@ -9,16 +9,19 @@ from typing import TypeVar
 
 import typer
 
+from ..errors import OferaError
+
 F = TypeVar("F", bound=Callable)
 
 
-class CliError(Exception):
+class CliError(OferaError):
     """A user-facing failure: the message says what was wrong and what to do."""
 
 
 def user_errors(*types: type[BaseException]) -> Callable[[F], F]:
-    """Decorate a command so that ``CliError`` and the given exception types print ``error: ...``."""
-    caught = (CliError, FileNotFoundError, ValueError, *types)
+    """Decorate a command so that ``OferaError`` (``CliError`` included), ``ValueError``, ``FileNotFoundError``
+    and the given exception types print ``error: ...``."""
+    caught = (OferaError, FileNotFoundError, ValueError, *types)  # OferaError: CliError and every input error
 
     def wrap(fn: F) -> F:
         @functools.wraps(fn)

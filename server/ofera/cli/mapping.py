@@ -49,7 +49,7 @@ def bda_fit(
 
     held = None
     if len(pairs) == 1 and pairs[0].suffix == ".npz":
-        from ..mapping.evaluate import load_paired_data
+        from ..training.epm.evaluate import load_paired_data
 
         data = load_paired_data(pairs[0])
         x = to_arkit51("ovr63", np.asarray(data.headset, np.float32))
@@ -117,8 +117,8 @@ def epm_train(
 ) -> None:
     """Train the EPM (L1, Adam, early stopping on the validation subjects, subject-wise sampling)."""
     _need_torch()
-    from ..mapping.epm import EPMConfig, train_on_paired
-    from ..mapping.evaluate import load_paired_data
+    from ..training.epm.evaluate import load_paired_data
+    from ..training.epm.model import EPMConfig, train_on_paired
 
     if threads:
         import torch
@@ -141,7 +141,7 @@ def epm_export(
 ) -> None:
     """Export to ONNX (BatchNorm in eval mode, dynamic batch) and check it against torch."""
     _need_torch()
-    from ..mapping.export import export_checkpoint
+    from ..training.epm.export import export_checkpoint
 
     path, diff = export_checkpoint(checkpoint, out)
     print(f"ONNX vs torch: max abs difference {diff:.3g}")
@@ -176,7 +176,8 @@ def mapping_eval(
 
     from ..head import HeadModelError
     from ..mapping.baselines import MatrixMapper
-    from ..mapping.evaluate import (
+    from ..mapping.runtime import Mapper
+    from ..training.epm.evaluate import (
         default_matrix,
         draw_heatmaps,
         evaluate,
@@ -185,7 +186,6 @@ def mapping_eval(
         markdown_table,
         print_table,
     )
-    from ..mapping.runtime import Mapper
 
     console = Console(stderr=True)
     paired = load_paired_data(data, progress=True)
@@ -222,7 +222,7 @@ def make_default(
     """Regenerate the shipped EPM: train on the synthetic benchmark (epoch-capped), export, score, record provenance."""
     _need_torch()
     from ..assets import asset_path
-    from ..mapping.make_default import make_default_epm
+    from ..training.epm.make_default import make_default_epm
 
     target = out or asset_path("epm_default.onnx")
     meta = make_default_epm(target, seed=seed, threads=threads, progress=not quiet)

@@ -123,6 +123,9 @@ def replay(
     json_out: JsonOpt = None,
     avatar: AvatarOpt = "default",
     encoding: EncodingOpt = "f32",
+    delta: Annotated[bool, typer.Option("--delta", help="Ask for temporal deltas (key and delta frames; --encoding "
+                                        "f16 or q13). With --record-positions the client's reconstruction is "
+                                        "recorded.")] = False,
     token: TokenOpt = None,
     max_lag: Annotated[float, typer.Option("--max-lag", help="Skip frames found more than this many seconds "
                                            "overdue (a stalled sender catches up).")] = 1.0,
@@ -138,24 +141,29 @@ def replay(
     Exits 1 when the server refuses the session or reports errors, 2 on a bad argument or log.
     """
     _replay(log, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar, encoding,
-            token, max_lag, drain, quiet)
+            token, max_lag, drain, quiet, delta)
 
 
 @user_errors()
 def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar,
-            encoding, token, max_lag, drain, quiet) -> None:
+            encoding, token, max_lag, drain, quiet, delta=False) -> None:
     from ofera.replay import FrameRecorder, LinkOptions, Replayer, replay_through, stream_url
     from ofera.sources.inspect import inspect_facelog
 
     if passes is not None and passes < 1:
         raise CliError(f"--passes must be at least 1, got {passes}")
     _check_encoding(encoding)
+    if delta and encoding not in ("f16", "q13"):
+        raise CliError(f"--delta needs --encoding f16 or q13 (got {encoding})")
+    if record_positions and record is None:
+        raise CliError("--record-positions needs --record OUT.npz (the file the positions go to)")
     target = stream_url(url)
     log, report = inspect_facelog(log_path, layout, fps)
     replayer = Replayer(log, speed=speed, loop=loop, max_lag=max_lag,
                         max_passes=passes if loop else 1)
     recorder = FrameRecorder(log.layout.name, log.weights, replayer.times, record_positions) if record else None
-    options = LinkOptions(layout=log.layout.name, avatar=avatar, encoding=encoding, token=token)
+    options = LinkOptions(layout=log.layout.name, avatar=avatar, encoding=encoding, token=token, delta=delta,
+                          track=record_positions)
     console = _err_console()
     console.print(f"replaying {log_path} ({len(log)} frames, {log.duration:.2f} s, layout {log.layout.name}) "
                   f"to {target} at x{speed:g}{' in a loop' if loop else ''}")

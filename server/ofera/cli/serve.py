@@ -41,6 +41,15 @@ def serve(
                                                                 "this keeps its last confident expression (default "
                                                                 "0.5; 0: never) [env OFERA_CONFIDENCE_THRESHOLD]."
                                                                 )] = None,
+    key_interval: Annotated[int | None, typer.Option(help="Delta sessions: a key frame every N frames sent, 0 = "
+                                                      "only on join and resync (default 720) [env "
+                                                      "OFERA_KEY_INTERVAL].")] = None,
+    delta_position_mm: Annotated[float | None, typer.Option(help="Delta sessions: position tolerance, mm (default "
+                                                             "0.045) [env OFERA_DELTA_POSITION_MM].")] = None,
+    delta_rotation_deg: Annotated[float | None, typer.Option(help="Delta sessions: rotation tolerance, degrees "
+                                                              "(default 0.45) [env OFERA_DELTA_ROTATION_DEG].")] = None,
+    delta_log_scale: Annotated[float | None, typer.Option(help="Delta sessions: scale tolerance, |ln ratio| (default "
+                                                           "0.02) [env OFERA_DELTA_LOG_SCALE].")] = None,
     log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
 ) -> None:
     """Stream Gaussian avatars over WebSocket: warms up the default avatar, prints where to connect."""
@@ -54,6 +63,8 @@ def serve(
                                    ssl_keyfile=ssl_keyfile, ssl_certfile=ssl_certfile, max_sessions=max_sessions,
                                    max_message_bytes=max_message_bytes, bs_rate=bs_rate,
                                    compute_threads=compute_threads, confidence_threshold=confidence_threshold,
+                                   key_interval=key_interval, delta_position_mm=delta_position_mm,
+                                   delta_rotation_deg=delta_rotation_deg, delta_log_scale=delta_log_scale,
                                    log_level=log_level).items() if v is not None}
     try:
         settings = Settings(**given)

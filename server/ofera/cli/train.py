@@ -131,8 +131,7 @@ def _initial_avatar(model, init: str, per_face: int, correct_basis: bool, seed: 
         col = vertex_colours(model)[model.faces].mean(axis=1)
         return TrainableAvatar.init_on_mesh(model, None, col, per_face=per_face, seed=seed,
                                             correct_basis=correct_basis, shape=shape)
-    from ..avatar import load_avatar
-    from ..avatar.binding import AvatarError
+    from ..avatar import AvatarError, load_avatar
     from ..training.convert import from_gaussian_avatar
 
     try:
@@ -150,7 +149,7 @@ def _write_outputs(trainer, out: Path, flame) -> None:
 
     (out / "history.json").write_text(json.dumps(trainer.history))
     try:
-        from ..avatar.io import save_avatar
+        from ..avatar import save_avatar
 
         save_avatar(to_gaussian_avatar(trainer.avatar, name=out.name or "trained"), out / "avatar.npz")
     except ImportError:  # pragma: no cover - the avatar package is part of the distribution

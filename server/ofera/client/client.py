@@ -99,6 +99,15 @@ class Client:
     async def ping(self) -> None:
         await self.ws.send(self.conn.ping(now_us()))
 
+    async def resync(self) -> None:
+        """Ask for a key frame (delta sessions; sent by `recv` itself when a delta frame could not be applied)."""
+        await self.ws.send(self.conn.resync())
+
+    @property
+    def gaussians(self):  # noqa: ANN201 - ofera_protocol.GaussianState | None
+        """The client's reconstructed state (position, rotation, scale of every Gaussian), with `track=True`."""
+        return self.conn.gaussians
+
     # ------------------------------------------------------------------ receiving
 
     async def recv(self, timeout: float | None = None) -> ServerMessage:
@@ -112,7 +121,12 @@ class Client:
                               True, rcvd.code if rcvd else None) from None
         if isinstance(data, str):
             raise ServerError("text_frame", "the server sent a text message", True)
-        msg = self.conn.receive(data)
+        try:
+            msg = self.conn.receive(data)
+        except ProtocolError:
+            if self.conn.resync_needed:  # a delta frame was lost: the server must send a key frame
+                await self.resync()
+            raise
         if isinstance(msg, Frame):
             self.frames_received += 1
             self.latency.add(now_us() - msg.t)
@@ -169,18 +183,23 @@ class Client:
 async def connect(url: str, layout: str = "arkit52", avatar: str = "default", encoding: str = "f32",
                   coords: str = "flame", token: str | None = None, *, device: str | None = None,
                   sparse: bool = False, max_gaussians: int | None = None, open_timeout: float = 60.0,
-                  max_size: int = MAX_SERVER_MESSAGE, max_queue: int = 2) -> Client:
+                  max_size: int = MAX_SERVER_MESSAGE, max_queue: int = 2, delta: bool = False,
+                  track: bool = False) -> Client:
     """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused.
+
+    `delta`: ask for key/delta frames (f16, q13; PROTOCOL.md 7.1): delta frames are returned as sparse-like
+    Frames of the changed Gaussians (absolute values). `track`: keep every Gaussian's latest value in
+    `client.gaussians` (the avatar as the client reconstructs it).
 
     `max_queue`: messages the websockets library may read ahead of the application. Kept small so that
     a client slower than the stream leaves frames to the server's newest-wins backpressure instead of
     queueing stale ones locally (which would only add latency)."""
     ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
                           ping_interval=None, max_queue=max_queue)
-    conn = ClientConnection(max_message_size=max_size, track_gaussians=False)
+    conn = ClientConnection(max_message_size=max_size, track_gaussians=track)
     try:
         await ws.send(conn.hello(layout, avatar, encoding=encoding, coords=coords, sparse=sparse, device=device,
-                                 token=token, max_gaussians=max_gaussians))
+                                 token=token, max_gaussians=max_gaussians, delta=delta))
         welcome = await asyncio.wait_for(_handshake(ws, conn), open_timeout)
     except BaseException:
         await ws.close()

@@ -13,11 +13,26 @@ from typing import Any
 
 import numba as nb
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 from ofera_protocol import Frame, FrameFormat
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS
 from ofera_protocol.messages import DeltaFrame
 
-from ..streaming.encode_fast import _NB, f16_bits_to_f32, numba_kernels
+_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
+
+
+@intrinsic
+def f16_bits_to_f32(typingctx, h):
+    """uint16 bits of an IEEE binary16 -> float32 (exact; LLVM's fpext half -> float)."""
+    if not isinstance(h, types.Integer) or h.bitwidth != 16:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+
+    return types.float32(h), codegen
 
 
 @nb.njit(**_NB)
@@ -61,6 +76,87 @@ def q13_decode_kernel(pos, rot, scale, lo, step, scale_lut, out_pos, out_rot, ou
         out_rot[m, 3] = big if i == 3 else a2
 
 
+@nb.njit(inline="always", **_NB)
+def _q13_rotation_into(v, out, j):
+    kf = np.float32(math.sqrt(0.5) / ROT_LEVELS)
+    i = v >> 30
+    a0 = _q13_field(v, 20) * kf
+    a1 = _q13_field(v, 10) * kf
+    a2 = _q13_field(v, 0) * kf
+    d = a0 * a0
+    d = d + a1 * a1
+    d = d + a2 * a2
+    big = np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
+    out[j, 0] = big if i == 0 else a0
+    out[j, 1] = big if i == 1 else (a0 if i == 0 else a1)
+    out[j, 2] = big if i == 2 else (a2 if i == 3 else a1)
+    out[j, 3] = big if i == 3 else a2
+
+
+@nb.njit(**_NB)
+def delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, held_p, held_r, held_s, lo, step, lut,
+                       out_p, out_r, out_s):
+    """A checked DeltaFrame (PROTOCOL.md 7.1) onto the held codes: pass 1 checks every narrow change (0 = ok, 1 = a
+    code outside 0..65535, 2 = an f16 position NaN / infinite) and changes nothing on failure; pass 2 holds the new
+    codes and decodes the carried Gaussians into out_* (n, 3 / 4 / 3) float32. q13: held_r (count,) uint32 and
+    held_s (count, 3) uint8 (viewed as rot / scl); f16: every code uint16, rot (n_r, 4), scl (n_s, 3)."""
+    p = 0
+    k = 0
+    for j in range(ids.shape[0]):
+        if moved[j, 0]:
+            if not wide[p]:
+                i = ids[j]
+                for c in range(3):
+                    v = np.int32(held_p[i, c]) + np.int32(res[k, c])
+                    if v < 0 or v > 65535:
+                        return 1
+                    if not q13 and (v & 0x7C00) == 0x7C00:
+                        return 2
+                k += 1
+            p += 1
+    p = k = w = r = s = 0
+    for j in range(ids.shape[0]):
+        i = ids[j]
+        if moved[j, 0]:
+            if wide[p]:
+                for c in range(3):
+                    held_p[i, c] = wpos[w, c]
+                w += 1
+            else:
+                for c in range(3):
+                    held_p[i, c] = np.uint16(np.int32(held_p[i, c]) + np.int32(res[k, c]))
+                k += 1
+            p += 1
+        if moved[j, 1]:
+            if q13:
+                held_r[i, 0] = rot[r, 0]
+            else:
+                for c in range(4):
+                    held_r[i, c] = rot[r, c]
+            r += 1
+        if moved[j, 2]:
+            for c in range(3):
+                held_s[i, c] = scl[s, c]
+            s += 1
+        for c in range(3):
+            if q13:
+                out_p[j, c] = np.float32(lo[c] + np.float64(held_p[i, c]) * step[c])
+                out_s[j, c] = lut[held_s[i, c]]
+            else:
+                out_p[j, c] = f16_bits_to_f32(np.uint16(held_p[i, c]))
+                out_s[j, c] = f16_bits_to_f32(np.uint16(held_s[i, c]))
+        if q13:
+            _q13_rotation_into(np.uint32(held_r[i, 0]), out_r, j)
+        else:
+            for c in range(4):
+                out_r[j, c] = f16_bits_to_f32(np.uint16(held_r[i, c]))
+    return 0
+
+
+_Z3 = np.zeros(3)
+_Z256 = np.zeros(256, np.float32)
+
+
 def decoder_warm() -> None:
     """Compile the decoding kernels for message buffers (read-only uint views)."""
     raw = bytes(64)
@@ -68,6 +164,16 @@ def decoder_warm() -> None:
     out3, out4 = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32)
     q13_decode_kernel(np.frombuffer(raw, "<u2", 6), np.frombuffer(raw, "<u4", 2), np.frombuffer(raw, np.uint8, 6),
                       np.zeros(3), np.ones(3), np.ones(256, np.float32), out3, out4, out3.copy())
+    ids, moved, wide = np.zeros(1, np.int64), np.ones((1, 3), bool), np.zeros(1, bool)
+    res = np.frombuffer(raw, np.int8, 3).reshape(1, 3)
+    wpos = np.frombuffer(raw, "<u2", 0).reshape(0, 3)
+    for q13 in (True, False):
+        rot = np.frombuffer(raw, "<u4", 1).reshape(1, 1) if q13 else np.frombuffer(raw, "<u2", 4).reshape(1, 4)
+        scl = np.frombuffer(raw, np.uint8 if q13 else "<u2", 3).reshape(1, 3)
+        held_r = np.zeros((1, 1), np.uint32) if q13 else np.zeros((1, 4), np.uint16)
+        held_s = np.zeros((1, 3), np.uint8 if q13 else np.uint16)
+        delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, np.zeros((1, 3), np.uint16), held_r, held_s,
+                           np.zeros(3), np.ones(3), np.ones(256, np.float32), out3[:1], out4[:1], out3[:1].copy())
 
 
 class FastFrameDecoder:
@@ -78,8 +184,7 @@ class FastFrameDecoder:
     reference."""
 
     def __init__(self, fmt: FrameFormat) -> None:
-        numba_kernels()  # compiled (or loaded from the cache) before the first frame
-        decoder_warm()
+        decoder_warm()  # compiled (or loaded from the on-disk cache) before the first frame
         self.format = fmt
         n = fmt.count
         self._pos = np.zeros((n, 3), np.float32)
@@ -99,6 +204,29 @@ class FastFrameDecoder:
             codes = np.arange(256, dtype=np.float64)
             self._lut = np.exp(lmin + codes * ((lmax - lmin) / SCALE_LEVELS)).astype(np.float32)
 
+    def _apply_delta(self, d: DeltaFrame) -> Frame:
+        """The numba twin of ofera_protocol.delta.DeltaDecoder.apply (same checks, same values)."""
+        from ofera_protocol.errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
+
+        dd, fmt = self.delta, self.format
+        if not dd.has_key:
+            raise ProtocolError(NOT_READY, "frame: a delta frame before any key frame (send resync)")
+        q13 = fmt.encoding == "q13"
+        n = d.n
+        p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
+        rot = d.rotation.view(np.uint32).reshape(-1, 1) if q13 else d.rotation.view(np.uint16).reshape(-1, 4)
+        scl = d.scale.view(np.uint8 if q13 else np.uint16).reshape(-1, 3)
+        held_r = dd.rotation.reshape(-1, 1) if q13 else dd.rotation
+        lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
+        code = delta_apply_kernel(q13, d.index.astype(np.int64), d.moved, d.wide, d.position_delta,
+                                  d.position.view(np.uint16).reshape(-1, 3), rot, scl, dd.position, held_r, dd.scale,
+                                  lo, step, lut, p, r, s)
+        if code == 1:
+            raise ProtocolError(BAD_FIELD, "frame: 'position_delta' takes a code outside 0..65535")
+        if code == 2:
+            raise ProtocolError(NON_FINITE, "frame: a position change gives NaN or infinity")
+        return Frame(seq=d.seq, t=d.t, timing=d.timing, index=d.index, position=p, rotation=r, scale=s, key=False)
+
     def decode(self, data) -> object:
         """A `frame` message -> ofera_protocol.Frame whose arrays are views of this decoder's buffers;
         other messages are decoded by the reference codec. Raises ProtocolError like the codec."""
@@ -112,7 +240,7 @@ class FastFrameDecoder:
         fmt = self.format
         parts = frame_parts(m, fmt)
         if isinstance(parts, DeltaFrame):
-            return self.delta.apply(parts)
+            return self._apply_delta(parts)
         seq, t, timing, key, n, index, bufs = parts
         p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
         if fmt.encoding == "q13":

@@ -25,12 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OferaError
+
 JOINT_NAMES = ("root", "neck", "jaw", "left_eye", "right_eye")
 FLAME_PARENTS = np.array([-1, 0, 1, 1, 1], dtype=np.int64)
 FORMAT_VERSION = 1
 
 
-class HeadModelError(ValueError):
+class HeadModelError(OferaError, ValueError):
     """A head model file or array set is invalid; the message says what and where."""
 
 
@@ -110,11 +112,10 @@ class HeadModel:
 
     # ----- the project's own .npz format -----------------------------------------------------------
 
-    def save(self, path: str | Path) -> None:
-        """Write the project's head format: one uncompressed .npz, no pickles."""
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The model's arrays as the head format stores them (float32 bases, int64 parents, int32 faces,
+        ``landmark/<name>``, ``label/<name>``); the avatar format embeds the same under ``head/``."""
         arrays = {
-            "format": np.array("ofera-head"),
-            "format_version": np.array(FORMAT_VERSION),
             "name": np.array(self.name),
             "v_template": self.v_template.astype(np.float32),
             "shapedirs": self.shapedirs.astype(np.float32),
@@ -127,6 +128,11 @@ class HeadModel:
         }
         arrays |= {f"landmark/{k}": np.asarray(v, np.float32) for k, v in self.landmarks.items()}
         arrays |= {f"label/{k}": np.asarray(v, bool) for k, v in self.vertex_labels.items()}
+        return arrays
+
+    def save(self, path: str | Path) -> None:
+        """Write the project's head format: one uncompressed .npz, no pickles."""
+        arrays = {"format": np.array("ofera-head"), "format_version": np.array(FORMAT_VERSION)} | self.arrays()
         with open(path, "wb") as fh:
             np.savez(fh, **arrays)
 

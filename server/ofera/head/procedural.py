@@ -54,7 +54,8 @@ def _bump(d2: np.ndarray, radius: float) -> np.ndarray:
     return np.exp(-d2 / (2.0 * radius**2))
 
 
-def _smoothstep(x: np.ndarray) -> np.ndarray:
+def smoothstep(x: np.ndarray) -> np.ndarray:
+    """Hermite step clipped to [0, 1]: 0 below 0, 1 above 1, 3t^2 - 2t^3 between (the procedural models' falloff)."""
     t = np.clip(x, 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
 
@@ -103,14 +104,14 @@ def _skin_grid() -> tuple[np.ndarray, np.ndarray, int]:
 def _features(p: np.ndarray) -> np.ndarray:
     """Outward displacement (m) of the base surface that adds the face: (V, 3) points -> (V,)."""
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    front = _smoothstep((z - 0.0) / 0.04)
+    front = smoothstep((z - 0.0) / 0.04)
     ax = np.abs(x)
     d = np.zeros(len(p))
     d += 0.006 * _bump((y - 0.047) ** 2 * 6 + (ax - 0.03) ** 2 * 0.6, 0.006) * front  # brow ridge
     d += 0.006 * _bump((ax - 0.048) ** 2 + (y - 0.004) ** 2, 0.012) * front  # cheekbones
     # Nose: a ridge that grows towards the tip, with alae at its base.
     t = np.clip((0.038 - y) / 0.045, 0.0, 1.0)
-    ridge = (0.004 + 0.020 * t**1.4) * _bump(x**2, 0.005 + 0.004 * t) * _smoothstep((y + 0.012) / 0.006)
+    ridge = (0.004 + 0.020 * t**1.4) * _bump(x**2, 0.005 + 0.004 * t) * smoothstep((y + 0.012) / 0.006)
     d += ridge * front
     d += 0.006 * _bump((ax - 0.014) ** 2 + (y + 0.004) ** 2, 0.0055) * front  # alae
     d += 0.005 * _bump(x**2 * 0.35 + (y - (MOUTH_Y + 0.005)) ** 2, 0.004) * front  # upper lip
@@ -118,7 +119,7 @@ def _features(p: np.ndarray) -> np.ndarray:
     d -= 0.003 * _bump(x**2 * 0.5 + (y - (MOUTH_Y - 0.017)) ** 2, 0.004) * front  # mentolabial fold
     d += 0.006 * _bump(x**2 * 0.5 + (y + 0.066) ** 2, 0.008) * front  # chin
     # Ears: flat ovals on the sides, just behind the jaw pivot.
-    side = _smoothstep((ax - 0.05) / 0.015)
+    side = smoothstep((ax - 0.05) / 0.015)
     d += 0.016 * _bump((y - 0.008) ** 2 * 0.35 + (z + 0.012) ** 2, 0.0095) * side
     return d
 
@@ -146,7 +147,7 @@ def _fit_sockets(skin: np.ndarray, eyes: np.ndarray) -> np.ndarray:
         dx, dy = skin[:, 0] - e[0], skin[:, 1] - e[1]
         r2 = dx**2 + dy**2
         target = e[2] + np.sqrt(np.maximum(EYE_RADIUS**2 - r2, 0.0)) + 0.0015
-        m = 1.0 - _smoothstep((np.sqrt(r2 / EYE_RADIUS**2 * 1.0) - 0.95) / 0.7)
+        m = 1.0 - smoothstep((np.sqrt(r2 / EYE_RADIUS**2 * 1.0) - 0.95) / 0.7)
         m *= skin[:, 2] > 0
         skin[:, 2] = (1 - m) * skin[:, 2] + m * target
     return skin
@@ -213,7 +214,7 @@ def _skinning(verts: np.ndarray, parts: dict[str, np.ndarray], lower_lip: np.nda
     """Weights (V, 5): root/neck blend down the neck, jaw on the lower face, eyes on the eyeballs."""
     x, y, z = verts.T
     w = np.zeros((len(verts), 5))
-    head = _smoothstep((y + 0.135) / 0.04)
+    head = smoothstep((y + 0.135) / 0.04)
     # Jaw region: below a line from the lip line at the front up to the pivot, in front of the ear,
     # fading on the throat.
     z_corner, z_pivot = 0.06, JAW_PIVOT[2] + 0.012
@@ -221,14 +222,14 @@ def _skinning(verts: np.ndarray, parts: dict[str, np.ndarray], lower_lip: np.nda
     y_line = MOUTH_Y + (JAW_PIVOT[1] - 0.012 - MOUTH_Y) * t
     # At the lips the boundary is sharp and strictly below the lip line (the upper lip stays with the
     # head); over the cheeks it is soft, so opening the jaw stretches the skin instead of creasing it.
-    lip_side = 1.0 - _smoothstep((np.abs(x) - 0.02) / 0.012)
-    below = _smoothstep((y_line - y) / 0.01 + 0.6) * (y < y_line - 1e-6)
-    jaw = lip_side * below + (1.0 - lip_side) * _smoothstep((y_line - y) / 0.016 + 0.5)
-    jaw *= _smoothstep((z - z_pivot) / 0.02)
-    jaw *= _smoothstep((z - 0.012) / 0.03 + 0.4 * _smoothstep((y + 0.08) / 0.01))
-    jaw *= _smoothstep((y + 0.11) / 0.02)
+    lip_side = 1.0 - smoothstep((np.abs(x) - 0.02) / 0.012)
+    below = smoothstep((y_line - y) / 0.01 + 0.6) * (y < y_line - 1e-6)
+    jaw = lip_side * below + (1.0 - lip_side) * smoothstep((y_line - y) / 0.016 + 0.5)
+    jaw *= smoothstep((z - z_pivot) / 0.02)
+    jaw *= smoothstep((z - 0.012) / 0.03 + 0.4 * smoothstep((y + 0.08) / 0.01))
+    jaw *= smoothstep((y + 0.11) / 0.02)
     jaw[lower_lip] = 1.0
-    jaw[parts["mouth_cavity"]] = _smoothstep((MOUTH_Y - 0.002 - y[parts["mouth_cavity"]]) / 0.004)
+    jaw[parts["mouth_cavity"]] = smoothstep((MOUTH_Y - 0.002 - y[parts["mouth_cavity"]]) / 0.004)
     w[:, 0] = 1.0 - head
     w[:, 1] = head * (1.0 - jaw)
     w[:, 2] = head * jaw
@@ -262,7 +263,7 @@ def _regressor(verts: np.ndarray, parts: dict[str, np.ndarray], skin_rows: int) 
 def _expression_fields(v: np.ndarray, lm: dict[str, np.ndarray], movable: np.ndarray) -> np.ndarray:
     """Localised displacement fields (V, 3, N): each one muscle-like motion at unit activation."""
     x, y, z = v.T
-    front = _smoothstep(z / 0.03)
+    front = smoothstep(z / 0.03)
     fields = []
 
     def add(centre, radius, direction, amp, squash=(1.0, 1.0), extra=None):
@@ -355,8 +356,8 @@ def _identity_fields(v: np.ndarray, lm: dict[str, np.ndarray], rigid_parts: list
         np.stack([0 * x, y, 0 * x], 1) * 0.05,
         np.stack([0 * x, 0 * x, z], 1) * 0.05,
     ]
-    front = _smoothstep(z / 0.03)
-    low = _smoothstep((-0.02 - y) / 0.03)
+    front = smoothstep(z / 0.03)
+    low = smoothstep((-0.02 - y) / 0.03)
     fields.append(np.stack([x * low, 0 * x, 0 * x], 1) * 0.12)  # jaw width
     fields.append(np.stack([0 * x, (y - 0.0) * low, 0 * x], 1) * 0.12)  # lower face length
     fields.append(np.stack([x * (1 - low) * (y > 0.05), 0 * x, 0 * x], 1) * 0.1)  # cranium width
@@ -370,13 +371,13 @@ def _identity_fields(v: np.ndarray, lm: dict[str, np.ndarray], rigid_parts: list
         f = _bump((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2, 0.012) * front
         fields.append(np.stack([0 * x, 0 * x, f], 1) * amp)
     fields.append(np.stack([0 * x, 0 * x, front * (1 - np.abs(x) / 0.08).clip(0, 1)], 1) * 0.006)  # face depth
-    brow = _smoothstep((y - 0.04) / 0.03) * front
+    brow = smoothstep((y - 0.04) / 0.03) * front
     fields.append(np.stack([0 * x, 0 * x, -brow * (y - 0.04)], 1) * 0.15)  # forehead slope
-    back = _smoothstep(-z / 0.04)
+    back = smoothstep(-z / 0.04)
     fields.append(np.stack([0 * x, 0 * x, -back], 1) * 0.008)  # back of the head
-    top = _smoothstep((y - 0.08) / 0.03)
+    top = smoothstep((y - 0.08) / 0.03)
     fields.append(np.stack([0 * x, top, 0 * x], 1) * 0.008)  # crown height
-    neck = _smoothstep((-0.09 - y) / 0.02)
+    neck = smoothstep((-0.09 - y) / 0.02)
     fields.append(np.stack([x * neck, 0 * x, (z + 0.025) * neck], 1) * 0.15)  # neck thickness
     out = np.stack(fields, axis=-1)
     for part in rigid_parts:  # eyeballs and mouth move rigidly with their centre
@@ -389,7 +390,7 @@ def _pose_correctives(v: np.ndarray, lm: dict[str, np.ndarray], movable: np.ndar
     x, y, z = v.T
     nv = len(v)
     p = np.zeros((36, nv, 3))
-    front = _smoothstep(z / 0.03)
+    front = smoothstep(z / 0.03)
     cheek = sum(_bump((x - lm[f"mouth_corner_{s}"][0] * 1.6) ** 2 + (y - MOUTH_Y - 0.004) ** 2, 0.012)
                 for s in ("left", "right"))
     hollow = np.stack([-np.sign(x) * 0.006, np.zeros(nv), -0.002 * np.ones(nv)], 1) * (cheek * front * movable)[:, None]

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OferaError
 from ..head.rotations import axis_angle_to_matrix, matrix_to_axis_angle, matrix_to_rot6d, rot6d_to_matrix
 
 N_IN = 51
@@ -30,7 +31,7 @@ PARAM_DIMS = slice(0, N_EXPR + 6)
 """Expression and jaw 6D: the values the parameter RMSE is taken over (eyes excluded, as the paper)."""
 
 
-class BaselineError(ValueError):
+class BaselineError(OferaError, ValueError):
     """A baseline matrix or fit input is invalid; the message says what and what to do."""
 
 

@@ -17,13 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OferaError
 from .layouts import ARKIT51_NAMES, normalize_name
 
 FORMAT = "ofera-bda"
 FORMAT_VERSION = 1
 
 
-class BDAError(ValueError):
+class BDAError(OferaError, ValueError):
     """A BDA file or array set is invalid; the message says what and what to do."""
 
 

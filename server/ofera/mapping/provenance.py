@@ -22,12 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OferaError
 from .runtime import Mapper
 
 PROVENANCE_KEYS = ("provenance", "train", "metrics")
 
 
-class ProvenanceError(ValueError):
+class ProvenanceError(OferaError, ValueError):
     """An EPM file without (or with unreadable) provenance metadata."""
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from ..errors import OferaError
 from .bda import BDA, load_bda
 from .layouts import ARKIT51_NAMES
 
@@ -26,7 +27,7 @@ N_OUT = 68
 _ZERO, _ONE = np.float32(0.0), np.float32(1.0)
 
 
-class MapperError(ValueError):
+class MapperError(OferaError, ValueError):
     """An EPM ONNX file that cannot serve as a mapper; the message says why and what to do."""
 
 

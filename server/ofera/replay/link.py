@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 
 import numpy as np
-from ofera_protocol import ErrorMessage, Frame, LocalProtocolError, ProtocolError
+from ofera_protocol import ConnectionUsageError, ErrorMessage, Frame, ProtocolError
 
 from ofera.client import Client, ServerError, connect, stream_url
 
@@ -37,6 +37,8 @@ class LinkOptions:
     token: str | None = None
     device: str | None = None
     open_timeout: float = 60.0
+    delta: bool = False  # ask for key/delta frames (f16, q13; PROTOCOL.md 7.1)
+    track: bool = False  # keep the client's reconstruction of every Gaussian (client.gaussians)
 
 
 class Link:
@@ -95,12 +97,13 @@ async def open_link(url: str, options: LinkOptions) -> Link:
     target = stream_url(url)
     try:
         client = await connect(target, layout=options.layout, avatar=options.avatar, encoding=options.encoding,
-                               token=options.token, device=options.device, open_timeout=options.open_timeout)
+                               token=options.token, device=options.device, open_timeout=options.open_timeout,
+                               delta=options.delta, track=options.track)
     except ServerError as e:
         if e.code == "closed":
             raise LinkError(f"the server closed the connection during the handshake: {e}") from None
         raise LinkError(f"server rejected hello: {e.code}: {e.message}", e.code) from None
-    except LocalProtocolError as e:
+    except ConnectionUsageError as e:
         raise LinkError(f"cannot ask for that session: {e}") from None
     except (asyncio.TimeoutError, TimeoutError):
         raise LinkError(f"{target} did not complete the handshake within {options.open_timeout:g} s") from None

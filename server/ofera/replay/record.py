@@ -9,9 +9,11 @@ Arrays (F = frames received, in arrival order; S = timing stages):
 - A face-log-like view of what was answered: `layout` (str), `log_time` (F,) float64 seconds in the
   log of the answered frame, `weights` (F, K) float32 in `layout` order.
 - `count` (F,) int64: Gaussians carried by each frame.
-- With positions recorded (`--record-positions`): `position` (F, N, 3) float32, each frame's Gaussian
-  positions (replay asks for dense frames). At 100k Gaussians that is 1.2 MB a frame: use a small
-  avatar or a short log.
+- With positions recorded (`--record-positions`): `position` (F, N, 3) float32, every Gaussian's position
+  as the client reconstructs it after each frame (a dense frame's own values; after a delta frame of
+  `--delta`, the client's state: key frame plus the deltas applied since). At 100k Gaussians that is
+  1.2 MB a frame: use a small avatar or a short log.
+- `key` (F,) int8: 1 key frame, 0 delta frame, -1 not a delta session.
 """
 
 from __future__ import annotations
@@ -36,20 +38,27 @@ class FrameRecorder:
         self.count: list[int] = []
         self.timing: list[dict[str, int]] = []
         self.position: list[np.ndarray] = []
+        self.key: list[int] = []
 
     def __len__(self) -> int:
         return len(self.seq)
 
-    def add(self, frame: Frame, recv_us: int) -> None:
+    def add(self, frame: Frame, recv_us: int, state: object | None = None) -> None:
+        """One received frame; `state` (a GaussianState: the client's reconstruction) is what `position` records
+        for frames that carry only some Gaussians (sparse and delta frames)."""
         self.seq.append(int(frame.seq))
+        self.key.append(-1 if frame.key is None else int(frame.key))
         self.t_us.append(int(frame.t))
         self.recv_us.append(int(recv_us))
         self.count.append(frame.n)
         self.timing.append(dict(frame.timing))
         if self.positions:
-            if frame.index is not None:
-                raise ValueError("recording positions needs dense frames (the session is sparse)")
-            self.position.append(np.array(frame.position, dtype=np.float32, copy=True))
+            if frame.index is None:
+                self.position.append(np.array(frame.position, dtype=np.float32, copy=True))
+            elif state is not None:
+                self.position.append(np.array(state.position, dtype=np.float32, copy=True))  # type: ignore[attr-defined]
+            else:
+                raise ValueError("recording positions of sparse or delta frames needs the client's state")
 
     def arrays(self) -> dict[str, np.ndarray]:
         stages = sorted({k for t in self.timing for k in t})
@@ -73,6 +82,7 @@ class FrameRecorder:
             "log_time": self.log_times[index] if n else np.zeros(0),
             "weights": self.log_weights[index] if n else np.zeros((0, 0), np.float32),
             "count": np.asarray(self.count, dtype=np.int64),
+            "key": np.asarray(self.key, dtype=np.int8),
         }
         if self.positions:
             out["position"] = (np.stack(self.position) if self.position else np.zeros((0, 0, 3), np.float32))

@@ -68,7 +68,7 @@ async def replay_through(
 
     def on_frame(frame: Frame, t: int) -> None:
         if recorder is not None:
-            recorder.add(frame, t)
+            recorder.add(frame, t, link.client.gaussians)
         answered.set()
 
     def on_fatal() -> None:

@@ -9,11 +9,13 @@ import numpy as np
 
 from ofera.mapping.layouts import Layout, to_arkit51
 
+from ..errors import OferaError
+
 DATA_SOURCES: tuple[str, ...] = ("visual", "audio")
 """Meta v2 data source codes: `FaceLog.data_source` holds indices into this tuple."""
 
 
-class SourceFormatError(ValueError):
+class SourceFormatError(OferaError, ValueError):
     """A malformed input; the message names the file, the line or frame, and the problem."""
 
     def __init__(

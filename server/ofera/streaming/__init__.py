@@ -1,13 +1,14 @@
 """The streaming server: FastAPI + uvicorn, one WebSocket session per client.
 
-Modules, one job each: `config` (settings), `registry` (avatars and device BDA profiles on disk),
-`pipeline` (layout -> BDA -> EPM -> FLAME -> LBS -> Gaussians; also the offline pipeline), `session`
+Modules, one job each: `config` (settings), `registry` (avatars and device BDA profiles on disk; the offline
+pipeline), `pipeline` (layout -> BDA -> EPM -> FLAME -> LBS -> Gaussians), `session`
 (source/viewer roles, newest-wins backpressure), `metrics` (Prometheus), `app` (routes), `server`
 (uvicorn with TCP_NODELAY and draining sends; background-thread runner).
 """
 
 from .config import Settings
-from .pipeline import STAGES, AvatarAssets, Pipeline, offline_pipeline
+from .pipeline import STAGES, AvatarAssets, Pipeline
+from .registry import offline_pipeline
 
 __all__ = ["STAGES", "AvatarAssets", "Pipeline", "Settings", "ServerThread", "create_app", "offline_pipeline",
            "serve"]

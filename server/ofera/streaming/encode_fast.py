@@ -32,7 +32,7 @@ import numpy as np
 from llvmlite import ir
 from numba.core import types
 from numba.extending import intrinsic
-from ofera_protocol.delta import DeltaEncoder, DeltaTolerance
+from ofera_protocol.delta import DeltaEncoder, DeltaTolerance, ReferenceKernels
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from ofera_protocol.fast_encodings import (
     F16_MAX,
@@ -295,22 +295,21 @@ class NumbaKernels:
         g, n = self._g(src, gather)
         q13_scale_kernel(src, g, n, table, dst)
 
-    def delta_q13(self, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, scale_lut, tol, *rest
-                  ) -> tuple[int, int]:
+    def delta_q13(self, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, *rest) -> tuple[int, ...]:
         """ofera_protocol.delta.delta_q13_reference in one numba pass (same signature, same bytes)."""
         table = self.table(thresholds)
         if table is None:
-            return NumpyKernels().delta_q13(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds,
-                                            scale_lut, tol, *rest)
-        n, w = delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, tol, *rest)
-        return int(n), int(w)
+            return ReferenceKernels().delta_q13(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds,
+                                                *rest)
+        return tuple(int(x) for x in delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table,
+                                                      *rest))
 
-    def delta_f16(self, *args) -> tuple[int, int]:
+    def delta_f16(self, *args) -> tuple[int, ...]:
         """ofera_protocol.delta.delta_f16_reference in one numba pass."""
-        n, w, ok = delta_f16_kernel(*args)
+        *out, ok = delta_f16_kernel(*args)
         if not ok:
             raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
-        return int(n), int(w)
+        return tuple(int(x) for x in out)
 
 
 _KERNELS: NumbaKernels | None = None
@@ -385,12 +384,11 @@ def f16_bits_to_f32(typingctx, h):
 
 @nb.njit(inline="always", **_NB)
 def _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
-    """The selection rule of ofera_protocol.delta (same float64 operations, in the same order)."""
+    """(position, rotation, scale) moved, by the rule of ofera_protocol.delta (same float64 operations, same order)."""
     dx = np.float64(pos[r, 0] * psign[0]) - dec_p[j, 0]
     dy = np.float64(pos[r, 1] * psign[1]) - dec_p[j, 1]
     dz = np.float64(pos[r, 2] * psign[2]) - dec_p[j, 2]
-    if dx * dx + dy * dy + dz * dz > tol[0]:
-        return True
+    mp = dx * dx + dy * dy + dz * dz > tol[0]
     q0 = np.float64(rot[r, 0] * rsign[0])
     q1 = np.float64(rot[r, 1] * rsign[1])
     q2 = np.float64(rot[r, 2] * rsign[2])
@@ -399,138 +397,142 @@ def _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
     dot = h0 * q0 + h1 * q1 + h2 * q2 + h3 * q3
     n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
     hh = h0 * h0 + h1 * h1 + h2 * h2 + h3 * h3
-    if dot * dot < tol[1] * n2 * hh:
-        return True
+    mr = dot * dot < tol[1] * n2 * hh
+    ms = False
     for c in range(3):
         v = np.float64(scale[r, c])
         if v > dec_s[j, c] * tol[2] or v < dec_s[j, c] * tol[3]:
-            return True
-    return False
+            ms = True
+    return mp, mr, ms
 
 
 @nb.njit(inline="always", **_NB)
-def _emit_position(new, held_p, i, n, w, m, out_sel, out_wide, out_res, out_pos, j):
-    """Narrow (int8 change) or wide (whole codes) position of the n-th selected Gaussian; returns (w, m)."""
-    wide = False
-    for c in range(3):
-        d = np.int32(new[c]) - np.int32(held_p[i, c])
-        if d < -128 or d > 127:
-            wide = True
-    out_sel[n] = j
-    out_wide[n] = wide
+def _emit_position(c0, c1, c2, held_p, i, n_p, w, m, out_wide, out_res, out_pos):
+    """Narrow (int8 change) or wide (whole codes) position of the n_p-th position sent; holds it; returns (w, m)."""
+    d0 = np.int32(c0) - np.int32(held_p[i, 0])
+    d1 = np.int32(c1) - np.int32(held_p[i, 1])
+    d2 = np.int32(c2) - np.int32(held_p[i, 2])
+    wide = d0 < -128 or d0 > 127 or d1 < -128 or d1 > 127 or d2 < -128 or d2 > 127
+    out_wide[n_p] = wide
     if wide:
-        for c in range(3):
-            out_pos[w, c] = new[c]
+        out_pos[w, 0], out_pos[w, 1], out_pos[w, 2] = c0, c1, c2
         w += 1
     else:
-        for c in range(3):
-            out_res[m, c] = np.int8(np.int32(new[c]) - np.int32(held_p[i, c]))
+        out_res[m, 0], out_res[m, 1], out_res[m, 2] = np.int8(d0), np.int8(d1), np.int8(d2)
         m += 1
-    for c in range(3):
-        held_p[i, c] = new[c]
+    held_p[i, 0], held_p[i, 1], held_p[i, 2] = c0, c1, c2
     return w, m
 
 
+@nb.njit(inline="always", **_NB)
+def _q13_pos_code(v, lo, k):
+    q = (np.float64(v) - lo) * k
+    if abs(q) < 2.0**50:
+        q = _rint(q)
+    return np.uint16(min(max(q, 0.0), POS_LEVELS))
+
+
 @nb.njit(**_NB)
-def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, tol,
-                     held_p, held_r, held_s, dec_p, dec_r, dec_s, out_sel, out_wide, out_res, out_pos, out_rot,
-                     out_scale):
-    """ofera_protocol.delta.delta_q13_reference, one pass over the candidates. Returns (n, w)."""
-    n = 0
-    w = 0
-    m = 0
-    new = np.empty(3, np.uint16)
+def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
+                     held_p, held_r, held_s, dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos,
+                     out_rot, out_scale):
+    """ofera_protocol.delta.delta_q13_reference in one pass over the candidates. Returns (n, n_p, w, n_r, n_s)."""
+    n = n_p = w = m = n_r = n_s = 0
     for j in range(rows.shape[0]):
         r = rows[j]
-        if not _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
+        mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
+        if not (mp or mr or ms):
             continue
         i = ids[j]
-        for c in range(3):
-            q = (np.float64(pos[r, c] * psign[c]) - lo[c]) * k[c]
-            if abs(q) < 2.0**50:
-                q = _rint(q)
-            q = min(max(q, 0.0), POS_LEVELS)
-            new[c] = np.uint16(q)
-            dec_p[j, c] = lo[c] + np.float64(new[c]) * step[c]
-        w, m = _emit_position(new, held_p, i, n, w, m, out_sel, out_wide, out_res, out_pos, j)
-        packed = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
-        out_rot[n] = packed
-        held_r[i] = packed
-        _unpack_into(packed, dec_r, j)
-        for c in range(3):
-            code = _scale_code(scale[r, c], table)
-            out_scale[n, c] = np.uint8(code)
-            held_s[i, c] = np.uint8(code)
-            dec_s[j, c] = scale_lut[code]
+        out_sel[n] = j
+        out_moved[n, 0], out_moved[n, 1], out_moved[n, 2] = mp, mr, ms
         n += 1
-    return n, w
+        if mp:
+            c0 = _q13_pos_code(pos[r, 0] * psign[0], lo[0], k[0])
+            c1 = _q13_pos_code(pos[r, 1] * psign[1], lo[1], k[1])
+            c2 = _q13_pos_code(pos[r, 2] * psign[2], lo[2], k[2])
+            dec_p[j, 0] = lo[0] + np.float64(c0) * step[0]
+            dec_p[j, 1] = lo[1] + np.float64(c1) * step[1]
+            dec_p[j, 2] = lo[2] + np.float64(c2) * step[2]
+            w, m = _emit_position(c0, c1, c2, held_p, i, n_p, w, m, out_wide, out_res, out_pos)
+            n_p += 1
+        if mr:
+            v = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
+            out_rot[n_r] = v
+            held_r[i] = v
+            n_r += 1
+            a0 = rot_lut[(v >> 20) & 1023]
+            a1 = rot_lut[(v >> 10) & 1023]
+            a2 = rot_lut[v & 1023]
+            d = 1.0 - a0 * a0
+            d = d - a1 * a1
+            d = d - a2 * a2
+            big = math.sqrt(max(d, 0.0))
+            drop = v >> 30
+            dec_r[j, 0] = big if drop == 0 else a0
+            dec_r[j, 1] = big if drop == 1 else (a0 if drop == 0 else a1)
+            dec_r[j, 2] = big if drop == 2 else (a2 if drop == 3 else a1)
+            dec_r[j, 3] = big if drop == 3 else a2
+        if ms:
+            for c in range(3):
+                code = _scale_code(scale[r, c], table)
+                out_scale[n_s, c] = np.uint8(code)
+                held_s[i, c] = np.uint8(code)
+                dec_s[j, c] = scale_lut[code]
+            n_s += 1
+    return n, n_p, w, n_r, n_s
 
 
 @nb.njit(**_NB)
 def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
-                     out_sel, out_wide, out_res, out_pos, out_rot, out_scale):
-    """ofera_protocol.delta.delta_f16_reference, one pass. Returns (n, w, ok); ok False if a value sent is
-    NaN, infinite or beyond +-65504."""
-    n = 0
-    w = 0
-    m = 0
+                     out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
+    """ofera_protocol.delta.delta_f16_reference in one pass. Returns (n, n_p, w, n_r, n_s, ok); ok False if a
+    value sent is NaN, infinite or beyond +-65504."""
+    n = n_p = w = m = n_r = n_s = 0
     ok = True
-    new = np.empty(3, np.uint16)
     for j in range(rows.shape[0]):
         r = rows[j]
-        if not _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
+        mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
+        if not (mp or mr or ms):
             continue
         i = ids[j]
-        for c in range(3):
-            v = pos[r, c] * psign[c]
-            ok &= abs(v) <= F16_MAX
-            new[c] = f32_to_f16_bits(v)
-            dec_p[j, c] = np.float64(f16_bits_to_f32(new[c]))
-        w, m = _emit_position(new, held_p, i, n, w, m, out_sel, out_wide, out_res, out_pos, j)
-        for c in range(4):
-            v = rot[r, c] * rsign[c]
-            ok &= abs(v) <= F16_MAX
-            h = f32_to_f16_bits(v)
-            out_rot[n, c] = h
-            held_r[i, c] = h
-            dec_r[j, c] = np.float64(f16_bits_to_f32(h))
-        for c in range(3):
-            v = scale[r, c]
-            ok &= abs(v) <= F16_MAX
-            h = f32_to_f16_bits(v)
-            out_scale[n, c] = h
-            held_s[i, c] = h
-            dec_s[j, c] = np.float64(f16_bits_to_f32(h))
+        out_sel[n] = j
+        out_moved[n, 0], out_moved[n, 1], out_moved[n, 2] = mp, mr, ms
         n += 1
-    return n, w, ok
-
-
-@nb.njit(**_NB)
-def _unpack_into(v, out, m):
-    """q13 rotation decode (PROTOCOL.md 6.3) of v into out[m] (x, y, z, w), float64 (as
-    ofera_protocol.delta.q13_decode_rotation64)."""
-    i = v >> 30
-    kept = np.empty(3, np.float64)
-    d = 1.0
-    for j in range(3):
-        f = np.int64((v >> (20 - 10 * j)) & 1023)
-        if f >= 512:
-            f -= 1024
-        c = max(f / ROT_LEVELS, -1.0) / math.sqrt(2.0)
-        kept[j] = c
-        d = d - c * c
-    big = math.sqrt(max(d, 0.0))
-    j = 0
-    for c in range(4):
-        if c == i:
-            out[m, c] = big
-        else:
-            out[m, c] = kept[j]
-            j += 1
+        if mp:
+            v0, v1, v2 = pos[r, 0] * psign[0], pos[r, 1] * psign[1], pos[r, 2] * psign[2]
+            ok &= abs(v0) <= F16_MAX and abs(v1) <= F16_MAX and abs(v2) <= F16_MAX
+            c0, c1, c2 = f32_to_f16_bits(v0), f32_to_f16_bits(v1), f32_to_f16_bits(v2)
+            dec_p[j, 0] = np.float64(f16_bits_to_f32(c0))
+            dec_p[j, 1] = np.float64(f16_bits_to_f32(c1))
+            dec_p[j, 2] = np.float64(f16_bits_to_f32(c2))
+            w, m = _emit_position(c0, c1, c2, held_p, i, n_p, w, m, out_wide, out_res, out_pos)
+            n_p += 1
+        if mr:
+            for c in range(4):
+                v = rot[r, c] * rsign[c]
+                ok &= abs(v) <= F16_MAX
+                h = f32_to_f16_bits(v)
+                out_rot[n_r, c] = h
+                held_r[i, c] = h
+                dec_r[j, c] = np.float64(f16_bits_to_f32(h))
+            n_r += 1
+        if ms:
+            for c in range(3):
+                v = scale[r, c]
+                ok &= abs(v) <= F16_MAX
+                h = f32_to_f16_bits(v)
+                out_scale[n_s, c] = h
+                held_s[i, c] = h
+                dec_s[j, c] = np.float64(f16_bits_to_f32(h))
+            n_s += 1
+    return n, n_p, w, n_r, n_s, ok
 
 
 def delta_kernel_warm() -> None:
     """Compile the delta kernels for writable and read-only float32 state arrays."""
+    from ofera_protocol.delta import ROT_FIELD64
+
     k = NumbaKernels()
     thr = np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32)
     lut = np.exp(np.linspace(-9, -2, 256))
@@ -541,9 +543,10 @@ def delta_kernel_warm() -> None:
         for a in (p, r, s):
             a.flags.writeable = not readonly
         rows = ids = np.arange(2, dtype=np.int64)
-        o = (np.zeros(2, np.int64), np.zeros(2, bool), np.zeros((2, 3), np.int8), np.zeros((2, 3), np.uint16))
+        o = (np.zeros(2, np.int64), np.zeros((2, 3), bool), np.zeros(2, bool), np.zeros((2, 3), np.int8),
+             np.zeros((2, 3), np.uint16))
         k.delta_q13(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), np.zeros(3), np.ones(3),
-                    np.ones(3), thr, lut, tol, np.zeros((2, 3), np.uint16), np.zeros(2, np.uint32),
+                    np.ones(3), thr, lut, ROT_FIELD64, tol, np.zeros((2, 3), np.uint16), np.zeros(2, np.uint32),
                     np.zeros((2, 3), np.uint8), np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o,
                     np.zeros(2, np.uint32), np.zeros((2, 3), np.uint8))
         k.delta_f16(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), tol,

@@ -4,7 +4,8 @@
 space; the server and `offline_pipeline` call the same code, so a streamed f32 frame equals the
 offline result bit for bit. One Pipeline per session (the layout adapter, the mapper's bound buffers
 and the deformer hold per-call state); the heavy parts (avatar, head subject, ONNX session) are shared
-through `AvatarAssets`, which `registry.AvatarRegistry` loads once per avatar.
+through `AvatarAssets`, which `registry.AvatarRegistry` loads once per avatar (`registry.offline_pipeline`
+runs one frame through the same registry and Pipeline).
 
 An avatar's expression space is its own (`AvatarAssets.expression`): FLAME-bound avatars ("flame68") go
 through the EPM; ARKit-bound ones ("arkit51", LAM imports: a head of 51 ARKit morph targets) take the
@@ -15,12 +16,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from ofera_protocol import Avatar as WireAvatar
 from ofera_protocol import Quant, make_quant, mirror_x_position, mirror_x_rotation, mirror_x_sh
 
+from ..avatar.model import GaussianAvatar
+from ..avatar.state import GaussianState
 from ..head import HeadSubject, lbs
 from ..mapping.bda import BDA
 from ..mapping.flame_values import split_flame_values
@@ -35,28 +38,48 @@ the morph-target blend), Gaussian deformation."""
 _IDENTITY5 = np.broadcast_to(np.eye(3), (5, 3, 3))  # joint rotations of an arkit51 avatar's head (no joints move)
 
 
+class FastStream(Protocol):
+    """One stream's buffers of a fast path (`ofera.avatar.fast.FastSession`, `.fast_vertex.FastVertexSession`)."""
+
+    def head(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """(E,) expression (arkit51: morph weights), (5, 3, 3) joint rotations -> the vertices the deform needs."""
+        ...
+
+    def deform(self, verts: np.ndarray) -> GaussianState:
+        """Vertices from `head` -> the Gaussians of the frame (a pooled, read-only state)."""
+        ...
+
+
+class FastPath(Protocol):
+    """An avatar's shared, read-only fast path (`ofera.avatar.fast.FastAvatar`, `.fast_vertex.FastVertexAvatar`)."""
+
+    def session(self) -> FastStream: ...
+
+    def warm_up(self) -> None: ...
+
+
 @dataclass
 class AvatarAssets:
     """Everything shared by the sessions of one avatar: loaded once, read-only afterwards."""
 
     id: str
-    avatar: Any  # ofera.avatar.GaussianAvatar
+    avatar: GaussianAvatar
     subject: HeadSubject
     mapper: Mapper | None  # the avatar's EPM (its ONNX session is shared; each Pipeline binds its own buffers);
     # None for an arkit51 avatar (driven by the aligned ARKit weights themselves: no EPM)
     bda: BDA  # the avatar's own BDA (sibling <id>.bda.npz) or identity; a device profile overrides it
-    fast: Any = None  # ofera.avatar.fast.FastAvatar (shared, read-only), or None: the numpy reference
+    fast: FastPath | None = None  # shared, read-only; None: the numpy reference
     _cache: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
-    def create(cls, avatar_id: str, avatar: Any, mapper: Mapper | None, bda: BDA | None = None,
+    def create(cls, avatar_id: str, avatar: GaussianAvatar, mapper: Mapper | None, bda: BDA | None = None,
                fast: bool = True) -> AvatarAssets:
         """`fast`: deform with `ofera.avatar.fast` (subset LBS + numba kernels; vertex-bound avatars:
         `ofera.avatar.fast_vertex`) instead of the reference."""
         subject = HeadSubject.create(avatar.head)  # the avatar's identity is baked into its head's template
         if mapper is None and getattr(avatar, "expression", "flame68") != "arkit51":
             raise ValueError(f"avatar {avatar_id!r} is driven by FLAME values and needs an EPM")
-        fast_avatar = None
+        fast_avatar: FastPath | None = None
         vertex_bound = getattr(avatar, "binding_type", None) == "vertex"
         if fast and vertex_bound and getattr(avatar, "expression", "flame68") == "arkit51":
             from ..avatar.fast_vertex import FastVertexAvatar
@@ -182,7 +205,7 @@ class Pipeline:
         self._x51 = np.zeros(51, np.float32)
         self._y = np.zeros(68, np.float32)
 
-    def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[Any, dict[str, int]]:
+    def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[GaussianState, dict[str, int]]:
         """Blendshape weights (L,) in the session's layout and optional `conf` (2,) [lower, upper] face
         confidence (a region below the threshold keeps its last confident values: streaming.confidence) ->
         (GaussianState in FLAME space, stage durations in microseconds). The returned state is the caller's:
@@ -221,17 +244,3 @@ class Pipeline:
         for _ in range(frames):
             self.run(w)
 
-
-def offline_pipeline(avatar_id: str, layout: str, weights: np.ndarray, *, settings: Any = None,
-                     device: str | None = None) -> tuple[Any, dict[str, int]]:
-    """The server's computation for one frame, without a server: same registry, same Pipeline.
-
-    `settings` (streaming.config.Settings) selects the avatars / devices directories like the
-    server's; None uses the defaults (environment included).
-    """
-    from .registry import registry_for
-
-    reg = registry_for(settings)
-    assets = reg.get(avatar_id)
-    bda = reg.device_bda(device) if device else None
-    return Pipeline(assets, layout, bda).run(np.asarray(weights, np.float32))

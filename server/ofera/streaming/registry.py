@@ -15,10 +15,13 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
+from ..avatar.state import GaussianState
 from ..mapping.bda import BDA
 from ..mapping.runtime import Mapper
 from .config import Settings
-from .pipeline import AvatarAssets
+from .pipeline import AvatarAssets, Pipeline
 
 DEFAULT = "default"
 
@@ -158,3 +161,16 @@ def registry_for(settings: Settings | None = None) -> AvatarRegistry:
         if reg is None:
             reg = _REGISTRIES[key] = AvatarRegistry(settings)
         return reg
+
+
+def offline_pipeline(avatar_id: str, layout: str, weights: np.ndarray, *, settings: Settings | None = None,
+                     device: str | None = None) -> tuple[GaussianState, dict[str, int]]:
+    """The server's computation for one frame, without a server: same registry, same Pipeline.
+
+    `settings` selects the avatars / devices directories like the server's; None uses the defaults
+    (environment included).
+    """
+    reg = registry_for(settings)
+    assets = reg.get(avatar_id)
+    bda = reg.device_bda(device) if device else None
+    return Pipeline(assets, layout, bda).run(np.asarray(weights, np.float32))

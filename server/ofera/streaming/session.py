@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 from ofera_protocol import AvatarInfo, Blendshapes, Bye, FrameFormat, Hello, Ping, ProtocolError, ServerConnection
+from ofera_protocol import errors as E
 from ofera_protocol.delta import DELTA_ENCODINGS
 from ofera_protocol.messages import Resync
-from ofera_protocol import errors as E
 
 from .. import __version__
 from .config import Settings

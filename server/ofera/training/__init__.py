@@ -1,7 +1,13 @@
-"""Avatar training (torch, CPU): the differentiable rasteriser, losses, the trainer and the MiA experiment.
+"""Offline training (the server never imports it): the mapping's EPM and its data, and the avatar (torch, CPU).
+
+- ``epm``: the EPM network, its training, ONNX export, evaluation and the default-EPM recipe (``epm/``).
+- ``paired``: paired data (blendshapes + FLAME values), the synthetic benchmark generator and importers
+  (numpy/scipy; ``paired/``).
+
+Avatar training: the differentiable rasteriser, losses, the trainer and the MiA experiment.
 
 - ``rasterize``: 3D Gaussian splatting in plain PyTorch (EWA projection, per-pixel front-to-back
-  compositing), cameras in the OpenCV convention; an optional gsplat (CUDA) path.
+  compositing) with the OpenCV cameras of ``ofera.avatar.camera``; an optional gsplat (CUDA) path.
 - ``losses``: SSIM, PSNR, the mesh Laplacian, GaussianAvatars' regularisers, an optional VGG/LPIPS term
   from user-supplied weights.
 - ``model``: the trainable avatar: Gaussians bound to the head's triangles (GaussianAvatars' binding) and
@@ -10,5 +16,5 @@
   ``convert``: to and from the server's ``ofera.avatar.GaussianAvatar``.
 - ``synthetic`` and ``experiment``: the MiA experiment on a synthetic capture (``ofera mia experiment``).
 
-Imported only by the training commands: the server never needs torch.
+Imported only by the offline commands: the server never needs torch (``tests/test_architecture.py``).
 """

@@ -9,12 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .rasterize import Camera, load_cameras, save_cameras
+from ..avatar.camera import Camera, load_cameras, save_cameras
+from ..errors import OferaError
 
 N_FLAME = 68
 
 
-class CaptureError(ValueError):
+class CaptureError(OferaError, ValueError):
     """A capture folder that does not follow LAYOUT.md; the message says what is wrong and where."""
 
 

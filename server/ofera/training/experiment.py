@@ -11,7 +11,10 @@
 Hyperparameters are chosen on validation frames (between the training and the test frames in time), never on
 the test frames: each arm keeps the training step with the best validation PSNR (checked every ``val_every``
 steps), and ``tune=True`` also picks, per arm, the learning-rate scale and views per step of ``TUNE_GRID`` with
-the best validation PSNR. The test frames are rendered once, for the chosen avatars.
+the best validation PSNR. Each pipeline validates the way it would be run: without MiA on renders driven by the
+tracker's values (the usual pipeline has no mapper), with MiA on renders driven by the EPM. The test frames are
+rendered only for the chosen avatars. ``epm_selected`` reports a second protocol for comparison: both arms
+validated on EPM-driven renders (the baseline then gets mapper-aware early stopping, half of MiA's idea).
 """
 
 from __future__ import annotations
@@ -64,7 +67,7 @@ class RidgeMapper:
     training split of a small paired benchmark (like the EPM it never saw the test subject)."""
 
     def __init__(self, subjects_per_source: int = 4, frames: int = 600, ridge: float = 1e-3, seed: int = 0) -> None:
-        from ..mapping.paired.benchmark import make_benchmark
+        from .paired.benchmark import make_benchmark
 
         data = make_benchmark(frames_per_subject=frames, subjects_per_source=subjects_per_source, seed=seed)
         train = data.subset("train")
@@ -144,21 +147,22 @@ def save_grid(path: str | Path, columns: dict[str, np.ndarray], title: str = "")
 
 
 def _train_arm(start: TrainableAvatar, cap, flame: np.ndarray, tcfg: TrainConfig, val_every: int,
-               val_score: Callable[[TrainableAvatar], float], train_idx: np.ndarray):
-    """Train a copy of ``start``; returns (the avatar at its best validation step, that step, its score, the
-    validation curve [(step, score)], the training history)."""
+               scorers: dict[str, Callable[[TrainableAvatar], float]], train_idx: np.ndarray) -> dict[str, dict]:
+    """Train a copy of ``start``, scoring it on validation every ``val_every`` steps with each scorer; returns, per
+    scorer, {"avatar" (at its best step), "best_step", "val_psnr", "val_curve" [(step, score)]}."""
     av = TrainableAvatar.from_attributes(start.head_model, start.attributes())
     trainer = Trainer(av, cap, flame, tcfg, train_idx=train_idx)
-    best = (-np.inf, 0, av.attributes())
-    curve = []
+    best = {k: {"val_psnr": -np.inf, "best_step": 0, "attrs": av.attributes(), "val_curve": []} for k in scorers}
     every = max(1, val_every)
     while trainer.iteration < tcfg.iterations:
         trainer.run(iterations=min(tcfg.iterations, trainer.iteration + every), progress=False)
-        score = val_score(av)
-        curve.append((trainer.iteration, round(score, 3)))
-        if score > best[0]:
-            best = (score, trainer.iteration, av.attributes())
-    return TrainableAvatar.from_attributes(start.head_model, best[2]), best[1], best[0], curve, trainer.history
+        for k, score_of in scorers.items():
+            score = score_of(av)
+            best[k]["val_curve"].append((trainer.iteration, round(score, 3)))
+            if score > best[k]["val_psnr"]:
+                best[k] |= {"val_psnr": score, "best_step": trainer.iteration, "attrs": av.attributes()}
+    return {k: {"avatar": TrainableAvatar.from_attributes(start.head_model, b.pop("attrs")), **b}
+            for k, b in best.items()}
 
 
 def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Path | None = None,
@@ -200,8 +204,8 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
         per = [10 * np.log10(1.0 / max(float(diff[t][sel[t]].mean()), 1e-12)) for t in range(len(diff))]
         return base | {"psnr_moving": float(np.mean(per))}
 
-    def val_psnr(av: TrainableAvatar) -> float:  # EPM-driven, as at run time
-        return image_metrics(render_frames(av, y_epm[val_idx], cams, cfg.background), gt_val)["psnr"]
+    def val_psnr(y: np.ndarray) -> Callable[[TrainableAvatar], float]:
+        return lambda av: image_metrics(render_frames(av, y[val_idx], cams, cfg.background), gt_val)["psnr"]
 
     start = degraded_copy(scene.gt_avatar, seed=cfg.seed + 1, correct_basis=cfg.correct_basis)
     base_cfg = TrainConfig(iterations=cfg.iterations, seed=cfg.seed, background=cfg.background,
@@ -210,23 +214,28 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
         base_cfg = replace(base_cfg, **train_overrides)
     grid_points = [dict(zip(TUNE_GRID, v)) for v in itertools.product(*TUNE_GRID.values())] if tune else \
         [{"lr_scale": cfg.lr_scale, "views_per_step": base_cfg.views_per_step}]
-    results: dict = {"psnr": {}, "ssim": {}, "psnr_moving": {}, "val_psnr": {}}
+    results: dict = {"psnr": {}, "ssim": {}, "psnr_moving": {}, "val_psnr": {},
+                     "epm_selected": {"psnr": {}, "ssim": {}, "val_psnr": {}, "chosen": {}}}
     renders: dict[str, np.ndarray] = {}
     extra: dict = {}
+    keys = ("lr_scale", "views_per_step", "best_step", "val_psnr")
     for name, flame in (("without_mia", y_trk), ("mia", y_epm)):
         log(f"training {name.replace('_', ' ')} ({'tracker FLAME fit' if name == 'without_mia' else 'EPM(bs)'}"
             f" values), {cfg.iterations} steps x {len(grid_points)} setting(s)")
+        # "own": validated on renders driven by the values it trains on; "epm": on EPM-driven renders.
+        scorers = {"own": val_psnr(flame)} if name == "mia" else {"own": val_psnr(y_trk), "epm": val_psnr(y_epm)}
         tried = []
         t0 = time.perf_counter()
         for point in grid_points:
             tcfg = replace(base_cfg, views_per_step=point["views_per_step"],
                            **{k: getattr(base_cfg, k) * point["lr_scale"] for k in _LRS})
-            av, step, score, curve, hist = _train_arm(start, cap, flame, tcfg, cfg.val_every, val_psnr, train_idx)
-            tried.append({**point, "best_step": step, "val_psnr": score, "val_curve": curve, "avatar": av,
-                          "history": hist})
-            log(f"  {name} {point}: best validation PSNR {score:.2f} dB at step {step}")
-        chosen = max(tried, key=lambda t: t["val_psnr"])
+            arm = _train_arm(start, cap, flame, tcfg, cfg.val_every, scorers, train_idx)
+            arm.setdefault("epm", arm["own"])
+            tried.append({k: {**point, **v} for k, v in arm.items()})
+            log(f"  {name} {point}: best validation PSNR {arm['own']['val_psnr']:.2f} dB at step "
+                f"{arm['own']['best_step']}")
         secs = time.perf_counter() - t0
+        chosen = max((t["own"] for t in tried), key=lambda t: t["val_psnr"])
         av = chosen["avatar"]
         pred = render_frames(av, y_epm[test_idx], cams, cfg.background)
         renders[name] = pred
@@ -234,19 +243,22 @@ def run_experiment(cfg: ExperimentConfig, epm: str | None = None, grid: str | Pa
         for k in ("psnr", "ssim", "psnr_moving"):
             results[k][name] = m[k]
         results["val_psnr"][name] = chosen["val_psnr"]
+        alt = max((t["epm"] for t in tried), key=lambda t: t["val_psnr"])
+        m_alt = m if alt is chosen else metrics(render_frames(alt["avatar"], y_epm[test_idx], cams, cfg.background))
+        sel = results["epm_selected"]
+        sel["psnr"][name], sel["ssim"][name], sel["val_psnr"][name] = m_alt["psnr"], m_alt["ssim"], alt["val_psnr"]
+        sel["chosen"][name] = {k: alt[k] for k in keys}
         # The same avatar driven by the tracker's values (for the MiA avatar: values it never trained on).
         trk = metrics(render_frames(av, y_trk[test_idx], cams, cfg.background))
         extra[name] = {
             "train_seconds": round(secs, 1),
-            "chosen": {k: chosen[k] for k in ("lr_scale", "views_per_step", "best_step", "val_psnr")},
-            "tried": [{k: t[k] for k in ("lr_scale", "views_per_step", "best_step", "val_psnr", "val_curve")}
-                      for t in tried],
-            "final_l1": float(np.mean([h["l1"] for h in chosen["history"][-50:]])),
+            "chosen": {k: chosen[k] for k in keys},
+            "tried": [{c: {k: t[c][k] for k in (*keys, "val_curve")} for c in t} for t in tried],
             "epm_driven": m,
             "tracker_driven": trk,
         }
         log(f"  {name}: held-out PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f} (EPM-driven; chosen on validation: "
-            f"{extra[name]['chosen']}); {secs:.0f} s")
+            f"{extra[name]['chosen']}); with EPM-driven validation {m_alt['psnr']:.2f} dB; {secs:.0f} s")
     # Reference points: the ground-truth avatar on the FLAME mesh of the tracker's values / of the EPM's values.
     gt_av = TrainableAvatar.from_attributes(head, scene.gt_avatar.attributes())
     extra["reference"] = {

@@ -25,84 +25,16 @@ Quaternions are (w, x, y, z) and need not be normalised; scales are linear (metr
 
 from __future__ import annotations
 
-import json
-import math
 from dataclasses import dataclass
-from pathlib import Path
 
-import numpy as np
 import torch
+
+from ..avatar.camera import Camera
 
 LOW_PASS = 0.3  # px^2 added to every 2D covariance (3DGS)
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 SUPPORT_ALPHA = 1e-5  # with alpha_min = 0: splats are cut where their alpha falls below this
-
-
-@dataclass(frozen=True)
-class Camera:
-    """A pinhole camera, OpenCV convention.
-
-    K (3, 3) intrinsics in pixels; R (3, 3), t (3,) world -> camera: ``p_cam = R @ p + t`` (camera axes:
-    x right, y down, z forward, so a visible point has z > 0); ``width``, ``height`` in pixels.
-    """
-
-    K: np.ndarray
-    R: np.ndarray
-    t: np.ndarray
-    width: int
-    height: int
-    name: str = "cam"
-
-    @classmethod
-    def look_at(cls, eye, target, up=(0.0, 1.0, 0.0), fov_deg: float = 30.0, width: int = 64, height: int = 64,
-                name: str = "cam") -> Camera:
-        """A camera at ``eye`` looking at ``target`` with world ``up`` pointing up in the image."""
-        eye, target, up = (np.asarray(a, np.float64) for a in (eye, target, up))
-        fwd = target - eye
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross(fwd, up)
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        rot = np.stack([right, down, fwd])  # rows: camera axes in world coordinates
-        f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
-        k = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-        return cls(k, rot, -rot @ eye, int(width), int(height), name)
-
-    @property
-    def centre(self) -> np.ndarray:
-        """Camera centre in world coordinates."""
-        return -self.R.T @ self.t
-
-    def scaled(self, factor: float) -> Camera:
-        """The same camera at ``factor`` times the resolution."""
-        k = self.K.copy()
-        k[:2] *= factor
-        return Camera(k, self.R, self.t, round(self.width * factor), round(self.height * factor), self.name)
-
-    def to_json(self) -> dict:
-        return {"name": self.name, "width": self.width, "height": self.height, "K": np.asarray(self.K).tolist(),
-                "R": np.asarray(self.R).tolist(), "t": np.asarray(self.t).tolist()}
-
-    @classmethod
-    def from_json(cls, d: dict) -> Camera:
-        k, r, t = (np.asarray(d[key], np.float64) for key in ("K", "R", "t"))
-        if k.shape != (3, 3) or r.shape != (3, 3) or t.shape != (3,):
-            raise ValueError(f"camera {d.get('name', '?')}: K and R must be 3x3 and t 3 values")
-        if not np.allclose(r @ r.T, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
-            raise ValueError(f"camera {d.get('name', '?')}: R is not a rotation matrix")
-        return cls(k, r, t, int(d["width"]), int(d["height"]), str(d.get("name", "cam")))
-
-
-def save_cameras(cameras: list[Camera], path: str | Path) -> None:
-    Path(path).write_text(json.dumps({"convention": "opencv", "cameras": [c.to_json() for c in cameras]}, indent=1))
-
-
-def load_cameras(path: str | Path) -> list[Camera]:
-    d = json.loads(Path(path).read_text())
-    if d.get("convention", "opencv") != "opencv":
-        raise ValueError(f"{path}: convention {d['convention']!r} unsupported (write OpenCV: x right, y down, z fwd)")
-    return [Camera.from_json(c) for c in d["cameras"]]
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:

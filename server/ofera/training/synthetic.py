@@ -1,6 +1,6 @@
 """A synthetic multi-view capture of the procedural head, rendered from the paired-data rig's ground truth.
 
-The capture is made the way the paired benchmark (``ofera.mapping.paired``) makes a subject, with a new
+The capture is made the way the paired benchmark (``ofera.training.paired``) makes a subject, with a new
 subject the EPM never saw: a rig style and identity (the "person": ARKit weights -> mesh, deliberately not
 the head model), a capture-like weight sequence, the camera estimator's observed blendshapes (the
 benchmark's estimator for that source: gain, bias, cross-talk, lag, jitter, dropouts), and the tracker's
@@ -16,11 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from ..avatar.camera import Camera
 from ..head.model import HeadModel
 from ..head.render import vertex_colours
 from .data import Capture
 from .model import SH_C0, TrainableAvatar
-from .rasterize import Camera, rasterize
+from .rasterize import rasterize
 
 BENCHMARK_SEED = 0  # the estimator of the paired benchmark the default EPM was trained on
 TEST_SUBJECT = 1000  # subject ids of the benchmark are 0..29: this one is new to the EPM
@@ -34,7 +35,7 @@ def capture_cameras(n: int = 3, size: int = 64, distance: float = 0.45, fov_deg:
     for k, (yaw, pitch) in enumerate(views[:n]):
         a, b = np.radians(yaw), np.radians(pitch)
         eye = target + distance * np.array([np.sin(a) * np.cos(b), np.sin(b), np.cos(a) * np.cos(b)])
-        cams.append(Camera.look_at(eye, target, fov_deg=fov_deg, width=size, height=size, name=f"cam{k}"))
+        cams.append(Camera.look_at(eye, target, fov_x_deg=fov_deg, width=size, height=size, name=f"cam{k}"))
     return cams
 
 
@@ -123,11 +124,11 @@ def make_scene(head: HeadModel, n_train: int, n_test: int, cameras: list[Camera]
 
     Frames in time order: ``n_train`` training, ``n_val`` validation (for choosing hyperparameters), then
     ``n_test`` held-out test frames."""
-    from ..mapping.paired.benchmark import SOURCES
-    from ..mapping.paired.fit import FlameFitter
-    from ..mapping.paired.observe import estimator_params, observe_camera
-    from ..mapping.paired.rig import Rig, RigBasis, RigStyle
-    from ..mapping.paired.sequences import generate_weights
+    from .paired.benchmark import SOURCES
+    from .paired.fit import FlameFitter
+    from .paired.observe import estimator_params, observe_camera
+    from .paired.rig import Rig, RigBasis, RigStyle
+    from .paired.sequences import generate_weights
 
     src = SOURCES[source]
     seeds = np.random.SeedSequence([BENCHMARK_SEED, TEST_SUBJECT + seed]).spawn(4)

@@ -3,9 +3,10 @@
 The page (``static/index.html``) and its JavaScript modules are static files, served as they are: no
 build step, no CDN, nothing fetched from outside at run time. ``static/msgpack.js`` and
 ``static/protocol.js`` are the client side of PROTOCOL.md (hello, bs, ping, bye; welcome, avatar chunks,
-frames in f32/f16/q13, dense or sparse), ``static/renderer.js`` draws the Gaussians with WebGL2 (instanced
-quads, projected 2D covariance, back-to-front premultiplied blending, depths sorted in
-``static/sort-worker.js``), ``static/facelog.js`` reads dropped face-log and Live Link CSV files,
+frames in f32/f16/q13, dense or sparse), ``static/splat-worker.js`` keeps the session's Gaussians and prepares
+each view's splats off the main thread (decoding, projected 2D covariance, culling, depth sort),
+``static/renderer.js`` draws them with WebGL2 (instanced quads, back-to-front premultiplied blending),
+``static/facelog.js`` reads dropped face-log and Live Link CSV files,
 ``static/bsdata.js`` LAM / OpenAvatarChat ``bsData.json`` expression tracks, and
 ``static/app.js`` ties it together (sliders, presets, playback, orbit camera, statistics, reduced stream
 when the browser is slow).

@@ -13,8 +13,10 @@ namespace Ofera.Client
             Device = 7, Token = 8, MaxGaussians = 9, Seq = 10, T = 11, W = 12, Session = 13, Quant_ = 14,
             Server = 15, Count = 16, ShDegree = 17, Chunk = 18, Chunks = 19, Offset = 20, N = 21, Opacity = 22,
             Sh = 23, Position = 24, Rotation = 25, Scale = 26, Timing = 27, Index = 28, Code = 29, Message = 30,
-            Fatal = 31, Id = 32, PosMin = 33, PosMax = 34, LogScale = 35, Room = 36, Member = 37, Reason = 38;
-        public const int KeyCount = 39;
+            Fatal = 31, Id = 32, PosMin = 33, PosMax = 34, LogScale = 35, Room = 36, Member = 37, Reason = 38,
+            Delta = 39, Key = 40, Changed = 41, Wide = 42, PositionDelta = 43, MovedPosition = 44, MovedRotation = 45,
+            MovedScale = 46;
+        public const int KeyCount = 47;
 
         public static readonly string[] Names =
         {
@@ -22,6 +24,7 @@ namespace Ofera.Client
             "max_gaussians", "seq", "t", "w", "session", "quant", "server", "count", "sh_degree", "chunk",
             "chunks", "offset", "n", "opacity", "sh", "position", "rotation", "scale", "timing", "index",
             "code", "message", "fatal", "id", "pos_min", "pos_max", "log_scale", "room", "member", "reason",
+            "delta", "key", "changed", "wide", "position_delta", "moved_position", "moved_rotation", "moved_scale",
         };
 
         public static readonly byte[][] Utf8 = MakeUtf8();
@@ -235,7 +238,7 @@ namespace Ofera.Client
         FrameFormat FormatFor(string member);
     }
 
-    public sealed class ServerMessageDecoder : MessageDecoderBase
+    public sealed partial class ServerMessageDecoder : MessageDecoderBase
     {
         /// <summary>v1 types plus the rooms messages `join` and `leave` (DESIGN.md "Rooms"; the reference server does not send them yet).</summary>
         public static readonly string[] Types = { "welcome", "avatar", "frame", "error", "pong", "join", "leave" };
@@ -286,7 +289,8 @@ namespace Ofera.Client
                         }
                         if (f == null) throw Err(ErrorCodes.NotReady, "frame before welcome: the session's format is unknown");
                         if (result.Frame == null) result.Frame = new FrameData();
-                        DecodeFrame(f, result.Frame);
+                        if (f.Delta != null) DecodeDeltaSessionFrame(f, result.Frame); // Delta.cs (PROTOCOL.md 7.1)
+                        else DecodeFrame(f, result.Frame);
                         result.Frame.Member = member;
                         result.Kind = ServerMessageKind.Frame;
                         break;
@@ -364,6 +368,7 @@ namespace Ofera.Client
             m.Layout = GetChoice(Top, Keys.Layout, w, Protocol.Layouts, ErrorCodes.UnknownLayout, null);
             m.Coords = GetChoice(Top, Keys.Coords, w, Protocol.CoordsNames, ErrorCodes.BadField, null);
             m.Sparse = GetBool(Top, Keys.Sparse, w);
+            m.Delta = GetOptBool(Top, Keys.Delta, w) ?? false;
             if (qm >= 0 && m.Encoding == "q13") m.Quant = DecodeQuant(qm);
             m.Server = GetStr(Top, Keys.Server, w, false);
             m.Room = GetStr(Top, Keys.Room, w, false);
@@ -668,7 +673,7 @@ namespace Ofera.Client
     /// <summary>Decodes client -> server messages (what a server does); used by tests and tools.</summary>
     public sealed class ClientMessageDecoder : MessageDecoderBase
     {
-        public static readonly string[] Types = { "hello", "bs", "ping", "bye" };
+        public static readonly string[] Types = { "hello", "bs", "ping", "bye", "resync" };
 
         /// <summary><paramref name="layout"/>: the session's layout, fixing the length of bs.w (null: any known length).</summary>
         public ClientMessageKind Decode(byte[] buf, int offset, int count, string layout, ClientMessage result,
@@ -682,6 +687,7 @@ namespace Ofera.Client
                 case "bs": DecodeBs(layout, result.Blendshapes); result.Kind = ClientMessageKind.Blendshapes; break;
                 case "hello": result.Hello = DecodeHello(); result.Kind = ClientMessageKind.Hello; break;
                 case "ping": result.PingT = GetInt(Top, Keys.T, "ping", long.MinValue, long.MaxValue); result.Kind = ClientMessageKind.Ping; break;
+                case "resync": result.Kind = ClientMessageKind.Resync; break;
                 default: result.Kind = ClientMessageKind.Bye; break;
             }
             return result.Kind;
@@ -701,6 +707,7 @@ namespace Ofera.Client
             h.Coords = GetChoice(Top, Keys.Coords, w, Protocol.CoordsNames, ErrorCodes.BadField, "flame");
             bool? sparse = GetOptBool(Top, Keys.Sparse, w);
             h.Sparse = sparse ?? false;
+            h.Delta = GetOptBool(Top, Keys.Delta, w) ?? false;
             h.Device = GetStr(Top, Keys.Device, w, false);
             h.Token = GetStr(Top, Keys.Token, w, false, Protocol.MaxStringBytes);
             h.MaxGaussians = GetOptInt(Top, Keys.MaxGaussians, w, 1, Protocol.UInt32Max);
@@ -737,6 +744,7 @@ namespace Ofera.Client
             if (h.Encoding != null) n++;
             if (h.Coords != null) n++;
             if (h.Sparse.HasValue) n++;
+            if (h.Delta == true) n++;
             if (h.Device != null) n++;
             if (h.Token != null) n++;
             if (h.MaxGaussians.HasValue) n++;
@@ -751,6 +759,7 @@ namespace Ofera.Client
             if (h.Encoding != null) { w.WriteString("encoding"); w.WriteString(h.Encoding); }
             if (h.Coords != null) { w.WriteString("coords"); w.WriteString(h.Coords); }
             if (h.Sparse.HasValue) { w.WriteString("sparse"); w.WriteBool(h.Sparse.Value); }
+            if (h.Delta == true) { w.WriteString("delta"); w.WriteBool(true); }
             if (h.Device != null) { w.WriteString("device"); w.WriteString(h.Device); }
             if (h.Token != null) { w.WriteString("token"); w.WriteString(h.Token); }
             if (h.MaxGaussians.HasValue) { w.WriteString("max_gaussians"); w.WriteInt(h.MaxGaussians.Value); }
@@ -785,6 +794,13 @@ namespace Ofera.Client
         {
             w.WriteMapHeader(1);
             w.WriteString("type"); w.WriteString("bye");
+        }
+
+        /// <summary>`resync`: a delta-session client asks for a key frame (PROTOCOL.md 7.1).</summary>
+        public static void Resync(MsgPackWriter w)
+        {
+            w.WriteMapHeader(1);
+            w.WriteString("type"); w.WriteString("resync");
         }
     }
 }

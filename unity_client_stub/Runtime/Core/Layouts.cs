@@ -1,4 +1,4 @@
-// Blendshape layout names (same order as server/ofera/mapping/layouts.py). UnityEngine-free.
+// Blendshape layout names in wire order (protocol/ofera_protocol/layouts.py; Tests/TestMain.cs checks them against protocol/vectors/tables.json). UnityEngine-free.
 using System;
 
 namespace Ofera.Client

@@ -5,7 +5,7 @@ using System;
 namespace Ofera.Client
 {
     public enum ServerMessageKind { None, Welcome, Avatar, Frame, Error, Pong, Join, Leave }
-    public enum ClientMessageKind { None, Hello, Blendshapes, Ping, Bye }
+    public enum ClientMessageKind { None, Hello, Blendshapes, Ping, Bye, Resync }
 
     /// <summary>Client -> server `hello`. Null fields are omitted on the wire (the server's defaults apply).</summary>
     public sealed class Hello
@@ -16,6 +16,8 @@ namespace Ofera.Client
         public string Encoding;        // null: omitted ("f32")
         public string Coords;          // null: omitted ("flame")
         public bool? Sparse;
+        /// <summary>Ask for key and delta frames (f16, q13; PROTOCOL.md 7.1). Only true is written.</summary>
+        public bool? Delta;
         public string Device;
         public string Token;
         public long? MaxGaussians;
@@ -41,6 +43,8 @@ namespace Ofera.Client
         public int Count;
         public bool Sparse;
         public Quant Quant; // only for q13
+        /// <summary>A delta session's held codes (PROTOCOL.md 7.1, Delta.cs); null: frames are self-contained.</summary>
+        public DeltaState Delta;
 
         public FrameFormat() { }
         public FrameFormat(FrameEncoding encoding, int count, bool sparse, Quant quant)
@@ -60,6 +64,8 @@ namespace Ofera.Client
         public string Encoding;
         public string Coords;
         public bool Sparse;
+        /// <summary>Frames are key and delta frames (PROTOCOL.md 7.1); ToFormat gives the session its DeltaState.</summary>
+        public bool Delta;
         public Quant Quant;     // null unless encoding q13
         public string Server;   // optional
         /// <summary>Rooms (DESIGN.md "Rooms"; not yet in PROTOCOL.md): the room joined and this client's member id; null without a room.</summary>
@@ -81,7 +87,9 @@ namespace Ofera.Client
         {
             FrameEncoding e;
             Ofera.Client.Protocol.TryParseEncoding(Encoding, out e);
-            return new FrameFormat(e, Count, Sparse, e == FrameEncoding.Q13 ? Quant : null);
+            FrameFormat f = new FrameFormat(e, Count, Sparse, e == FrameEncoding.Q13 ? Quant : null);
+            if (Delta) f.Delta = new DeltaState(e, Count, f.Quant);
+            return f;
         }
     }
 
@@ -131,6 +139,8 @@ namespace Ofera.Client
         public long T;
         public int N;
         public bool HasIndex;
+        /// <summary>Delta sessions: a key frame (dense) or a delta frame (HasIndex: the changed Gaussians).</summary>
+        public bool IsKey;
         /// <summary>Rooms: whose avatar the frame moves (null: the session's own avatar, v1). Interned by the decoder.</summary>
         public string Member;
         /// <summary>False when the decoder only kept the payload (GPU upload path): Position/Rotation/Scale are not filled.</summary>
@@ -171,7 +181,7 @@ namespace Ofera.Client
 
         public void CopyFrom(FrameData o)
         {
-            Seq = o.Seq; T = o.T; N = o.N; HasIndex = o.HasIndex; Member = o.Member; HasValues = o.HasValues;
+            Seq = o.Seq; T = o.T; N = o.N; HasIndex = o.HasIndex; IsKey = o.IsKey; Member = o.Member; HasValues = o.HasValues;
             EnsureCapacity(o.N);
             if (o.HasIndex) Array.Copy(o.Index, Index, o.N);
             if (o.HasValues)

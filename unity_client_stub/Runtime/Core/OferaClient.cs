@@ -22,6 +22,9 @@ namespace Ofera.Client
         /// <summary>unity (default: the server mirrors x for Unity) or flame.</summary>
         public string Coords = "unity";
         public bool Sparse = true;
+        /// <summary>Ask for temporal deltas (f16, q13; PROTOCOL.md 7.1): key frames, then only what moved. A delta
+        /// frame the client cannot apply makes it send `resync` itself.</summary>
+        public bool Delta;
         /// <summary>Headset profile selecting the server's BDA, e.g. quest_pro; null to omit.</summary>
         public string Device = "quest_pro";
         public string Token;
@@ -285,6 +288,7 @@ namespace Ofera.Client
             h.Encoding = _opt.Encoding;
             h.Coords = _opt.Coords;
             h.Sparse = _opt.Sparse;
+            if (_opt.Delta) h.Delta = true;
             h.Device = string.IsNullOrEmpty(_opt.Device) ? null : _opt.Device;
             h.Token = string.IsNullOrEmpty(_opt.Token) ? null : _opt.Token;
             h.MaxGaussians = _opt.MaxGaussians;
@@ -385,6 +389,15 @@ namespace Ofera.Client
                         {
                             Interlocked.Increment(ref Stats.FramesInvalid);
                             Emit(ClientEventKind.ProtocolError, "dropped a bad message: " + e.Message);
+                            DeltaState held = conn.Format != null ? conn.Format.Delta : null;
+                            if (held != null && held.ResyncNeeded) // a lost delta frame: ask for a key frame
+                            {
+                                held.ResyncNeeded = false;
+                                MsgPackWriter rw = new MsgPackWriter(16);
+                                ClientMessageEncoder.Resync(rw);
+                                _raw.Enqueue(rw.ToArray());
+                                Signal();
+                            }
                             continue;
                         }
                         Emit(ClientEventKind.ProtocolError, "fatal: " + e.Message);
@@ -452,6 +465,12 @@ namespace Ofera.Client
                                     if (total >= 0) Stats.ServerTotal.Add(total);
                                     if (lastSeq >= 0 && f.Seq > lastSeq + 1) Interlocked.Add(ref Stats.FramesSkippedByServer, f.Seq - lastSeq - 1);
                                     lastSeq = f.Seq;
+                                }
+                                DeltaState ds = f.Member == null && conn.Format != null ? conn.Format.Delta : null;
+                                if (ds != null) // delta session: a frame replacing an untaken one must carry everything
+                                {
+                                    ds.Track(f);
+                                    if (f.HasIndex && _frames.HasUntaken(null)) ds.FillDense(f);
                                 }
                                 if (_frames.Publish(f.Member)) Interlocked.Increment(ref Stats.FramesDropped);
                                 break;

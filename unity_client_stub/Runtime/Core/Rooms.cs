@@ -64,6 +64,17 @@ namespace Ofera.Client
             }
         }
 
+        /// <summary>Receive thread: whether the member's slot holds a frame the main thread has not taken (the next
+        /// Publish would replace it).</summary>
+        public bool HasUntaken(string member)
+        {
+            lock (_lock)
+            {
+                Slot s = SlotFor(member, false);
+                return s != null && s.Ready != null;
+            }
+        }
+
         /// <summary>Main thread: the member's newest frame not taken yet, or null. Recycles the one taken before.</summary>
         public FrameData Take(string member)
         {

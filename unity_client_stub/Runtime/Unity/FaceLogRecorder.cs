@@ -3,7 +3,6 @@
 // and tested under mono.
 using System;
 using System.IO;
-using System.Reflection;
 using UnityEngine;
 
 namespace Ofera.Client.Unity
@@ -37,7 +36,7 @@ namespace Ofera.Client.Unity
         [Tooltip("Write confidence_lower/confidence_upper/data_source columns when the source provides them.")]
         public bool recordConfidence = true;
 
-        [Tooltip("Write the tracker's own sample time (Face_Time) when the source or Meta's OVRPlugin provides it.")]
+        [Tooltip("Write the tracker's own sample time (Face_Time) when the source provides it (IFaceSampleTime, e.g. OvrFaceSource).")]
         public bool recordTrackerTime = true;
 
         public bool recordOnEnable;
@@ -95,7 +94,6 @@ namespace Ofera.Client.Unity
             if (recordTrackerTime)
             {
                 IFaceSampleTime clock = faceSource as IFaceSampleTime;
-                if (clock == null && (faceSource.Layout == "ovr63" || faceSource.Layout == "ovr70")) clock = OvrPluginFaceTime.Create();
                 double probe;
                 if (clock != null && clock.TryGetSampleTime(out probe)) _trackerClock = clock;
             }
@@ -123,79 +121,6 @@ namespace Ofera.Client.Unity
             if (!_trackerClock.TryGetSampleTime(out tracker) || tracker == _lastTrackerTime) return; // no new tracker sample
             _lastTrackerTime = tracker;
             _writer.Write((t - _t0) * 1e-6, tracker, _weights, lo, up, source);
-        }
-    }
-
-    /// <summary>
-    /// The face state's time from Meta's OVRPlugin (Meta XR Core SDK), found by reflection so that this
-    /// assembly needs no reference to Oculus.VR: OVRPlugin.GetFaceState2 (v2), else GetFaceState (v1), with
-    /// Step.Render and the newest frame, read once per rendered frame. Null when the SDK is absent.
-    /// </summary>
-    sealed class OvrPluginFaceTime : IFaceSampleTime
-    {
-        readonly MethodInfo _get;
-        readonly object[] _args;
-        readonly FieldInfo _time, _status, _valid;
-        int _frame = -1;
-        double _cached;
-        bool _ok;
-
-        OvrPluginFaceTime(MethodInfo get, Type state, object step)
-        {
-            _get = get;
-            _args = new object[] { step, -1, Activator.CreateInstance(state) };
-            _time = state.GetField("Time");
-            _status = state.GetField("Status");
-            _valid = _status != null ? _status.FieldType.GetField("IsValid") : null;
-        }
-
-        public static OvrPluginFaceTime Create()
-        {
-            try
-            {
-                Type plugin = Type.GetType("OVRPlugin, Oculus.VR");
-                if (plugin == null) return null;
-                Type stepType = plugin.GetNestedType("Step");
-                if (stepType == null) return null;
-                object render = Enum.Parse(stepType, "Render");
-                foreach (string pair in new[] { "GetFaceState2:FaceState2", "GetFaceState:FaceState" })
-                {
-                    string[] p = pair.Split(':');
-                    Type state = plugin.GetNestedType(p[1]);
-                    if (state == null) continue;
-                    MethodInfo m = plugin.GetMethod(p[0], BindingFlags.Public | BindingFlags.Static, null,
-                                                    new[] { stepType, typeof(int), state.MakeByRefType() }, null);
-                    if (m == null || state.GetField("Time") == null) continue;
-                    return new OvrPluginFaceTime(m, state, render);
-                }
-            }
-            catch (Exception e)
-            {
-                Debug.LogWarning("[OFERA] no tracker time from OVRPlugin (" + e.GetType().Name + "): Face_Time not recorded");
-            }
-            return null;
-        }
-
-        public bool TryGetSampleTime(out double seconds)
-        {
-            if (Time.frameCount != _frame)
-            {
-                _frame = Time.frameCount;
-                _ok = false;
-                try
-                {
-                    if ((bool)_get.Invoke(null, _args))
-                    {
-                        object state = _args[2];
-                        bool valid = _valid == null || (bool)_valid.GetValue(_status.GetValue(state));
-                        _cached = (double)_time.GetValue(state);
-                        _ok = valid && _cached > 0;
-                    }
-                }
-                catch (Exception) { _ok = false; }
-            }
-            seconds = _cached;
-            return _ok;
         }
     }
 }

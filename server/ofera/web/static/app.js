@@ -1,12 +1,13 @@
 // The preview page: a protocol client of /v1/stream with sliders, presets, CSV and bsData.json playback, an orbit camera
 // and a WebGL2 splat renderer. URL options: ?max=N (ask for at most N Gaussians; no automatic
-// reduction), ?auto=0 (never reduce), ?enc=f32|f16|q13 (default f16), ?sparse=0, ?res=PIXELS (largest
+// reduction), ?auto=0 (never reduce), ?enc=f32|f16|q13 (default f16), ?sparse=0, ?delta=1 (temporal deltas, f16 or
+// q13: PROTOCOL.md 7.1), ?res=PIXELS (largest
 // canvas side, default 480), ?minfps=15, ?fill=0 (no splat enlargement of a reduced stream),
 // ?avatar=ID, ?device=NAME, ?token=T, ?ws=URL.
 import { looksLikeJson, parseBsData } from "./bsdata.js";
 import { parseFaceLog } from "./facelog.js";
 import { decode } from "./msgpack.js";
-import { bsMessage, byeMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError } from "./protocol.js";
+import { bsMessage, byeMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError, resyncMessage } from "./protocol.js";
 import { lookAt, perspective, SplatRenderer } from "./renderer.js";
 
 const params = new URLSearchParams(location.search);
@@ -17,6 +18,7 @@ const intParam = (name) => {
 const opts = {
   encoding: ["f32", "f16", "q13"].includes(params.get("enc")) ? params.get("enc") : "f16",
   sparse: params.get("sparse") !== "0",
+  delta: params.get("delta") === "1",
   forcedMax: intParam("max"),
   res: intParam("res") ?? 480,
   minFps: intParam("minfps") ?? 15,
@@ -315,7 +317,7 @@ function connect(maxGaussians) {
   setStatus(`connecting to ${opts.url}${maxGaussians ? ` (at most ${maxGaussians} Gaussians)` : ""} …`);
   ws.onopen = () => {
     ws.send(helloMessage({ layout: "arkit52", avatar: opts.avatar, encoding: opts.encoding, sparse: opts.sparse,
-      device: opts.device, token: opts.token, maxGaussians: maxGaussians ?? undefined }));
+      delta: opts.delta, device: opts.device, token: opts.token, maxGaussians: maxGaussians ?? undefined }));
   };
   ws.onmessage = (ev) => {
     if (c !== conn) return;
@@ -421,6 +423,7 @@ worker.onmessage = ({ data }) => {
   } else if (data.kind === "error") {
     reportError(`${data.fatal ? "fatal" : "dropped a frame"}: ${data.code}: ${data.message}`);
     if (data.fatal) fatalClose(c, new ProtocolError(data.code, data.message));
+    else if (c.welcome?.delta && c.ws.readyState === WebSocket.OPEN) c.ws.send(resyncMessage()); // a lost delta frame
   } else if (data.kind === "prepared") {
     prepMs = performance.now() - prepSentAt;
     renderer.setSplats(data.buffer, data.count);

@@ -1,5 +1,6 @@
 // The client side of the OFERA protocol v1 (PROTOCOL.md): message builders, server message checks,
-// and the Gaussian state a client keeps (avatar chunks, then dense or sparse frames in f32/f16/q13).
+// and the Gaussian state a client keeps (avatar chunks, then dense or sparse frames in f32/f16/q13, or the
+// key and delta frames of a delta session, section 7.1).
 import { decode, encode, MsgpackError } from "./msgpack.js";
 
 export const PROTOCOL = 1;
@@ -25,11 +26,16 @@ export function nowUs() {
 // ----- client -> server ------------------------------------------------------------------------------
 
 /** `hello` (keys in the order of section 4.1; options left undefined are omitted). */
-export function helloMessage({ layout = "arkit52", avatar, encoding, coords, sparse, device, token, maxGaussians } = {}) {
+export function helloMessage({ layout = "arkit52", avatar, encoding, coords, sparse, delta, device, token, maxGaussians } = {}) {
   return encode({
-    type: "hello", protocol: PROTOCOL, layout, avatar, encoding, coords, sparse, device, token,
-    max_gaussians: maxGaussians,
+    type: "hello", protocol: PROTOCOL, layout, avatar, encoding, coords, sparse, delta: delta || undefined, device,
+    token, max_gaussians: maxGaussians,
   });
+}
+
+/** `resync`: a delta-session client asks for a key frame (section 7.1). */
+export function resyncMessage() {
+  return encode({ type: "resync" });
 }
 
 /** `bs`: weights as float32 (a Float32Array or an array of numbers); `conf` optional [lower, upper] face
@@ -123,6 +129,7 @@ export function decodeServerMessage(bytes) {
         type, protocol: msg.protocol, session: msg.session, avatar, layout: field(msg, "layout", "string"),
         encoding: field(msg, "encoding", "string"), coords: field(msg, "coords", "string"),
         sparse: field(msg, "sparse", "boolean", true) ?? false, server: field(msg, "server", "string", true),
+        delta: field(msg, "delta", "boolean", true) ?? false,
       };
       if (!ENCODINGS.includes(out.encoding)) throw new ProtocolError("bad_field", `welcome: unknown encoding ${out.encoding}`);
       if (out.encoding === "q13") {
@@ -150,7 +157,11 @@ export function decodeServerMessage(bytes) {
     case "frame":
       return {
         type, seq: field(msg, "seq", "int"), t: field(msg, "t", "int"), timing: field(msg, "timing", "map", true) ?? {},
-        n: field(msg, "n", "int"), index: field(msg, "index", "bin", true), position: field(msg, "position", "bin"),
+        key: field(msg, "key", "boolean", true), n: field(msg, "n", "int"), index: field(msg, "index", "bin", true),
+        changed: field(msg, "changed", "bin", true), moved_position: field(msg, "moved_position", "bin", true),
+        moved_rotation: field(msg, "moved_rotation", "bin", true), moved_scale: field(msg, "moved_scale", "bin", true),
+        wide: field(msg, "wide", "bin", true),
+        position_delta: field(msg, "position_delta", "bin", true), position: field(msg, "position", "bin"),
         rotation: field(msg, "rotation", "bin"), scale: field(msg, "scale", "bin"),
       };
     case "error":
@@ -270,6 +281,15 @@ export class AvatarState {
     this.nextChunk = 0;
     this.complete = false;
     this.scratch = null;
+    this.delta = !!welcome.delta; // section 7.1: the codes this client holds, from key and delta frames
+    this.hasKey = false;
+    if (this.delta) {
+      const q13 = this.encoding === "q13";
+      if (!q13 && this.encoding !== "f16") throw new ProtocolError("bad_field", `no delta frames in ${this.encoding}`);
+      this.posCodes = new Uint16Array(this.count * 3);
+      this.rotCodes = q13 ? new Uint32Array(this.count) : new Uint16Array(this.count * 4);
+      this.scaleCodes = q13 ? new Uint8Array(this.count * 3) : new Uint16Array(this.count * 3);
+    }
   }
 
   /** Apply one `avatar` chunk (decoded); returns true when it was the last. */
@@ -304,9 +324,23 @@ export class AvatarState {
     return this.complete;
   }
 
-  /** Apply a decoded `frame`: dense (all Gaussians) or sparse (those in `index`). */
+  /**
+   * Apply a decoded `frame`: dense (all Gaussians), sparse (those in `index`), or a delta session's key or delta
+   * frame. Returns the Gaussians it changed (Uint32Array) or null for all of them.
+   */
   applyFrame(f) {
     if (!this.complete) throw new ProtocolError("not_ready", "frame before the whole avatar");
+    if (this.delta) {
+      if (typeof f.key !== "boolean") throw new ProtocolError("bad_field", "frame: delta session frame without 'key'");
+      if (!f.key) return this.applyDelta(f);
+      if (f.index !== undefined || f.n !== this.count) throw new ProtocolError("bad_field", "frame: a key frame is dense");
+      decodeFrameArrays(this.encoding, f.n, f, this.quant, this);
+      this.posCodes.set(u16view(f.position));
+      this.rotCodes.set(this.encoding === "q13" ? u32view(f.rotation) : u16view(f.rotation));
+      this.scaleCodes.set(this.encoding === "q13" ? f.scale : u16view(f.scale));
+      this.hasKey = true;
+      return null;
+    }
     if (f.index !== undefined) {
       if (!this.sparse) throw new ProtocolError("bad_field", "frame with 'index' in a non-sparse session");
       if (f.index.length !== f.n * 4) throw new ProtocolError("bad_length", `frame: index has ${f.index.length} bytes for n = ${f.n}`);
@@ -329,9 +363,108 @@ export class AvatarState {
         R[4 * i + 2] = s.rotation[4 * k + 2]; R[4 * i + 3] = s.rotation[4 * k + 3];
         S[3 * i] = s.scale[3 * k]; S[3 * i + 1] = s.scale[3 * k + 1]; S[3 * i + 2] = s.scale[3 * k + 2];
       }
-    } else {
-      if (f.n !== this.count) throw new ProtocolError("bad_length", `dense frame with n = ${f.n}, count is ${this.count}`);
-      decodeFrameArrays(this.encoding, f.n, f, this.quant, this);
+      return idx;
+    }
+    if (f.n !== this.count) throw new ProtocolError("bad_length", `dense frame with n = ${f.n}, count is ${this.count}`);
+    decodeFrameArrays(this.encoding, f.n, f, this.quant, this);
+    return null;
+  }
+
+  /** A delta frame (section 7.1): checked whole, then the carried codes replaced and those Gaussians decoded. */
+  applyDelta(f) {
+    if (!this.hasKey) throw new ProtocolError("not_ready", "frame: a delta frame before any key frame (send resync)");
+    const n = f.n, count = this.count, q13 = this.encoding === "q13";
+    const changed = maskIds(f.changed, count, "changed");
+    if (changed.length !== n) throw new ProtocolError("bad_field", `frame: n = ${n} but 'changed' marks ${changed.length}`);
+    const moved = ["moved_position", "moved_rotation", "moved_scale"].map((k) => maskBits(f[k], n, k));
+    for (let j = 0; j < n; j++) {
+      if (!moved[0][j] && !moved[1][j] && !moved[2][j]) throw new ProtocolError("bad_field", "frame: a changed Gaussian carries nothing");
+    }
+    const [np, nr, ns] = moved.map((m) => m.reduce((a, b) => a + b, 0));
+    const wide = maskBits(f.wide, np, "wide");
+    const nw = wide.reduce((a, b) => a + b, 0);
+    const [pb, rb, sb] = FIELD_BYTES[this.encoding];
+    for (const [key, bytes] of [["position_delta", (np - nw) * 3], ["position", nw * pb], ["rotation", nr * rb], ["scale", ns * sb]]) {
+      if (!(f[key] instanceof Uint8Array)) throw new ProtocolError("bad_field", `frame: delta frame without '${key}'`);
+      if (f[key].length !== bytes) throw new ProtocolError("bad_length", `frame: '${key}' has ${f[key].length} bytes, expected ${bytes}`);
+    }
+    const rw = q13 ? 1 : 4;
+    // the carried Gaussians' codes after this frame: held codes, then what the frame carries
+    const pos = new Uint16Array(n * 3), rot = q13 ? new Uint32Array(n) : new Uint16Array(n * 4);
+    const scl = q13 ? new Uint8Array(n * 3) : new Uint16Array(n * 3);
+    const change = new Int8Array(f.position_delta.buffer, f.position_delta.byteOffset, f.position_delta.length);
+    const whole = u16view(f.position), rots = q13 ? u32view(f.rotation) : u16view(f.rotation);
+    const scales = q13 ? f.scale : u16view(f.scale);
+    for (let j = 0, p = 0, k = 0, w = 0, r = 0, s = 0; j < n; j++) {
+      const i = changed[j];
+      for (let c = 0; c < 3; c++) pos[3 * j + c] = this.posCodes[3 * i + c];
+      for (let c = 0; c < rw; c++) rot[rw * j + c] = this.rotCodes[rw * i + c];
+      for (let c = 0; c < 3; c++) scl[3 * j + c] = this.scaleCodes[3 * i + c];
+      if (moved[0][j]) {
+        if (wide[p++]) {
+          for (let c = 0; c < 3; c++) pos[3 * j + c] = whole[3 * w + c];
+          w++;
+        } else {
+          for (let c = 0; c < 3; c++) {
+            const v = pos[3 * j + c] + change[3 * k + c];
+            if (v < 0 || v > 65535) throw new ProtocolError("bad_field", "frame: 'position_delta' takes a code outside 0..65535");
+            pos[3 * j + c] = v;
+          }
+          k++;
+        }
+      }
+      if (moved[1][j]) { for (let c = 0; c < rw; c++) rot[rw * j + c] = rots[rw * r + c]; r++; }
+      if (moved[2][j]) { for (let c = 0; c < 3; c++) scl[3 * j + c] = scales[3 * s + c]; s++; }
+    }
+    if (!this.deltaScratch || this.deltaScratch.n < n) {
+      this.deltaScratch = { n, position: new Float32Array(n * 3), rotation: new Float32Array(n * 4), scale: new Float32Array(n * 3) };
+    }
+    const bytes = (a) => new Uint8Array(a.buffer, a.byteOffset, a.byteLength);
+    const d = decodeFrameArrays(this.encoding, n, { position: bytes(pos), rotation: bytes(rot), scale: bytes(scl) },
+      this.quant, this.deltaScratch); // f16: refuses NaN / infinity before anything changed
+    const P = this.position, R = this.rotation, S = this.scale;
+    for (let j = 0; j < n; j++) {
+      const i = changed[j];
+      for (let c = 0; c < 3; c++) {
+        this.posCodes[3 * i + c] = pos[3 * j + c];
+        this.scaleCodes[3 * i + c] = scl[3 * j + c];
+        P[3 * i + c] = d.position[3 * j + c];
+        S[3 * i + c] = d.scale[3 * j + c];
+      }
+      for (let c = 0; c < rw; c++) this.rotCodes[rw * i + c] = rot[rw * j + c];
+      for (let c = 0; c < 4; c++) R[4 * i + c] = d.rotation[4 * j + c];
+    }
+    return changed;
+  }
+}
+
+/** A section 7.1 bitmask over `n` entries (LSB first) as 0/1 bytes, checking its length and padding. */
+function maskBits(bin, n, what) {
+  if (!(bin instanceof Uint8Array)) throw new ProtocolError("bad_field", `frame: delta frame without '${what}'`);
+  if (bin.length !== ((n + 7) >> 3)) throw new ProtocolError("bad_length", `frame: '${what}' has ${bin.length} bytes for ${n} entries`);
+  const out = new Uint8Array(n);
+  for (let i = 0; i < 8 * bin.length; i++) {
+    const bit = (bin[i >> 3] >> (i & 7)) & 1;
+    if (i < n) out[i] = bit;
+    else if (bit) throw new ProtocolError("bad_field", `frame: '${what}' has bits set beyond its ${n} entries`);
+  }
+  return out;
+}
+
+/** The set bits of a section 7.1 bitmask over `n` entries (LSB first), checking its length and padding. */
+function maskIds(bin, n, what) {
+  if (!(bin instanceof Uint8Array)) throw new ProtocolError("bad_field", `frame: delta frame without '${what}'`);
+  if (bin.length !== ((n + 7) >> 3)) throw new ProtocolError("bad_length", `frame: '${what}' has ${bin.length} bytes for ${n} entries`);
+  const ids = [];
+  for (let b = 0; b < bin.length; b++) {
+    let v = bin[b];
+    while (v) {
+      const bit = 31 - Math.clz32(v & -v);
+      const i = 8 * b + bit;
+      if (i >= n) throw new ProtocolError("bad_field", `frame: '${what}' has bits set beyond its ${n} entries`);
+      ids.push(i);
+      v &= v - 1;
     }
   }
+  return Uint32Array.from(ids);
 }

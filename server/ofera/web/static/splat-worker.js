@@ -8,7 +8,7 @@
 //                 | {kind: "prep", gen, id, view, proj, width, height, scaleMul, buffer?}
 // worker -> main: {kind: "avatar", gen, count, lo, hi} | {kind: "error", gen, fatal, code, message}
 //                 | {kind: "prepared", gen, id, seq, count, buffer}
-import { AvatarState, decodeServerMessage, u32view } from "./protocol.js";
+import { AvatarState, decodeServerMessage } from "./protocol.js";
 
 const WORDS = 7; // per visible splat while sorting: centre x, y; axis 1 x, y; axis 2 x, y (NDC); RGBA8 colour
 const OUT_WORDS = 12; // per splat drawn: 4 corners of (x, y, RGBA8), see renderer.js
@@ -167,12 +167,12 @@ self.onmessage = ({ data }) => {
   } else if (data.kind === "frame") {
     try {
       const f = decodeServerMessage(new Uint8Array(data.buffer));
-      state.applyFrame(f);
-      if (f.index !== undefined) covariance(0, f.n, u32view(f.index));
+      const changed = state.applyFrame(f); // the Gaussians it moved (sparse and delta frames), null: all
+      if (changed) covariance(0, changed.length, changed);
       else covariance(0, state.count, null);
       seq = f.seq;
     } catch (e) {
-      fail(e, false); // a bad frame is dropped; the session goes on
+      fail(e, false); // a bad frame is dropped; the session goes on (a delta session: the page sends resync)
     }
   } else if (data.kind === "prep") {
     const { out, count } = prepare(data);

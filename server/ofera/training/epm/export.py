@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .epm import EPM, N_IN, N_OUT, load_checkpoint
-from .layouts import ARKIT51_NAMES
+from ...mapping.layouts import ARKIT51_NAMES
+from .model import EPM, N_IN, N_OUT, load_checkpoint
 
 INPUT_NAME = "blendshapes"
 OUTPUT_NAME = "flame"

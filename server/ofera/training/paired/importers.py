@@ -34,7 +34,7 @@ import numpy as np
 from ofera.head.rotations import axis_angle_to_matrix, rot6d_to_matrix
 from ofera.mapping.flame_values import N_EXPR, join_flame_values
 from ofera.mapping.layouts import ARKIT51_NAMES, normalize_name
-from ofera.mapping.paired.data import SPLITS, PairedData, PairedDataError
+from ofera.training.paired.data import SPLITS, PairedData, PairedDataError
 
 FRAME_COLUMNS = ("frame", "frame_index", "frame_number", "frame_id")
 _ARKIT_KEYS = {normalize_name(n): i for i, n in enumerate(ARKIT51_NAMES)}

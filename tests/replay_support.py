@@ -1,4 +1,5 @@
-"""Helpers for tests and demos of replay and ingest: a small avatar and a server that serves it.
+"""Helpers of the replay, ingest and confidence tests: a small avatar, a server that serves it, and `ofera ingest`
+run against it with UDP datagrams (`run_ingest_cli`).
 
     with small_server(tmp_path) as server:      # ServerThread on a free 127.0.0.1 port
         ... replay / ingest against server.url ...
@@ -10,7 +11,12 @@ shared CPU; it is bound to the default procedural head, so the server's default 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+import json
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -64,3 +70,34 @@ def small_server(directory: str | Path, count: int = 2000, **settings: object) -
     options.update(settings)
     with ServerThread(Settings(**options)) as server:
         yield server
+
+
+def run_ingest_cli(kind: str, url: str, json_path: Path, datagram: Callable[[int], bytes], junk: bytes
+                   ) -> tuple[int, str, dict]:
+    """`ofera ingest KIND --seconds 2` on a free UDP port, fed ~1.5 s of `datagram(i)` at 60 Hz with `junk` every
+    tenth: (exit status, its output, its --json summary)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from ofera.cli.main import main; main()", "ingest", kind, "--listen",
+         f"127.0.0.1:{port}", "--url", url, "--seconds", "2", "--status-every", "0.5", "--json", str(json_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        first = proc.stdout.readline()  # printed once the session is open and the port listens
+        assert " on udp 127.0.0.1" in first, first + proc.stdout.read()
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            t_end = time.monotonic() + 1.5
+            i = 0
+            while time.monotonic() < t_end and proc.poll() is None:
+                s.sendto(datagram(i), ("127.0.0.1", port))
+                if i % 10 == 0:
+                    s.sendto(junk, ("127.0.0.1", port))
+                i += 1
+                time.sleep(1 / 60)
+        output, _ = proc.communicate(timeout=30)
+        output = first + output
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, output, json.loads(json_path.read_text()) if json_path.is_file() else {}

@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .layouts import ARKIT51_NAMES
+from ...errors import OferaError
+from ...mapping.layouts import ARKIT51_NAMES
 
 N_IN = 51
 N_OUT = 68
@@ -35,7 +36,7 @@ CHECKPOINT_FORMAT = "ofera-epm"
 CHECKPOINT_VERSION = 1
 
 
-class EPMError(ValueError):
+class EPMError(OferaError, ValueError):
     """An invalid checkpoint or training input; the message says what and what to do."""
 
 

@@ -22,7 +22,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.signal import lfilter
 
 from ofera.mapping.layouts import ARKIT_REGIONS, OVR63_NAMES
-from ofera.mapping.paired.rig import IDX, N_SHAPES
+from ofera.training.paired.rig import IDX, N_SHAPES
 
 _OVR = {name: i for i, name in enumerate(OVR63_NAMES)}
 

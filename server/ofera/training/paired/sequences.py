@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from ofera.mapping.paired.rig import IDX, N_SHAPES
+from ofera.training.paired.rig import IDX, N_SHAPES
 
 
 def _vector(values: dict[str, float]) -> np.ndarray:

@@ -22,18 +22,18 @@ import numpy as np
 
 from ofera.head.io import default_head
 from ofera.head.model import HeadModel
-from ofera.mapping.paired._threads import single_blas_thread
-from ofera.mapping.paired.data import SPLITS, PairedData
-from ofera.mapping.paired.fit import FlameFitter, fit_vertices
-from ofera.mapping.paired.observe import (
+from ofera.training.paired._threads import single_blas_thread
+from ofera.training.paired.data import SPLITS, PairedData
+from ofera.training.paired.fit import FlameFitter, fit_vertices
+from ofera.training.paired.observe import (
     EstimatorNoise,
     HeadsetDevice,
     estimator_params,
     headset_stream,
     observe_camera,
 )
-from ofera.mapping.paired.rig import Rig, RigBasis, RigStyle
-from ofera.mapping.paired.sequences import SequenceStyle, generate_weights
+from ofera.training.paired.rig import Rig, RigBasis, RigStyle
+from ofera.training.paired.sequences import SequenceStyle, generate_weights
 
 Progress = Callable[[int, int, str], None]
 
@@ -197,7 +197,7 @@ def make_benchmark(frames_per_subject: int = 1500, seed: int = 0, tiny: bool = F
         report(len(plan), len(plan), "paired data done")
     keys = ("bs", "flame", "subject", "source", "split", "frame", "headset", "rig_weights", "fit_rms")
     data = {k: np.concatenate([p[k] for p in parts]) for k in keys}
-    meta = {"generator": "ofera.mapping.paired.make_benchmark", "seed": seed, "tiny": tiny,
+    meta = {"generator": "ofera.training.paired.make_benchmark", "seed": seed, "tiny": tiny,
             "frames_per_subject": frames_per_subject, "subjects_per_source": subjects_per_source,
             "holdout_sources": [src.name for src in holdout] if holdout_subjects else [],
             "holdout_subjects": holdout_subjects, "head": head.name}

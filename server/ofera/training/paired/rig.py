@@ -17,7 +17,8 @@ the meaning of each shape (REFERENCE.md section 1) and is deliberately NOT the h
 - every subject has a style (:class:`RigStyle`): gains, left/right asymmetry, response exponents,
   arc strengths, jaw range and pivot, gaze range, lid travel, and identity shape coefficients.
 
-Fields are defined on the template (like FLAME's bases) and added to the subject's identity shape.
+Fields are defined on the template (like FLAME's bases) and added to the subject's identity shape; where each
+shape moves the face, which way and how far, is the table in :mod:`.rig_fields` (:func:`_build_basis` evaluates it).
 """
 
 from __future__ import annotations
@@ -28,8 +29,10 @@ import numpy as np
 
 from ofera.head.lbs import HeadSubject
 from ofera.head.model import HeadModel
+from ofera.head.procedural import smoothstep
 from ofera.head.rotations import axis_angle_to_matrix, euler_xy_to_matrix
 from ofera.mapping.layouts import ARKIT51_NAMES
+from ofera.training.paired.rig_fields import FIELD_BLOCKS, Bump
 
 N_SHAPES = len(ARKIT51_NAMES)
 IDX = {name: i for i, name in enumerate(ARKIT51_NAMES)}
@@ -78,11 +81,6 @@ def _lid_closure(x: np.ndarray, k: float = 3.5) -> np.ndarray:
     """eyeBlink -> lid closure (0 -> 0, 1 -> 1): steep, the lid drops over the first part of the range
     and then rests on the lower lid (a strongly saturating curve, the same for everyone)."""
     return saturate(np.clip(x, 0.0, 1.3), k)
-
-
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    t = np.clip(x, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 def _unit(d) -> np.ndarray:
@@ -161,136 +159,68 @@ def _build_basis(head: HeadModel) -> RigBasis:
     lm = {k: np.asarray(p, np.float64) for k, p in head.landmarks.items()}
     labels = head.vertex_labels
     skin = labels["skin"].astype(float)
-    face = skin * _smoothstep((z - 0.0) / 0.03)  # fields act on the front of the skin only
+    face = skin * smoothstep((z - 0.0) / 0.03)  # fields act on the front of the skin only
     lower = _lip_sides(head).astype(float)
     upper = 1.0 - lower
 
     lin = np.zeros((N_SHAPES, nv, 3))
     quad = np.zeros((N_SHAPES, nv, 3))
     corr = np.zeros((len(CORRECTIVES), nv, 3))
+    upper_lid = np.zeros((2, nv))
+    lower_lid = np.zeros((2, nv))
+    for k, (side, _) in enumerate(SIDES):  # the lids: rotation shares about the eye centre (rig.lid_angles)
+        eye = lm[f"eye_{side.lower()}"]
+        hx = 1.0 - smoothstep((np.abs(x - eye[0]) / 0.0150 - 0.35) / 0.6)
+        front_of_eye = skin * (z > eye[2])
+        upper_lid[k] = hx * (1.0 - smoothstep((y - eye[1] - 0.0055) / 0.0085)) * (y > eye[1] - 0.0005) * front_of_eye
+        lower_lid[k] = hx * (1.0 - smoothstep((eye[1] - 0.0055 - y) / 0.007)) * (y <= eye[1] - 0.0005) * front_of_eye
+    # The lip gap (m) a 0.36 rad jaw opening makes: the scale of the mouthClose corrective.
+    close_lift = 0.36 * float(np.linalg.norm((lm["lower_lip"] - lm["jaw_pivot"])[1:]))
+    width = lm["mouth_corner_left"][0]
+    towards_mid = np.stack([-np.sign(x) * np.clip(np.abs(x) / width, 0, 1.2), np.zeros(nv), np.zeros(nv)], 1)
+    masks = {"lower": lower, "upper": upper}
+    targets = {"linear": lin, "quadratic": quad, "corrective": corr}
 
-    def bump(centre, radius, squash=(1.0, 1.0, 1.0)) -> np.ndarray:
-        c = np.asarray(centre, np.float64)
+    def bump(c: np.ndarray, radius: float, squash=(1.0, 1.0, 1.0)) -> np.ndarray:
         d2 = ((x - c[0]) / squash[0]) ** 2 + ((y - c[1]) / squash[1]) ** 2 + ((z - c[2]) / squash[2]) ** 2
         return np.exp(-d2 / (2.0 * radius**2)) * face
 
-    def field(weight: np.ndarray, direction, amp: float) -> np.ndarray:
-        return weight[:, None] * _unit(direction)[None] * amp
+    def add(row: Bump, k: int, side: str, s: float) -> None:
+        names = (row.at,) if isinstance(row.at, str) else row.at
+        centres = [lm[n.format(side=side.lower())] for n in names]
+        centre = centres[0] if len(centres) == 1 else (centres[0] + centres[1]) / 2
+        offset = row.offset if s > 0 else (-row.offset[0] if row.offset[0] else row.offset[0], *row.offset[1:])
+        weight = bump(centre + np.asarray(offset, np.float64), row.radius, row.squash)
+        if row.power != 1:
+            weight = weight**row.power
+        eye = lm.get(f"eye_{side.lower()}")  # the side's eye centre (sided rows)
+        if row.mask == "ring":
+            weight = weight * (1.0 - upper_lid[k]) * (1.0 - lower_lid[k])
+        elif row.mask == "orbit":
+            weight = weight * (1.0 - smoothstep(1.2 - np.hypot(x - eye[0], y - eye[1]) / 0.010))
+        elif row.mask:
+            weight = weight * masks[row.mask]
+        amp = row.amp * close_lift if row.of_close_lift else row.amp
+        if row.direction == "towards_mid":
+            value = weight[:, None] * towards_mid * amp
+        elif row.direction == "towards_eye":
+            towards_eye = np.stack([eye[0] - x, eye[1] - y, np.zeros(nv)], 1)
+            towards_eye /= np.maximum(np.linalg.norm(towards_eye, axis=1, keepdims=True), 1e-6)
+            value = weight[:, None] * towards_eye * amp
+        else:
+            d = row.direction
+            value = weight[:, None] * _unit((d[0] * s if d[0] else d[0], *d[1:]))[None] * amp
+        target = row.target.format(side=side)
+        i = CORRECTIVES.index(tuple(target.split("*"))) if row.term == "corrective" else IDX[target]
+        targets[row.term][i] += value
 
-    def add(name: str, weight, direction, amp, target=lin) -> None:
-        target[IDX[name]] += field(weight, direction, amp)
-
-    mouth, ul, ll, chin, nose = lm["mouth_centre"], lm["upper_lip"], lm["lower_lip"], lm["chin"], lm["nose_tip"]
-    width = lm["mouth_corner_left"][0]
-    lip_zone = bump(mouth, 0.011, (1.7, 1.0, 1.0))
-    upper_lid = np.zeros((2, nv))
-    lower_lid = np.zeros((2, nv))
-    for k, (side, s) in enumerate(SIDES):
-        eye = lm[f"eye_{side.lower()}"]
-        corner = lm[f"mouth_corner_{side.lower()}"]
-        cheek = lm[f"cheek_{side.lower()}"]
-        b_in, b_out = lm[f"brow_inner_{side.lower()}"], lm[f"brow_outer_{side.lower()}"]
-        # --- lids: rotation shares about the eye centre (upper lid falls over the eyeball) ---------
-        ax = np.abs(x - eye[0]) / 0.0150
-        hx = 1.0 - _smoothstep((ax - 0.35) / 0.6)
-        front_of_eye = skin * (z > eye[2])
-        upper_lid[k] = hx * (1.0 - _smoothstep((y - eye[1] - 0.0055) / 0.0085)) * (y > eye[1] - 0.0005) * front_of_eye
-        lower_lid[k] = hx * (1.0 - _smoothstep((eye[1] - 0.0055 - y) / 0.007)) * (y <= eye[1] - 0.0005) * front_of_eye
-        below_eye = bump(eye + [0, -0.0075, 0.004], 0.0045, (1.9, 1.0, 1.0))
-        add(f"eyeBlink{side}", below_eye, (0, 1, 0.2), 0.0010)
-        add(f"eyeLookDown{side}", below_eye, (0, -1, 0), 0.0008)
-        add(f"eyeLookUp{side}", below_eye, (0, 1, 0.1), 0.0006)
-        ring = bump(eye + [0, 0, 0.006], 0.011, (1.4, 1.0, 1.0)) * (1.0 - upper_lid[k]) * (1.0 - lower_lid[k])
-        add(f"eyeLookIn{side}", ring, (-s, 0, 0), 0.0005)
-        add(f"eyeLookOut{side}", ring, (s, 0, 0), 0.0005)
-        add(f"eyeSquint{side}", below_eye, (0, 1, 0.3), 0.0022)
-        towards_eye = np.stack([eye[0] - x, eye[1] - y, np.zeros(nv)], 1)
-        towards_eye /= np.maximum(np.linalg.norm(towards_eye, axis=1, keepdims=True), 1e-6)
-        orbit = bump(eye + [0, 0, 0.004], 0.013, (1.3, 1.0, 1.0)) * (1.0 - _smoothstep(1.2 - np.hypot(
-            x - eye[0], y - eye[1]) / 0.010))
-        lin[IDX[f"eyeSquint{side}"]] += towards_eye * (orbit * 0.0012)[:, None]
-        add(f"eyeWide{side}", bump((b_in + b_out) / 2, 0.012, (1.6, 1.0, 1.0)), (0, 1, 0), 0.0012)
-        # --- brows ---------------------------------------------------------------------------------
-        mid = (b_in + b_out) / 2 - [s * 0.006, 0.0, 0.0]
-        add(f"browDown{side}", bump(mid, 0.011, (1.8, 1.0, 1.0)), (-s * 0.4, -1, 0.15), 0.0050)
-        add(f"browDown{side}", bump((lm["brow_inner_left"] + lm["brow_inner_right"]) / 2, 0.006), (0, -1, 0.2),
-            0.0012)
-        add("browInnerUp", bump(b_in, 0.009, (1.2, 1.0, 1.0)), (s * 0.1, 1, 0.1), 0.0065)
-        quad[IDX["browInnerUp"]] += field(bump(b_in + [0, 0.012, 0], 0.010), (0, 1, 0), 0.0015)
-        add(f"browOuterUp{side}", bump(b_out, 0.011, (1.3, 1.0, 1.0)), (s * 0.1, 1, -0.05), 0.0060)
-        # --- cheeks and nose ---------------------------------------------------------------------
-        puff = bump(cheek + [0, -0.028, -0.004], 0.013, (1.0, 1.2, 1.0))
-        add("cheekPuff", puff, (s * 0.85, 0, 0.5), 0.0085)
-        quad[IDX["cheekPuff"]] += field(puff**2, (s * 0.7, -0.2, 0.7), 0.0030)
-        add(f"cheekSquint{side}", bump(cheek + [0, -0.004, 0], 0.011), (0, 0.8, 0.45), 0.0040)
-        add(f"cheekSquint{side}", below_eye, (0, 1, 0.2), 0.0010)
-        ala = nose + [s * 0.012, 0.004, -0.014]
-        add(f"noseSneer{side}", bump(nose + [s * 0.011, 0.013, -0.013], 0.007), (0, 1, 0.25), 0.0040)
-        add(f"noseSneer{side}", bump(ala, 0.006), (0, 0.6, 0.2), 0.0020)
-        add(f"noseSneer{side}", bump(b_in - [s * 0.004, 0, 0], 0.006), (0, -1, 0), 0.0010)
-        # --- mouth corner shapes -------------------------------------------------------------------
-        at_corner = bump(corner, 0.0085)
-        add(f"mouthSmile{side}", at_corner, (s * 0.55, 1, -0.35), 0.0080)
-        add(f"mouthSmile{side}", bump(cheek + [0, -0.02, -0.002], 0.010), (s * 0.3, 0.5, 0.5), 0.0020)
-        quad[IDX[f"mouthSmile{side}"]] += field(at_corner, (s * 0.2, 0.3, -0.6), 0.0060)
-        add(f"mouthFrown{side}", at_corner, (s * 0.15, -1, -0.1), 0.0060)
-        add(f"mouthFrown{side}", bump(corner + [0, -0.012, -0.004], 0.008), (0, -1, 0), 0.0020)
-        quad[IDX[f"mouthFrown{side}"]] += field(at_corner, (0, -0.3, -0.4), 0.0040)
-        add(f"mouthDimple{side}", bump(corner, 0.007), (s * 0.3, 0.1, -1), 0.0050)
-        add(f"mouthStretch{side}", bump(corner, 0.010), (s, -0.35, -0.25), 0.0060)
-        add(f"mouthStretch{side}", bump(ll + [s * 0.012, 0, 0], 0.007) * lower, (s, -0.3, 0), 0.0015)
-        quad[IDX[f"mouthStretch{side}"]] += field(at_corner, (s * 0.3, -0.2, -0.5), 0.0040)
-        # --- one-sided lip shapes -----------------------------------------------------------------
-        add(f"mouthPress{side}", bump(ll + [s * 0.010, 0.001, 0], 0.007, (1.4, 1, 1)) * lower, (0, 0.8, -0.3), 0.0030)
-        add(f"mouthPress{side}", bump(ul + [s * 0.010, -0.001, 0], 0.007, (1.4, 1, 1)) * upper, (0, -0.5, -0.3),
-            0.0015)
-        add(f"mouthLowerDown{side}", bump(ll + [s * 0.011, -0.002, 0], 0.008) * lower, (0, -1, 0.25), 0.0060)
-        add(f"mouthUpperUp{side}", bump(ul + [s * 0.010, 0.001, 0], 0.007) * upper, (0, 1, 0.3), 0.0050)
-        add(f"mouthUpperUp{side}", bump(ala + [0, -0.006, 0.004], 0.006), (0, 1, 0.3), 0.0015)
-        # --- correctives that have a side ----------------------------------------------------------
-        ci = CORRECTIVES.index((f"mouthSmile{side}", "jawOpen"))
-        corr[ci] = field(at_corner, (s * 0.45, -0.6, -0.3), 0.0130)  # the open jaw pulls the corner down/out
-        ci = CORRECTIVES.index((f"eyeBlink{side}", f"eyeSquint{side}"))
-        corr[ci] = field(bump(eye + [0, -0.011, 0.002], 0.005, (1.8, 1, 1)), (0, -0.6, 0.8), 0.0060)
-        ci = CORRECTIVES.index((f"browDown{side}", "browInnerUp"))
-        corr[ci] = field(bump(b_in, 0.007), (-s, 0.8, 0.2), 0.0050)  # grief brows: inner ends up and in
-        ci = CORRECTIVES.index((f"mouthSmile{side}", f"cheekSquint{side}"))
-        corr[ci] = field(bump(cheek + [0, -0.012, 0.002], 0.009), (s * 0.2, 0.6, 0.8), 0.0045)
-
-    # --- symmetric mouth shapes ---------------------------------------------------------------------
-    towards_mid = np.stack([-np.sign(x) * np.clip(np.abs(x) / width, 0, 1.2), np.zeros(nv), np.zeros(nv)], 1)
-    lips = bump(mouth, 0.009, (1.5, 1.0, 1.0))
-    lin[IDX["mouthPucker"]] = lips[:, None] * ([0, 0, 0.0060] + towards_mid * 0.0050)
-    lin[IDX["mouthPucker"]] += field(lips * upper, (0, -1, 0), 0.0010) + field(lips * lower, (0, 1, 0), 0.0010)
-    quad[IDX["mouthPucker"]] = field(lips, (0, 0, 1), 0.0020)
-    lin[IDX["mouthFunnel"]] = field(lip_zone * upper, (0, 0.7, 1), 0.0040) \
-        + field(lip_zone * lower, (0, -0.7, 1), 0.0040)
-    lin[IDX["mouthFunnel"]] += lip_zone[:, None] * towards_mid * 0.0030
-    quad[IDX["mouthFunnel"]] = field(lips, (0, 0, 1), 0.0020)
-    add("mouthLeft", bump(mouth, 0.012, (1.8, 1.0, 1.0)), (1, 0, 0.05), 0.0050)
-    add("mouthRight", bump(mouth, 0.012, (1.8, 1.0, 1.0)), (-1, 0, 0.05), 0.0050)
-    add("mouthShrugLower", bump(ll, 0.008, (2.0, 1.0, 1.0)) * lower, (0, 0.6, 0.8), 0.0040)
-    add("mouthShrugLower", bump(chin + [0, 0.006, 0], 0.012), (0, 0.5, 0.6), 0.0040)
-    add("mouthShrugUpper", bump(ul, 0.008, (2.0, 1.0, 1.0)) * upper, (0, 0.4, 0.9), 0.0030)
-    add("mouthRollLower", bump(ll, 0.007, (2.0, 1.0, 1.0)) * lower, (0, 0.3, -1), 0.0010)
-    add("mouthRollUpper", bump(ul, 0.007, (2.0, 1.0, 1.0)) * upper, (0, -0.3, -1), 0.0010)
-    add("jawOpen", bump(ll, 0.009, (2.0, 1.0, 1.0)) * lower, (0, -1, 0.1), 0.0015)
-    for _, s in SIDES:
-        add("jawOpen", bump(lm["mouth_corner_left"] * [s, 1, 1] + [s * 0.012, 0.004, -0.01], 0.010), (-s, 0, -0.3),
-            0.0020)
-    # Lips together while the jaw is open: in the rest pose the lower lip rises by the gap that the jaw
-    # opens at the lips (the rotation then carries it), the upper lip comes down a little.
-    pivot = lm["jaw_pivot"]
-    close_lift = 0.36 * float(np.linalg.norm((ll - pivot)[1:]))  # gap at the lips at a 0.36 rad opening
-    ci = CORRECTIVES.index(("jawOpen", "mouthClose"))
-    corr[ci] = field(bump(ll, 0.010, (2.2, 1.4, 1.0)) * lower, (0, 1, -0.15), 0.9 * close_lift)
-    corr[ci] += field(bump(ul, 0.009, (2.2, 1.2, 1.0)) * upper, (0, -1, 0), 0.20 * close_lift)
-    ci = CORRECTIVES.index(("mouthPucker", "mouthFunnel"))
-    corr[ci] = field(lips, (0, 0, 1), 0.0090)
-    ci = CORRECTIVES.index(("jawOpen", "mouthFunnel"))
-    corr[ci] = lip_zone[:, None] * towards_mid * 0.0090 + field(lip_zone * upper, (0, 1, 0.5), 0.0065)
+    for sided, rows in FIELD_BLOCKS:
+        for k, (side, s) in enumerate(SIDES if sided else (("", 1.0),)):
+            for row in rows:
+                add(row, k, side, s)
 
     # --- lip roll rotation shares and axes ------------------------------------------------------------
+    mouth, ul, ll = lm["mouth_centre"], lm["upper_lip"], lm["lower_lip"]
     roll = np.stack([bump(ll, 0.006, (2.4, 1.0, 1.0)) * lower, bump(ul, 0.006, (2.4, 1.0, 1.0)) * upper])
     roll_axis = np.stack([ll + [0, 0.001, -0.007], ul + [0, -0.001, -0.007]])
     # --- the rig's own jaw share: the head's jaw skinning, broadened -------------------------------
@@ -456,7 +386,7 @@ class Rig:
         ci = CORRECTIVES.index(("jawOpen", "mouthClose"))
         # mouthClose acts only while the jaw is open (lips together), at most as far as the jaw opened.
         products[:, ci] = saturate(np.minimum(e[:, IDX["mouthClose"]], e[:, IDX["jawOpen"]]), JAW_CURVE) \
-            * _smoothstep(e[:, IDX["jawOpen"]] / 0.15) * self._close_gain
+            * smoothstep(e[:, IDX["jawOpen"]] / 0.15) * self._close_gain
         p = (np.concatenate([e, e * e, products], axis=1) @ self._fields).reshape(t, n, 3)
         p += self.rest
         lids = self.lid_angles(e)

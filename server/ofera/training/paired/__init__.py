@@ -10,11 +10,11 @@
   INSTA tracker outputs.
 """
 
-from ofera.mapping.paired.benchmark import SOURCES, make_benchmark
-from ofera.mapping.paired.data import SPLITS, PairedData, PairedDataError, concat
-from ofera.mapping.paired.fit import FitResult, FlameFitter, fit_vertices
-from ofera.mapping.paired.geometry import REGIONS, region_masks, vertices_from_flame
-from ofera.mapping.paired.importers import import_insta, import_metrical_tracker, import_vhap, read_blendshape_csv
+from ofera.training.paired.benchmark import SOURCES, make_benchmark
+from ofera.training.paired.data import SPLITS, PairedData, PairedDataError, concat
+from ofera.training.paired.fit import FitResult, FlameFitter, fit_vertices
+from ofera.training.paired.geometry import REGIONS, region_masks, vertices_from_flame
+from ofera.training.paired.importers import import_insta, import_metrical_tracker, import_vhap, read_blendshape_csv
 
 __all__ = [
     "REGIONS",

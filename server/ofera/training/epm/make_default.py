@@ -29,13 +29,13 @@ def make_default_epm(out: str | Path, seed: int = 0, threads: int = 1, progress:
     import onnx
     import torch
 
-    from ..head import load_head
-    from .epm import DEFAULT_EPM_CONFIG, EPMConfig, train_on_paired
+    from ...head import load_head
+    from ...mapping.provenance import validation_l1
+    from ...mapping.runtime import Mapper
+    from ..paired.benchmark import SAMPLE_STEP, sample_digest, validation_sample
     from .evaluate import default_matrix, evaluate, generator_version, load_paired_data
     from .export import export_checkpoint
-    from .paired.benchmark import SAMPLE_STEP, sample_digest, validation_sample
-    from .provenance import validation_l1
-    from .runtime import Mapper
+    from .model import DEFAULT_EPM_CONFIG, EPMConfig, train_on_paired
 
     if threads:
         torch.set_num_threads(threads)

@@ -26,12 +26,14 @@ import numpy as np
 
 from ofera.mapping.flame_values import FLAME_VALUES
 
+from ...errors import OferaError
+
 SPLITS: tuple[str, ...] = ("train", "val", "test")
 FORMAT = "ofera-paired"
 FORMAT_VERSION = 1
 
 
-class PairedDataError(ValueError):
+class PairedDataError(OferaError, ValueError):
     """Paired data that is inconsistent, or a file that cannot be read; the message says what."""
 
 

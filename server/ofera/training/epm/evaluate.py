@@ -27,15 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..head import HeadModel, HeadSubject
-from ..head.lbs import pose_feature, rigid_transforms
-from .baselines import MatrixMapper, RidgeMapper, correspondence_matrix, param_rmse
-from .bda import BDA
-from .flame_values import split_flame_values
-from .layouts import to_arkit51
-from .paired import REGIONS, PairedData, PairedDataError, make_benchmark, region_masks
-from .paired._threads import single_blas_thread
-from .runtime import Mapper
+from ...head import HeadModel, HeadSubject
+from ...head.lbs import pose_feature, rigid_transforms
+from ...mapping.baselines import MatrixMapper, RidgeMapper, correspondence_matrix, param_rmse
+from ...mapping.bda import BDA
+from ...mapping.flame_values import split_flame_values
+from ...mapping.layouts import to_arkit51
+from ...mapping.runtime import Mapper
+from ..paired import REGIONS, PairedData, PairedDataError, make_benchmark, region_masks
+from ..paired._threads import single_blas_thread
 
 METHODS = ("matrix", "ridge", "epm")
 
@@ -166,18 +166,19 @@ def face_regions(model: HeadModel) -> dict[str, np.ndarray]:
 def generator_version() -> str:
     """Key of the synthetic benchmark's generator: a hash of the code that generates it.
 
-    Any change to the paired-data package, the procedural head and its LBS, the layouts or the FLAME
-    values makes a new key, so a stale cached benchmark is never used.
+    Any change to the paired-data package (``ofera.training.paired``), the procedural head and its LBS, the
+    layouts (the server's and the protocol's names) or the FLAME values makes a new key, so a stale cached
+    benchmark is never used.
     """
     import hashlib
     import importlib
 
-    from . import paired
+    from .. import paired
 
-    files = sorted(Path(paired.__file__).parent.glob("*.py"))
-    files += [Path(importlib.import_module(f"ofera.{m}").__file__ or "") for m in (
-        "head.io", "head.lbs", "head.model", "head.procedural", "head.rotations", "mapping.layouts",
-        "mapping.flame_values")]
+    files = sorted(Path(paired.__file__).parent.glob("*.py"))  # ofera/training/paired/
+    files += [Path(importlib.import_module(m).__file__ or "") for m in (
+        "ofera.head.io", "ofera.head.lbs", "ofera.head.model", "ofera.head.procedural", "ofera.head.rotations",
+        "ofera.mapping.layouts", "ofera_protocol.layouts", "ofera.mapping.flame_values")]
     digest = hashlib.sha256()
     for f in files:
         digest.update(f.name.encode())
@@ -190,7 +191,7 @@ def load_paired_data(source: str | Path, progress: bool = True, cache: bool = Tr
     ``~/.cache/ofera/paired/`` (``$OFERA_CACHE``) keyed by :func:`generator_version`."""
     if str(source) != "synthetic":
         return PairedData.load(source)
-    from ..assets import cache_dir
+    from ...assets import cache_dir
 
     path = cache_dir("paired") / f"benchmark-{generator_version()}.npz"
     if cache and path.is_file():
@@ -208,7 +209,7 @@ def load_paired_data(source: str | Path, progress: bool = True, cache: bool = Tr
 
 def head_of(data: PairedData, head: str | Path = "default") -> HeadModel:
     """The head model the paired data's FLAME values belong to (``default``: the procedural head)."""
-    from ..head import load_head
+    from ...head import load_head
 
     model = load_head(head)
     made_on = (data.meta or {}).get("head")
@@ -224,8 +225,8 @@ def default_matrix(model: HeadModel) -> MatrixMapper:
     identity) makes a mesh and the tracker-style fitter finds the head's FLAME values for it; the
     matrix rows are those values minus the neutral face's, in EMAGE's layout (see ``baselines``).
     """
-    from .paired.fit import FlameFitter, fit_vertices
-    from .paired.rig import Rig, RigStyle
+    from ..paired.fit import FlameFitter, fit_vertices
+    from ..paired.rig import Rig, RigStyle
 
     ids = fit_vertices(model)
     rig = Rig(model, RigStyle.neutral(model.shape_dims), ids)
@@ -417,7 +418,7 @@ def draw_heatmaps(result: Evaluation, model: HeadModel, out: str | Path,
     from matplotlib import colormaps
     from matplotlib.colors import Normalize
 
-    from ..head.render import render_mesh
+    from ...head.render import render_mesh
 
     methods = [k for k in METHODS if k in result.per_vertex_mm]
     if not methods:
