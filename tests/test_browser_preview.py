@@ -9,59 +9,27 @@ test_lam_browser.py).
 
 from __future__ import annotations
 
-import base64
-import contextlib
-import io
 import json
 import os
 import re
-import signal
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+from browser_support import (
+    STATE,
+    canvas_pixels,
+    foreground,
+    ofera_serve,
+    open_page,
+    wait,
+    wait_settled,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCREENSHOT = ROOT / "docs" / "images" / "browser_default.png"  # docs/browser.png (README) is test_lam_browser.py's
 VECTORS = ROOT / "protocol" / "vectors"
-BACKGROUND = np.array([32, 35, 42])  # the page's clear colour (renderer.js: 0.125, 0.137, 0.165)
-SERVER_START_S = 300  # the default avatar's warm-up, on a busy machine
-PAGE_S = 240  # a full-size avatar through SwiftShader, on a busy machine
-VIEWPORT = {"width": 1100, "height": 720}
-
-
-@contextlib.contextmanager
-def ofera_serve(*args: str, env: dict | None = None) -> Iterator[tuple[str, list[str]]]:
-    """`ofera serve --port 0 ARGS` in a subprocess: (its base URL, its start-up lines); stopped with Ctrl-C."""
-    env = dict(os.environ, OFERA_LOG_LEVEL="warning", PYTHONUNBUFFERED="1", **(env or {}))
-    cmd = [sys.executable, "-c", "from ofera.cli.main import main; main()", "serve", "--port", "0", *args]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
-    try:
-        lines: list[str] = []
-        url = None
-        deadline = time.monotonic() + SERVER_START_S
-        while url is None and time.monotonic() < deadline:
-            line = proc.stdout.readline()
-            if not line:
-                break
-            lines.append(line)
-            m = re.search(r"health\s+(http://\S+)/healthz", line)
-            if m:
-                url = m.group(1)
-        assert url, "ofera serve did not start:\n" + "".join(lines)
-        yield url, lines
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
 
 
 @pytest.fixture(scope="module")
@@ -69,49 +37,6 @@ def server(browser) -> Iterator[str]:
     """`ofera serve --port 0` (the built-in default avatar, ~100k Gaussians) in a subprocess; its base URL."""
     with ofera_serve() as (url, _):
         yield url
-
-
-def open_page(browser, url: str):
-    page = browser.new_page(viewport=VIEWPORT)
-    problems: list[str] = []
-    page.on("pageerror", lambda e: problems.append(f"page error: {e}"))
-    page.goto(url)
-    wait(page, "window.__ofera && window.__ofera.settled")
-    assert not problems, problems
-    return page
-
-
-STATE = """JSON.stringify(window.__ofera && {status: __ofera.status, count: __ofera.count, sent: __ofera.lastSentSeq,
-  received: __ofera.lastFrameSeq, drawn: __ofera.drawnSeq, fps: __ofera.fps, reductions: __ofera.reductions,
-  errors: __ofera.errors, hud: document.getElementById("hud").textContent,
-  status_line: document.getElementById("status").textContent})"""
-
-
-def wait(page, condition: str, timeout_s: float = PAGE_S) -> None:
-    """Wait for a JavaScript condition; on timeout, say what the page was doing."""
-    from playwright.sync_api import TimeoutError as PlaywrightTimeout
-
-    try:
-        page.wait_for_function(condition, timeout=timeout_s * 1000)
-    except PlaywrightTimeout:
-        pytest.fail(f"timed out after {timeout_s} s waiting for {condition!r}; page: {page.evaluate(STATE)}")
-
-
-def wait_settled(page, after_seq: int) -> None:
-    wait(page, f"__ofera.settled && __ofera.drawnSeq > {after_seq}")
-
-
-def canvas_pixels(page) -> np.ndarray:
-    """The canvas's own pixels (its drawing buffer is preserved), without the text drawn over it."""
-    from PIL import Image
-
-    url = page.evaluate("document.getElementById('canvas').toDataURL('image/png')")
-    png = base64.b64decode(url.split(",", 1)[1])
-    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
-
-
-def foreground(img: np.ndarray) -> np.ndarray:
-    return np.abs(img - BACKGROUND).max(axis=2) > 24
 
 
 def skin(img: np.ndarray) -> np.ndarray:
@@ -301,9 +226,8 @@ def test_javascript_codec_matches_the_golden_vectors(browser, server) -> None:
         v = json.loads(meta.read_text())
         v["bytes"] = list(meta.with_suffix(".msgpack").read_bytes())
         vectors.append(v)
-    page = browser.new_page()
+    page = open_page(browser, f"{server}/static/layouts.json", viewport=None, settle=False)
     try:
-        page.goto(f"{server}/static/layouts.json")
         results = page.evaluate(JS_VECTOR_CHECK, vectors)
     finally:
         page.close()

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from browser_support import open_page, page_errors
 from ofera.mapping.layouts import convert
 from ofera.sources import read_facelog
 from quest_logs import v1_names, write_quest_log
@@ -47,9 +48,8 @@ VARIANTS = {
 
 
 def test_page_reader_matches_the_python_reader(browser, server, tmp_path):
-    page = browser.new_page()
+    page = open_page(browser, f"{server.http_url}/static/layouts.json", viewport=None, settle=False)
     try:
-        page.goto(f"{server.http_url}/static/layouts.json")
         for name, options in VARIANTS.items():
             path = tmp_path / f"{name}.csv"
             write_quest_log(path, seconds=1.5, **options)
@@ -92,12 +92,9 @@ def test_page_reader_matches_the_python_reader(browser, server, tmp_path):
 def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
     path = tmp_path / "quest.csv"
     truth = write_quest_log(path, seconds=1.0, bom=True, label=True)
-    page = browser.new_page(viewport={"width": 800, "height": 600})
-    problems: list[str] = []
-    page.on("pageerror", lambda e: problems.append(str(e)))
+    page = open_page(browser, f"{server.http_url}/", viewport={"width": 800, "height": 600})
+    problems = page_errors(page)
     try:
-        page.goto(f"{server.http_url}/")
-        page.wait_for_function("window.__ofera && window.__ofera.settled", timeout=240_000)
         page.uncheck("#loop")
         seq = page.evaluate("__ofera.lastSentSeq")
         out = page.evaluate("t => __ofera.playText(t, 'quest.csv')", path.read_bytes().decode("utf-8"))

@@ -167,6 +167,41 @@ def test_zip_variants_import_the_same_avatar(tmp_path, small, variant) -> None:
     np.testing.assert_allclose(a.neutral().position, small.neutral().position, atol=1e-6)
 
 
+def _with_root_transform(glb: bytes, rotation_xyzw: list[float], scale: float, skinned: bool) -> bytes:
+    """The same glb with its head placed by a rotated, scaled node: the skin's joint (skinned) or the mesh node."""
+    import pygltflib
+
+    doc = pygltflib.GLTF2.load_from_bytes(glb)
+    name = "head_bone" if skinned else "head_final"
+    node = next(n for n in doc.nodes if n.name == name)
+    node.rotation, node.scale = rotation_xyzw, [scale] * 3
+    return b"".join(doc.save_to_bytes())
+
+
+@pytest.mark.parametrize("skinned", [True, False])
+def test_rotated_scaled_rest_pose_moves_the_gaussians_with_the_mesh(tmp_path, skinned) -> None:
+    from ofera.head.rotations import quaternion_to_matrix
+
+    glb = L.make_glb(skinned=skinned)
+    plain = import_lam(L.make_zip(tmp_path / "plain.zip", skin=glb))
+    half = np.sqrt(0.5)  # 90 degrees about +y, glTF order (x, y, z, w); and 1 cm units
+    moved = load_lam(L.make_zip(tmp_path / "moved.zip", skin=_with_root_transform(glb, [0.0, half, 0.0, half],
+                                                                                    0.01, skinned)))
+    assert any("rest pose applied to the mesh and the Gaussians (rotation 90 deg, uniform scale 0.01" in n
+               for n in moved.notes), moved.notes
+    lin = 0.01 * np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
+    rot = lin / 0.01
+    a, b = plain.neutral(), moved.avatar.neutral()
+    pa, pb = a.position - a.position.mean(0), b.position - b.position.mean(0)
+    np.testing.assert_allclose(pb, pa @ lin.T, atol=1e-8)  # world-space centres, centred
+    np.testing.assert_allclose(b.scale, 0.01 * a.scale, rtol=1e-5)
+    ra = quaternion_to_matrix(a.rotation[:, [3, 0, 1, 2]])  # wire (x, y, z, w) -> (w, x, y, z)
+    rb = quaternion_to_matrix(b.rotation[:, [3, 0, 1, 2]])
+    np.testing.assert_allclose(rb, rot @ ra, atol=1e-5)
+    cov = lambda r, sc: r @ (sc[:, :, None] ** 2 * np.swapaxes(r, 1, 2))  # noqa: E731
+    np.testing.assert_allclose(cov(rb, b.scale), lin @ cov(ra, a.scale) @ lin.T, atol=1e-14)
+
+
 def test_gltf_json_with_embedded_buffers_imports(tmp_path, small) -> None:
     import pygltflib
 
@@ -237,6 +272,26 @@ def test_bs_track_variants() -> None:
         read_bs_track(b'{"names": ["smile"], "frames": [[1.0]]}')
     with pytest.raises(AvatarError, match="frame 0 has 1 weights"):
         read_bs_track(b'{"names": ["jawOpen", "eyeBlinkLeft"], "frames": [[1.0]]}')
+    with pytest.raises(AvatarError, match="no frames"):  # as the page's reader (bsdata.js) refuses it
+        read_bs_track(b'{"names": ["jawOpen"], "frames": []}')
+    with pytest.raises(AvatarError, match="'jawOpen' and 'blendShape1.JawOpen' are both the ARKit shape 'jawOpen'"):
+        read_bs_track(b'{"names": ["jawOpen", "blendShape1.JawOpen"], "frames": [[1.0, 0.0]]}')
+    for times in ([0.0, 0.1, 0.1], [0.0, 0.2, 0.1]):
+        frames = ",".join(f'{{"weights": [0.5], "time": {t}}}' for t in times)
+        with pytest.raises(AvatarError, match="frame times must increase, frame 2"):
+            read_bs_track(f'{{"names": ["jawOpen"], "frames": [{frames}]}}'.encode())
+    np.testing.assert_allclose(read_bs_track(b'{"names": ["jawOpen"], "frames": [[0.5]]}').times, [0.0])
+
+
+@pytest.mark.parametrize("scale, expect", [(1.0, "plain RGB (colour auto"), (3.0, "SH DC coefficients (colour auto")])
+def test_colour_heuristic_is_reported_in_the_notes(tmp_path, scale, expect) -> None:
+    cols = L.gaussians(L.patch()[0].shape[0])
+    cols["rgb"] = 0.5 + (cols["rgb"] - 0.5) * scale  # 3.0: values outside 0..1, read as 3DGS SH DC
+    z = L.make_zip(tmp_path / "c.zip", ply=L.make_ply(cols))
+    notes = load_lam(z).notes
+    assert any(expect in n for n in notes), notes
+    given = load_lam(z, colour="sh").notes
+    assert any("SH DC coefficients (colour sh, given)" in n for n in given), given
 
 
 # ----- the fast path and the binding --------------------------------------------------------------------------
@@ -298,6 +353,7 @@ def test_cli_import_info_render_export(tmp_path, monkeypatch) -> None:
     res = r.invoke(app, ["avatar", "import", "lam", str(z), "-o", str(out)])
     assert res.exit_code == 0, res.output
     assert "51 ARKit morph targets" in res.output and "skipped 5" in res.output
+    assert "f_dc read as plain RGB (colour auto: every value lies in 0..1" in res.output
     assert load_avatar_npz(out).name == "face"
     res = r.invoke(app, ["avatar", "info", str(out), "--json"])
     assert res.exit_code == 0 and '"expression": "arkit51"' in res.output, res.output

@@ -166,3 +166,43 @@ def test_avatar_zip_setting_is_the_default_unless_told_otherwise(tmp_path) -> No
     assert reg.resolve("default") == "default" and reg.resolve("anna") == "anna"
     with pytest.raises(FileNotFoundError, match="does not exist"):
         AvatarRegistry(Settings(avatar_zip=tmp_path / "missing.zip"))
+
+
+def test_default_id_rule_is_one_for_the_registry_and_the_cli(tmp_path, monkeypatch) -> None:
+    import ofera.streaming.server as server_module
+    from ofera.cli.main import app
+    from typer.testing import CliRunner
+
+    z = L.make_zip(tmp_path / "anna.zip")
+    for settings, expect in ((Settings(avatar_zip=z), "anna"), (Settings(avatar_zip=z, default_avatar="default"),
+                                                                 "default"), (Settings(), "default")):
+        assert AvatarRegistry.default_id_for(settings) == expect == AvatarRegistry(settings).default_id
+    served = []
+    monkeypatch.setattr(server_module, "serve", lambda settings: served.append(settings))
+    for args, expect in ((["--avatar-zip", str(z)], "anna"),
+                         (["--avatar-zip", str(z), "--default-avatar", "default"], "default")):
+        res = CliRunner().invoke(app, ["serve", "--port", "0", *args])
+        assert res.exit_code == 0, res.output
+        assert f"warming up avatar {expect!r}" in res.output, res.output
+        assert AvatarRegistry.default_id_for(served[-1]) == expect
+
+
+def test_avatar_listing_says_arkit_avatars_load_no_epm(tmp_path, monkeypatch) -> None:
+    from ofera.avatar import save_avatar
+    from ofera.avatar.lam import import_lam
+
+    monkeypatch.setenv("OFERA_CACHE", str(tmp_path / "cache"))
+    avatars = tmp_path / "avatars"
+    avatars.mkdir()
+    L.make_zip(avatars / "face.zip")
+    (avatars / "face.onnx").write_bytes(b"not loaded: an ARKit avatar takes no EPM")
+    save_avatar(import_lam(L.make_zip(tmp_path / "lam.zip")), avatars / "imported.npz")
+    reg = AvatarRegistry(Settings(avatars=avatars, avatar_zip=L.make_zip(tmp_path / "anna.zip")))
+    listing = {d["id"]: d for d in reg.describe()}
+    assert listing["anna"]["epm"] == listing["face"]["epm"] == "none", listing
+    assert listing["default"]["epm"] == "default"
+    reg.get("imported")  # an .npz says what drives it once loaded
+    reg.get("face")
+    listing = {d["id"]: d for d in reg.describe()}
+    assert listing["imported"]["epm"] == listing["face"]["epm"] == "none", listing
+    assert listing["imported"]["expression"] == "arkit51"

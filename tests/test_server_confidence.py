@@ -103,6 +103,21 @@ def test_region_hold():
         RegionHold(1.5)
 
 
+@pytest.mark.parametrize("threshold", [0.5, 0.7, 0.3])
+def test_conf_at_the_threshold_passes_through(threshold):
+    """"Below the threshold" holds, "at or above" passes, with conf as the wire carries it (float32: 0.7
+    arrives as 0.69999999, which a float64 comparison would call below 0.7)."""
+    hold = RegionHold(threshold)
+    hold(np.zeros(51, np.float32), np.array([1.0, 1.0], np.float32))
+    x = np.full(51, 0.8, np.float32)
+    at = np.array([threshold, threshold], np.float32)
+    np.testing.assert_array_equal(hold(x.copy(), at), x)
+    assert hold.held == 0
+    below = np.nextafter(at, np.float32(0))  # the float32 just below: held, at the values passed above
+    np.testing.assert_array_equal(hold(np.full(51, 0.2, np.float32), below), x)
+    assert hold.held == 1
+
+
 def test_pipeline_holds_a_low_confidence_region(tmp_path):
     from ofera.streaming.config import Settings
     from ofera.streaming.registry import registry_for
@@ -151,3 +166,47 @@ def test_server_answers_bad_conf_with_a_non_fatal_error(tmp_path):
     assert isinstance(err, ErrorMessage) and err.code == "bad_field" and not err.fatal and err.seq is None
     assert "conf" in err.message and "[0, 1]" in err.message
     assert isinstance(frame, Frame) and frame.seq == 4
+
+
+def _metric(http_url: str, name: str) -> float:
+    import urllib.request
+
+    text = urllib.request.urlopen(f"{http_url}/metrics", timeout=30).read().decode()
+    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name + " "))
+
+
+def test_live_session_holds_a_low_confidence_region(tmp_path):
+    """Through a live server (threshold 0.7): a neutral confident frame, then a jaw-open frame whose lower-face
+    confidence is 0.1 comes back with the neutral frame's positions (the jaw held shut); the same jaw at
+    exactly the threshold passes through ("at or above"). Counted in ofera_bs_conf_total and
+    ofera_bs_conf_held_total."""
+    from ofera.client import connect
+    from ofera_protocol import Frame
+    from replay_support import small_server
+
+    calm = np.zeros(63, np.float32)
+    jaw = calm.copy()
+    jaw[OVR63_NAMES.index("JAW_DROP")] = 0.9
+
+    async def session(url: str) -> list[Frame]:
+        client = await connect(url, layout="ovr63")
+        frames = []
+        try:
+            for seq, (w, conf) in enumerate([(calm, [1.0, 1.0]), (jaw, [0.1, 1.0]), (jaw, [0.7, 1.0]),
+                                             (calm, None)]):
+                await client.send_bs(w, seq=seq, conf=None if conf is None else np.array(conf, np.float32))
+                frame = await client.recv_frame(timeout=60)  # one at a time: newest-wins never skips one
+                assert frame.seq == seq and not client.errors, client.errors
+                frames.append(frame)
+        finally:
+            await client.close()
+        return frames
+
+    with small_server(tmp_path, 500, confidence_threshold=0.7) as server:
+        before = _metric(server.http_url, "ofera_bs_conf_total"), _metric(server.http_url, "ofera_bs_conf_held_total")
+        neutral, held, at, plain = asyncio.run(session(server.url))
+        after = _metric(server.http_url, "ofera_bs_conf_total"), _metric(server.http_url, "ofera_bs_conf_held_total")
+    np.testing.assert_array_equal(held.position, neutral.position)  # low lower-face confidence: jaw held shut
+    assert np.abs(at.position - neutral.position).max() > 1e-4  # conf == threshold: the jaw opens
+    np.testing.assert_array_equal(plain.position, neutral.position)  # no conf: as sent (calm again)
+    assert after[0] - before[0] == 3 and after[1] - before[1] == 1

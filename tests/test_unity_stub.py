@@ -43,3 +43,21 @@ def test_unity_stub_run_sh() -> None:
     assert failed == 0, f"run.sh: {closing}\n{tail}"
     assert passed > 0, f"run.sh ran no checks:\n{tail}"
     assert proc.returncode == 0, f"run.sh exited {proc.returncode} although it printed '{closing}':\n{tail}"
+
+
+def test_unity_scripts_run_in_the_order_their_comments_state() -> None:
+    """OVRFaceExpressions (0) -> OvrFaceSource (100) -> the readers OferaAvatarClient and FaceLogRecorder (200):
+    a reader before the source would see the previous frame's weights. FaceLogRecorder.cs is not type-checked
+    by run.sh (it needs more of UnityEngine than the stand-in has), so its attribute is checked here."""
+    unity = ROOT / "unity_client_stub" / "Runtime" / "Unity"
+    order = {}
+    for name, path in (("OvrFaceSource", unity / "MetaQuest" / "OvrFaceSource.cs"),
+                       ("OferaAvatarClient", unity / "OferaAvatarClient.cs"),
+                       ("FaceLogRecorder", unity / "FaceLogRecorder.cs")):
+        m = re.search(r"\[DefaultExecutionOrder\((-?\d+)\)\]\s*(?://[^\n]*)?\n\s*public sealed class " + name,
+                      path.read_text())
+        assert m, f"{path.name}: no [DefaultExecutionOrder(N)] on {name}"
+        order[name] = int(m.group(1))
+    assert order == {"OvrFaceSource": 100, "OferaAvatarClient": 200, "FaceLogRecorder": 200}, order
+    comment = (unity / "MetaQuest" / "OvrFaceSource.cs").read_text()
+    assert "FaceLogRecorder's reads (200)" in comment

@@ -817,6 +817,44 @@ namespace Ofera.Client.Tests
                 Check(early == "not_ready non-fatal" && c.Member("7").Avatar.Count == 4, "rooms: a re-join replaces the member; frames wait for its new avatar", early);
             });
 
+            Run("rooms: join/leave cycles allocate no frames", delegate
+            {
+                FrameExchange ex = new FrameExchange();
+                // one life of a member: two frames published, the newest taken, then it leaves (receive thread)
+                // and the main thread takes its Left event (OferaClient.TryTakeRoomEvent -> Release)
+                Action<string, bool> life = (member, release) =>
+                {
+                    ex.Publish(member); ex.Publish(member);
+                    FrameData held = ex.Take(member);
+                    ex.Publish(null); ex.Take(null);
+                    ex.Drop(member);
+                    for (int k = 0; k < 3; k++)  // while parked, the held frame is never decoded into
+                    {
+                        if (ReferenceEquals(ex.DecodeTarget, held)) throw new Exception("a departed member's held frame was reused before its release");
+                        ex.Publish("other"); ex.Take("other");
+                    }
+                    if (release) ex.Release(member);
+                };
+                for (int i = 0; i < 4; i++) life("warm" + i, true);
+                int warm = ex.Allocated;
+                for (int i = 0; i < 200; i++) life("m" + i, true);  // a new id each time
+                Check(ex.Allocated == warm && ex.ParkedCount == 0,
+                      "rooms: 200 join/leave cycles (Left taken) allocate no FrameData", warm + " -> " + ex.Allocated);
+                for (int i = 0; i < 200; i++) life("again", false);  // the same id rejoining: its next Take recycles
+                Check(ex.Allocated == warm && ex.ParkedCount <= 1, "rooms: a member rejoining reuses its last life's frame",
+                      warm + " -> " + ex.Allocated + ", parked " + ex.ParkedCount);
+                ex.Release("again");
+                for (int session = 2; session < 100; session++)  // new sessions with members holding frames
+                {
+                    ex.Publish("a"); ex.Publish("b"); ex.Take("a"); ex.Take("b");
+                    ex.Reset(session);
+                    ex.ReleaseBefore(session);  // the main thread sees the new session (an event or avatar of it)
+                }
+                Check(ex.Allocated == warm && ex.ParkedCount == 0,
+                      "rooms: new sessions with held member frames allocate no FrameData",
+                      warm + " -> " + ex.Allocated + ", parked " + ex.ParkedCount);
+            });
+
             Run("rooms: v1 sessions are unchanged", delegate
             {
                 ClientConnection c = new ClientConnection();
@@ -1182,16 +1220,30 @@ namespace Ofera.Client.Tests
             string script = "import sys\nfrom ofera.sources import read_facelog\nlog = read_facelog(sys.argv[1])\n" +
                             "assert log.layout.name == 'ovr63', log.layout.name\nassert log.weights.shape == (5, 63), log.weights.shape\n" +
                             "assert abs(float(log.weights[1, 1]) - 8/64) < 1e-6, log.weights[1, 1]\nprint('ok', log.weights.shape)\n";
+            RunPython(python, script, path, "facelog: file read back by ofera.sources.read_facelog");
+            File.Delete(path);
+            FaceLogTrackerTimeTests(python);
+        }
+
+        /// Writes `script` next to `path`, runs it with `python script path`, and checks that it exits 0 (the
+        /// check is named `name`; its detail is the script's output). The script file is deleted afterwards.
+        static void RunPython(string python, string script, string path, string name)
+        {
             string scriptPath = path + ".py";
             File.WriteAllText(scriptPath, script);
-            ProcessStartInfo psi = new ProcessStartInfo(python, "\"" + scriptPath + "\" \"" + path + "\"");
-            psi.UseShellExecute = false; psi.RedirectStandardOutput = true; psi.RedirectStandardError = true;
-            Process p = Process.Start(psi);
-            string output = p.StandardOutput.ReadToEnd() + p.StandardError.ReadToEnd();
-            p.WaitForExit();
-            Check(p.ExitCode == 0, "facelog: file read back by ofera.sources.read_facelog", output.Trim());
-            File.Delete(path); File.Delete(scriptPath);
-            FaceLogTrackerTimeTests(python);
+            try
+            {
+                ProcessStartInfo psi = new ProcessStartInfo(python, "\"" + scriptPath + "\" \"" + path + "\"");
+                psi.UseShellExecute = false; psi.RedirectStandardOutput = true; psi.RedirectStandardError = true;
+                using (Process p = Process.Start(psi))
+                {
+                    Task<string> err = p.StandardError.ReadToEndAsync();  // both pipes drained: no deadlock on a full one
+                    string output = p.StandardOutput.ReadToEnd() + err.Result;
+                    p.WaitForExit();
+                    Check(p.ExitCode == 0, name, output.Trim());
+                }
+            }
+            finally { File.Delete(scriptPath); }
         }
 
         /// The recorder's Quest format: a Face_Time column (tracker clock); rows repeating a tracker time are
@@ -1225,15 +1277,8 @@ namespace Ofera.Client.Tests
                             "assert log.layout.name == 'ovr70', log.layout.name\nassert log.weights.shape == (4, 70), log.weights.shape\n" +
                             "assert np.allclose(log.times, np.arange(4) / 36.0, atol=2e-6), log.times\n" +
                             "assert np.allclose(log.confidence, [[0.9, 0.3]] * 4), log.confidence\nprint('ok', log.weights.shape)\n";
-            string scriptPath = path + ".py";
-            File.WriteAllText(scriptPath, script);
-            ProcessStartInfo psi = new ProcessStartInfo(python, "\"" + scriptPath + "\" \"" + path + "\"");
-            psi.UseShellExecute = false; psi.RedirectStandardOutput = true; psi.RedirectStandardError = true;
-            Process p = Process.Start(psi);
-            string output = p.StandardOutput.ReadToEnd() + p.StandardError.ReadToEnd();
-            p.WaitForExit();
-            Check(p.ExitCode == 0, "facelog: Face_Time log read back as one sample per tracker time", output.Trim());
-            File.Delete(path); File.Delete(scriptPath);
+            RunPython(python, script, path, "facelog: Face_Time log read back as one sample per tracker time");
+            File.Delete(path);
         }
 
         // ============================================================ live server

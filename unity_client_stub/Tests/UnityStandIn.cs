@@ -26,7 +26,7 @@ namespace UnityEngine {
     public GraphicsBuffer(Target t, int count, int stride) {} public GraphicsBuffer(Target t, UsageFlags u, int count, int stride) {}
     public int count; public string name; public void SetData(Array a) {} public void SetData(Array a, int m, int g, int c) {} public void Release() {} public void Dispose() {}
     public Unity.Collections.NativeArray<T> LockBufferForWrite<T>(int start, int count) where T : struct { return default(Unity.Collections.NativeArray<T>); } public void UnlockBufferAfterWrite<T>(int n) where T : struct {} }
-  public static class SystemInfo { public static bool supportsComputeShaders; }
+  public static class SystemInfo { public static bool supportsComputeShaders; public static Rendering.GraphicsDeviceType graphicsDeviceType; }
   public class TextAsset : Object { public long dataSize; public Unity.Collections.NativeArray<T> GetData<T>() where T : struct { return default(Unity.Collections.NativeArray<T>); } }
   public sealed class Material : Object { public Material(Shader s) {} public void SetFloat(string n, float v) {} }
   public sealed class Mesh : Object { public Rendering.IndexFormat indexFormat; public Bounds bounds; public void MarkDynamic() {} public void Clear() {} public void SetVertices(Vector3[] v) {} public void SetColors(Color32[] c) {} public void SetIndices(int[] i, MeshTopology t, int s, bool b) {} public void RecalculateBounds() {} }
@@ -40,7 +40,8 @@ namespace UnityEngine {
   public sealed class RangeAttribute : Attribute { public RangeAttribute(float a, float b) {} }
   public sealed class RequireComponent : Attribute { public RequireComponent(Type a, Type b) {} }
 }
-namespace UnityEngine.Rendering { public enum IndexFormat { UInt32 } public enum ShadowCastingMode { Off } }
+namespace UnityEngine.Rendering { public enum IndexFormat { UInt32 } public enum ShadowCastingMode { Off }
+  public enum GraphicsDeviceType { Direct3D11 = 2, Null = 4, OpenGLES3 = 11, Metal = 16, OpenGLCore = 17, Direct3D12 = 18, Vulkan = 21 } }
 namespace Unity.Collections {
   public struct NativeArray<T> where T : struct { public int Length; public T[] ToArray() { return null; } public NativeArray<U> Reinterpret<U>(int size) where U : struct { return default(NativeArray<U>); }
     public static void Copy(T[] src, int si, NativeArray<T> dst, int di, int n) {} }

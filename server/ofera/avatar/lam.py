@@ -27,8 +27,10 @@ and ``expression = "arkit51"``: the server drives it with the BDA-aligned ARKit 
 
 Frame: glTF is already right-handed, y up, metres, front along +z (the project's FLAME axes). The rest pose
 the skin defines (joint world matrices x inverse bind matrices) is applied when it is not the identity (it is
-for LAM exports), and the head is translated so that the mesh's bounding-box centre is the origin, as the
-default avatar's is.
+for LAM exports): to the vertices and morph targets, and its rotation R and uniform scale s to the Gaussians
+(glTF from other tools may rotate or scale the root): offset -> s R offset, rotation -> quat(R) (x) rotation,
+log scale -> log scale + log s. The head is then translated so that the mesh's bounding-box centre is the
+origin, as the default avatar's is.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ from ofera_protocol.layouts import ARKIT51_NAMES, ARKIT52_NAMES
 
 from ..assets import cache_dir
 from ..head.model import FLAME_PARENTS, HeadModel
+from ..head.rotations import matrix_to_quaternion, quaternion_multiply
 from .binding import VertexBinding, normalize_quaternions
 from .errors import AvatarError
 from .io import load_avatar_npz, save_avatar
@@ -200,6 +203,9 @@ class SkinMesh:
     faces: np.ndarray
     targets: dict[str, np.ndarray]
     notes: tuple[str, ...] = ()
+    rest_linear: np.ndarray = field(default_factory=lambda: np.eye(3))
+    """The linear part (rotation R times uniform scale s, (3, 3)) of the rest transform applied to the vertices and
+    morph targets: the Gaussians' offsets, rotations and scales get the same (:func:`build_lam_avatar`)."""
 
 
 class _Gltf:
@@ -419,20 +425,21 @@ def parse_skin(data: bytes, where: str = SKIN_NAME, resolve: Callable[[str], byt
     if not targets:
         raise AvatarError(f"{where}: none of the {len(names)} morph target names is an ARKit blendshape "
                           f"(e.g. {', '.join(names[:5])})")
-    vertices, targets, rest_note = _rest_pose(g, mi, prim, vertices, targets)
+    vertices, targets, rest_note, rest_linear = _rest_pose(g, mi, prim, vertices, targets)
     if rest_note:
         notes.append(rest_note)
-    return SkinMesh(vertices, faces, targets, tuple(notes))
+    return SkinMesh(vertices, faces, targets, tuple(notes), rest_linear)
 
 
 def _rest_pose(g: _Gltf, mesh_index: int, prim, vertices: np.ndarray, targets: dict[str, np.ndarray]
-               ) -> tuple[np.ndarray, dict[str, np.ndarray], str]:
+               ) -> tuple[np.ndarray, dict[str, np.ndarray], str, np.ndarray]:
     """Apply the transform that places the mesh at rest (skin: joints x inverse binds; else the node's), when it
-    is one rigid similarity for the whole mesh and not already the identity."""
+    is one rigid similarity for the whole mesh and not already the identity. Also returns its linear part
+    (rotation times uniform scale, (3, 3)), which the Gaussians bound to the mesh must follow."""
     doc = g.doc
     nodes = [i for i, n in enumerate(doc.nodes or []) if n.mesh == mesh_index]
     if not nodes:
-        return vertices, targets, ""
+        return vertices, targets, "", np.eye(3)
     world = g.node_matrices()
     node = doc.nodes[nodes[0]]
     if node.skin is not None:
@@ -461,14 +468,16 @@ def _rest_pose(g: _Gltf, mesh_index: int, prim, vertices: np.ndarray, targets: d
         raise AvatarError(f"{g.where}: the skin's rest pose is not one rigid transform for the head (its joints are "
                           "not in their bind pose); export the head in its bind pose")
     if np.abs(m - np.eye(4)).max() < 1e-5:
-        return vertices, targets, "rest pose: identity (joints in their bind pose)"
+        return vertices, targets, "rest pose: identity (joints in their bind pose)", np.eye(3)
     lin = m[:3, :3]
     s = np.cbrt(np.linalg.det(lin))
     if s <= 0 or np.abs(lin.T @ lin / s**2 - np.eye(3)).max() > 1e-4:
         raise AvatarError(f"{g.where}: the mesh's rest transform is not a rotation and uniform scale")
     verts = vertices @ lin.T + m[:3, 3]
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(lin / s) - 1) / 2, -1.0, 1.0))))
     return verts, {k: d @ lin.T for k, d in targets.items()}, (
-        f"rest pose applied (uniform scale {s:.4g}, translation {np.round(m[:3, 3], 4).tolist()})")
+        f"rest pose applied to the mesh and the Gaussians (rotation {angle:.4g} deg, uniform scale {s:.4g}, "
+        f"translation {np.round(m[:3, 3], 4).tolist()})"), lin
 
 
 # ----- offset.ply ----------------------------------------------------------------------------------------------
@@ -479,7 +488,8 @@ def parse_offsets(data: bytes, where: str = OFFSET_NAME, colour: str = "auto") -
     ``opacity`` (N,) linear, ``sh`` (N, 1, 3) and ``colour`` (how f_dc was read: ``rgb`` or ``sh``).
 
     ``colour``: ``rgb`` (LAM: f_dc is plain RGB in 0..1), ``sh`` (a 3DGS DC coefficient) or ``auto``
-    (``rgb`` when every f_dc value lies in 0..1)."""
+    (``rgb`` when every f_dc value lies in 0..1); ``colour_note`` says which was used and why (a heuristic:
+    the import's notes print it)."""
     from plyfile import PlyData
 
     try:
@@ -500,10 +510,18 @@ def parse_offsets(data: bytes, where: str = OFFSET_NAME, colour: str = "auto") -
         return out
 
     dc = cols("f_dc_0", "f_dc_1", "f_dc_2")
-    if colour == "auto":
-        colour = "rgb" if dc.size == 0 or (dc.min() >= -1e-6 and dc.max() <= 1 + 1e-6) else "sh"
-    if colour not in ("rgb", "sh"):
+    if colour not in ("auto", "rgb", "sh"):
         raise AvatarError(f"unknown colour mode {colour!r} (expected auto, rgb or sh)")
+    if colour == "auto":
+        in_range = dc.size == 0 or (dc.min() >= -1e-6 and dc.max() <= 1 + 1e-6)
+        colour = "rgb" if in_range else "sh"
+        lo, hi = (float(dc.min()), float(dc.max())) if dc.size else (0.0, 0.0)
+        how = (f"f_dc read as plain RGB (colour auto: every value lies in 0..1, here {lo:.3g}..{hi:.3g}, as in LAM "
+               "exports; if it holds 3DGS SH DC coefficients, import with --colour sh)" if in_range else
+               f"f_dc read as SH DC coefficients (colour auto: values {lo:.3g}..{hi:.3g} lie outside 0..1, so not "
+               "LAM's plain RGB; if it is RGB, import with --colour rgb)")
+    else:
+        how = f"f_dc read as {'plain RGB' if colour == 'rgb' else 'SH DC coefficients'} (colour {colour}, given)"
     sh = rgb_to_dc(np.clip(dc, 0.0, 1.0)) if colour == "rgb" else dc
     return {
         "offset": cols("x", "y", "z"),
@@ -512,6 +530,7 @@ def parse_offsets(data: bytes, where: str = OFFSET_NAME, colour: str = "auto") -
         "opacity": sigmoid(cols("opacity")[:, 0]),
         "sh": sh[:, None, :].astype(np.float32),
         "colour": colour,
+        "colour_note": how,
     }
 
 
@@ -552,6 +571,19 @@ def build_lam_head(skin: SkinMesh, name: str = "lam-head") -> tuple[HeadModel, n
     return head, shift
 
 
+def _rest_gaussians(lin: np.ndarray, gaussians: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The PLY's offsets, rotations (w, x, y, z) and log scales under the rest transform's linear part ``lin`` =
+    s R: offset' = lin offset, rotation' = quat(R) (x) rotation (Hamilton, w first, as the binding stores them),
+    log_scale' = log_scale + log s."""
+    offset, rotation, log_scale = gaussians["offset"], gaussians["rotation"], gaussians["log_scale"]
+    if np.abs(lin - np.eye(3)).max() < 1e-12:
+        return offset, rotation, log_scale
+    s = float(np.cbrt(np.linalg.det(lin)))
+    q = matrix_to_quaternion(lin / s)
+    return (offset @ lin.T, normalize_quaternions(quaternion_multiply(q[None], rotation)),
+            log_scale + np.log(s))
+
+
 def build_lam_avatar(skin: SkinMesh, gaussians: dict, name: str = "lam") -> GaussianAvatar:
     """Head + Gaussian i bound to vertex i with its offset; see the module docstring."""
     n = gaussians["offset"].shape[0]
@@ -559,9 +591,9 @@ def build_lam_avatar(skin: SkinMesh, gaussians: dict, name: str = "lam") -> Gaus
         raise AvatarError(f"offset.ply has {n} Gaussians but the head mesh has {skin.vertices.shape[0]} vertices: "
                           "LAM binds Gaussian i to vertex i")
     head, _ = build_lam_head(skin, f"lam-{name}")
-    binding = VertexBinding(vertex=np.arange(n, dtype=np.int64), offset=gaussians["offset"].astype(np.float32),
-                            rotation=gaussians["rotation"].astype(np.float32),
-                            log_scale=gaussians["log_scale"].astype(np.float32))
+    offset, rotation, log_scale = _rest_gaussians(skin.rest_linear, gaussians)
+    binding = VertexBinding(vertex=np.arange(n, dtype=np.int64), offset=offset.astype(np.float32),
+                            rotation=rotation.astype(np.float32), log_scale=log_scale.astype(np.float32))
     return GaussianAvatar(head=head, binding=binding, opacity=gaussians["opacity"].astype(np.float32),
                           sh=gaussians["sh"], name=name, expression="arkit51")
 
@@ -579,7 +611,7 @@ def load_lam(path: str | Path, name: str | None = None, target_order: str | None
     missing = [k for k in ARKIT51_NAMES if k not in skin.targets]
     notes = [f"{files.skin_name}: {skin.vertices.shape[0]} vertices, {skin.faces.shape[0]} triangles, "
              f"{len(skin.targets)} ARKit morph targets", *skin.notes,
-             f"{files.offset_name}: {n} Gaussians, f_dc read as {gaussians['colour']}"]
+             f"{files.offset_name}: {n} Gaussians, {gaussians['colour_note']}"]
     if missing:
         notes.append(f"no morph target for {', '.join(missing)} (those weights do nothing)")
     if files.skipped:
@@ -652,7 +684,8 @@ class BsTrack:
 def read_bs_track(data: bytes | str | Path) -> BsTrack:
     """LAM/OpenAvatarChat ``bsData.json``: ``{"names": [52 names], "metadata": {"fps": 30, ...}, "frames":
     [{"weights": [52 values], "time": s, ...}, ...]}`` (frames may also be bare lists; times default to i/fps).
-    Names are matched to ARKit by name; shapes it lacks stay 0."""
+    Names are matched to ARKit by name; shapes it lacks stay 0. Refused (:class:`AvatarError`): no frames, two
+    names for one ARKit shape, frame times that do not increase."""
     if isinstance(data, Path) or (isinstance(data, str) and not data.lstrip().startswith("{")):
         data = Path(data).read_bytes()
     try:
@@ -665,16 +698,25 @@ def read_bs_track(data: bytes | str | Path) -> BsTrack:
     names = doc.get("names") or meta.get("blendshape_names")
     if not isinstance(names, list) or not names:
         raise AvatarError("bsData: no blendshape 'names'")
-    cols = []
+    cols: list[int] = []
     for n in names:
         key = _ARKIT_KEY.get(_norm(str(n)))
         if key is None:
             raise AvatarError(f"bsData: {n!r} is not an ARKit blendshape name")
-        cols.append(ARKIT52_NAMES.index(key))
-    fps = float(meta.get("fps") or doc.get("fps") or 30.0)
+        col = ARKIT52_NAMES.index(key)
+        if col in cols:
+            first = names[cols.index(col)]
+            raise AvatarError(f"bsData: names {first!r} and {n!r} are both the ARKit shape {key!r}")
+        cols.append(col)
+    try:
+        fps = float(meta.get("fps") or doc.get("fps") or 30.0)
+    except (TypeError, ValueError):
+        raise AvatarError(f"bsData: fps {meta.get('fps') or doc.get('fps')!r} is not a number") from None
     if not (fps > 0 and np.isfinite(fps)):
         raise AvatarError(f"bsData: fps {fps} is not positive")
     frames = doc["frames"]
+    if not frames:
+        raise AvatarError("bsData: the track has no frames")
     weights = np.zeros((len(frames), 52), np.float32)
     times = np.arange(len(frames), dtype=np.float64) / fps
     for i, f in enumerate(frames):
@@ -690,4 +732,9 @@ def read_bs_track(data: bytes | str | Path) -> BsTrack:
             times[i] = float(f["time"])
     if not np.all(np.isfinite(weights)) or not np.all(np.isfinite(times)):
         raise AvatarError("bsData: NaN or infinite values")
-    return BsTrack(times - (times[0] if times.size else 0.0), np.clip(weights, 0.0, 1.0), fps)
+    back = np.flatnonzero(np.diff(times) <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise AvatarError(f"bsData: frame times must increase, frame {i} is at {times[i]:.6g} s after "
+                          f"{times[i - 1]:.6g} s")
+    return BsTrack(times - times[0], np.clip(weights, 0.0, 1.0), fps)

@@ -100,6 +100,9 @@ def import_(
     target_order: Annotated[str | None, typer.Option("--target-order", help="lam, only for a skin.glb without morph "
                                                      "target names: 'arkit' (Apple's order) or 'sorted' "
                                                      "(alphabetical)")] = None,
+    colour: Annotated[str, typer.Option("--colour", help="lam: how offset.ply's f_dc is read: 'rgb' (LAM's plain "
+                                        "colour), 'sh' (3DGS DC coefficients) or 'auto' (rgb when every value "
+                                        "lies in 0..1; the notes say which)")] = "auto",
 ) -> None:
     """Convert a GaussianAvatars or FATE avatar (bound to the given FLAME head) or a LAM export (ARKit morph
     head, no FLAME needed) into the project's .npz."""
@@ -111,7 +114,7 @@ def import_(
 
         if len(sources) != 1:
             raise AvatarError(f"lam takes one .zip, got {len(sources)} paths")
-        result = load_lam(sources[0], name=out.name.split(".", 1)[0], target_order=target_order)
+        result = load_lam(sources[0], name=out.name.split(".", 1)[0], target_order=target_order, colour=colour)
         for note in result.notes:
             print(f"  {note}")
         avatar = result.avatar

@@ -26,10 +26,10 @@ def _need_torch() -> None:
 # ----- bda ------------------------------------------------------------------------------------------
 
 
-def _read_arkit51(path: Path) -> np.ndarray:
+def _read_arkit51(path: Path, layout: str = "auto", fps: float | None = None) -> np.ndarray:
     from ..sources.read import read_facelog
 
-    return read_facelog(path).to_arkit51()
+    return read_facelog(path, layout, fps).to_arkit51()
 
 
 @bda_app.command("fit")
@@ -42,6 +42,13 @@ def bda_fit(
     = 0.0,
     split: Annotated[str, typer.Option(help="With a paired .npz: fit on this split ('train' or 'all').")] = "train",
     device: Annotated[str, typer.Option(help="Name of the headset profile stored in the file.")] = "",
+    layout: Annotated[str, typer.Option("--layout", help="With two logs: the HEADSET log's layout, as for `ofera "
+                                        "replay` ('auto', or e.g. ovr63 for a headerless Quest log).")] = "auto",
+    target_layout: Annotated[str, typer.Option("--target-layout", help="With two logs: the TARGET log's layout "
+                                               "('auto' or a layout name).")] = "auto",
+    fps: Annotated[float | None, typer.Option("--fps", help="With two logs: the row rate of a log without time "
+                                              "(Quest snapshot or headerless logs), as for `ofera replay`.")]
+    = None,
 ) -> None:
     """Fit W (51x51) and b by least squares; prints the error before and after alignment."""
     from ..mapping.bda import BDA, BDAError
@@ -61,7 +68,7 @@ def bda_fit(
             held = (x[~fit_rows], y[~fit_rows])
         x, y = x[fit_rows], y[fit_rows]
     elif len(pairs) == 2:
-        x, y = _read_arkit51(pairs[0]), _read_arkit51(pairs[1])
+        x, y = _read_arkit51(pairs[0], layout, fps), _read_arkit51(pairs[1], target_layout, fps)
         if len(x) != len(y):
             raise CliError(f"{pairs[0]} has {len(x)} frames, {pairs[1]} has {len(y)}: pairs must be frame-aligned")
     else:

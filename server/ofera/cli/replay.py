@@ -12,8 +12,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
+import click
 import typer
-from typer.core import TyperGroup
+from typer.core import TyperCommand, TyperGroup
 
 from .errors import CliError, user_errors
 
@@ -88,18 +89,52 @@ def _explain_failure(stats, what: str) -> None:
     raise typer.Exit(1)
 
 
+PLAY = "play"
+HELP_OPTIONS = ("-h", "--help")
+
+
 class ReplayGroup(TyperGroup):
     """`ofera replay LOG ...` replays a log (the hidden `play` command); `ofera replay inspect LOG` and any
-    other subcommand are dispatched by name. A first argument that is not a subcommand is the log."""
+    other subcommand are dispatched by name. A first argument that is neither a subcommand nor a help option
+    is the log. `ofera replay --help` shows the replay's usage, arguments and options, then the subcommands."""
 
     def parse_args(self, ctx, args: list[str]) -> list[str]:
-        if not args or args[0] not in self.commands:
+        if args and args[0] not in self.commands and args[0] not in HELP_OPTIONS:
             args = [PLAY, *args]
         return super().parse_args(ctx, args)
 
+    def format_help(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        self.commands[PLAY].format_help(ctx, formatter)  # usage `ofera replay [OPTIONS] LOG` (PlayCommand)
+        rows = [(name, cmd.get_short_help_str(limit=70)) for name, cmd in self.commands.items() if not cmd.hidden]
+        try:
+            from rich.console import Console
+            from rich.panel import Panel
+            from rich.table import Table
+        except ImportError:  # plain click help: the commands after the options
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+            return
+        table = Table.grid(padding=(0, 2))
+        for name, text in rows:
+            table.add_row(f"[bold cyan]{name}[/]", text)
+        Console().print(Panel(table, title="Commands", title_align="left", border_style="dim"))
 
-PLAY = "play"
-replay_app = typer.Typer(cls=ReplayGroup, help="Replay a recorded face log through a running server "
+
+class PlayCommand(TyperCommand):
+    """The hidden `play` command: its usage line is `ofera replay [OPTIONS] LOG`, how it is invoked."""
+
+    def get_usage(self, ctx: click.Context) -> str:
+        path = ctx.command_path
+        if ctx.info_name == PLAY and ctx.parent is not None:
+            path = ctx.parent.command_path
+        formatter = ctx.make_formatter()
+        formatter.write_usage(path, " ".join(self.collect_usage_pieces(ctx)))
+        return formatter.getvalue().rstrip("\n")
+
+
+replay_app = typer.Typer(cls=ReplayGroup, context_settings={"help_option_names": list(HELP_OPTIONS)},
+                         no_args_is_help=True,
+                         help="Replay a recorded face log through a running server "
                          "(`ofera replay LOG --url URL`), or describe it (`ofera replay inspect LOG`).")
 
 
@@ -148,7 +183,7 @@ def replay(
 def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar,
             encoding, token, max_lag, drain, quiet, delta=False) -> None:
     from ofera.replay import FrameRecorder, LinkOptions, Replayer, replay_through, stream_url
-    from ofera.sources.inspect import inspect_facelog
+    from ofera.sources import read_facelog_report
 
     if passes is not None and passes < 1:
         raise CliError(f"--passes must be at least 1, got {passes}")
@@ -158,7 +193,7 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
     if record_positions and record is None:
         raise CliError("--record-positions needs --record OUT.npz (the file the positions go to)")
     target = stream_url(url)
-    log, report = inspect_facelog(log_path, layout, fps)
+    log, report = read_facelog_report(log_path, layout, fps)
     replayer = Replayer(log, speed=speed, loop=loop, max_lag=max_lag,
                         max_passes=passes if loop else 1)
     recorder = FrameRecorder(log.layout.name, log.weights, replayer.times, record_positions) if record else None
@@ -171,6 +206,8 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
         console.print(f"{report.format}: {report.rows} rows -> {report.samples} samples ({report.duplicates} "
                       f"repeats, {report.invalid + report.malformed} invalid dropped), time: {report.time_source}"
                       + (", with lower/upper confidence" if log.confidence is not None else ""))
+    for note in report.problems:
+        console.print(f"note: {note}")
     progress, on_tick = _progress(console, replayer, quiet)
     with progress or contextlib.nullcontext():
         stats = _run_with_sigint(
@@ -194,7 +231,7 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
     _explain_failure(stats, "replay")
 
 
-replay_app.command(PLAY, hidden=True)(replay)
+replay_app.command(PLAY, hidden=True, cls=PlayCommand)(replay)
 
 
 @replay_app.command("inspect")
@@ -210,9 +247,9 @@ def inspect_log(
 ) -> None:
     """Describe a face log as `ofera replay` would read it: detected format and layout, rows, samples kept,
     duplicates and invalid rows dropped, time source, rate, duration, columns ignored. Needs no server."""
-    from ofera.sources.inspect import inspect_facelog
+    from ofera.sources import read_facelog_report
 
-    _, report = inspect_facelog(log, layout, fps)
+    _, report = read_facelog_report(log, layout, fps)
     if json_out:
         print(json.dumps(report.to_dict(), indent=2))
     else:

@@ -56,6 +56,7 @@ def serve(
     from pydantic import ValidationError
 
     from ..streaming.config import Settings
+    from ..streaming.registry import AvatarRegistry
     from ..streaming.server import serve as run
 
     given = {k: v for k, v in dict(host=host, port=port, avatars=avatars, avatar_zip=avatar_zip, devices=devices,
@@ -71,8 +72,7 @@ def serve(
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise CliError(f"bad settings: {problems}") from None
-    default = (settings.avatar_zip.name.split(".", 1)[0] if settings.avatar_zip is not None
-               and "default_avatar" not in settings.model_fields_set else settings.default_avatar)
+    default = AvatarRegistry.default_id_for(settings)
     print(f"OFERA server: warming up avatar {default!r} on {settings.host}:{settings.port} ...",
           flush=True)
     run(settings)

@@ -4,7 +4,6 @@ CSV/UDP/.gesichter, MediaPipe/ARKit CSV, and VMC (OSC) blendshape messages."""
 from ofera.sources.facelog import DATA_SOURCES, FaceLog, SourceFormatError
 from ofera.sources.facelog_csv import read_facelog_csv, write_facelog
 from ofera.sources.gesichter import read_gesichter, write_gesichter
-from ofera.sources.inspect import inspect_facelog
 from ofera.sources.livelink_csv import parse_timecode, read_livelink_csv
 from ofera.sources.livelink_packet import (
     LiveLinkPacket,
@@ -12,8 +11,9 @@ from ofera.sources.livelink_packet import (
     build_livelink_packet,
     parse_livelink_packet,
 )
-from ofera.sources.quest_csv import QuestLogReport, read_quest_csv, read_quest_csv_report
-from ofera.sources.read import read_facelog
+from ofera.sources.quest_csv import read_quest_csv, read_quest_csv_report
+from ofera.sources.read import read_facelog, read_facelog_report
+from ofera.sources.report import LogReport
 from ofera.sources.vmc import VmcBlendshapeAccumulator
 
 __all__ = [
@@ -21,14 +21,14 @@ __all__ = [
     "FaceLog",
     "LiveLinkPacket",
     "LiveLinkPacketError",
-    "QuestLogReport",
+    "LogReport",
     "SourceFormatError",
     "VmcBlendshapeAccumulator",
     "build_livelink_packet",
-    "inspect_facelog",
     "parse_livelink_packet",
     "parse_timecode",
     "read_facelog",
+    "read_facelog_report",
     "read_facelog_csv",
     "read_gesichter",
     "read_livelink_csv",

@@ -5,10 +5,15 @@ What the reader takes:
 - Blendshape columns named by Meta's enums: `OVRFaceExpressions.FaceExpression` (v1, 63, `BrowLowererL`)
   or `OVRPlugin.FaceExpression2` (v2, 70, `Brow_Lowerer_L` ... `Tongue_Retreat`), or the OpenXR spelling,
   in any order; names match case- and separator-insensitively (`_`, `-`, `.`, spaces), and an enum prefix
-  (`FaceExpression.JawDrop`) is dropped. `Max`/`Invalid` (from `Enum.GetNames`) are ignored.
+  (`FaceExpression.JawDrop`) is dropped unless the whole name is a time/status/confidence column
+  (`FaceState.Time` is the tracker time). `Max`/`Invalid`/`Count` (from `Enum.GetNames`) are ignored; a
+  logger that writes them in the header but no value for them in the rows (rows short by exactly that
+  many) gets them left out of the header, with a note.
 - Time: the tracker's own sample time `Face_Time` (device seconds), a Unity clock (`timeSinceStartup`,
   `realtimeSinceStartup`, `TimeFromStart`, `time`, `Timestamp`; seconds), or none (then `fps` paces the
-  rows). The best present is used: tracker time > Unity clock > `fps`.
+  rows). The best present is used: tracker time > Unity clock > `fps`. A tracker time of 0 (or below) is
+  not a sample: loggers write 0 before tracking starts, and those rows are invalid like status-false rows.
+  Steps over `LONG_GAP_S` in the file's time are kept (the replay waits through them) and noted.
 - `Face_Status` (`true`/`false`, `1`/`0`): rows that are not valid faces are dropped.
 - `FaceRegionConfidence_Lower`/`_Upper` (or `confidence_lower`/`_upper`): kept as `FaceLog.confidence`.
 - `Face_DataSource`/`data_source` (`visual`/`audio`): kept as `FaceLog.data_source`.
@@ -21,7 +26,11 @@ Repeated rows. Loggers in `Update`/`FixedUpdate` write faster than the tracker s
 samples at 36 Hz). With a tracker time, a sample is a row with a new tracker time; the other rows are
 repeats. Without one, a row whose weights equal the previous kept row's exactly is a repeat (a tracker
 does not produce two bit-identical 63-float samples in a row); each sample keeps the time of its first
-row. Malformed rows (wrong field count, a cell that is not a finite number, an unknown status) are
+row. A tracker time too coarse to tell samples apart (a float `Face_Time` at a large device uptime: rows
+with the same tracker time but different weights) is not used: samples are then found by weight changes
+and timed by the Unity clock (or `fps`), with a note.
+
+Malformed rows (wrong field count, a cell that is not a finite number, an unknown status) are
 dropped and counted; more than `MAX_MALFORMED_SHARE` of them is an error (a wrong format, not a glitch).
 """
 
@@ -30,13 +39,16 @@ from __future__ import annotations
 import csv
 import io
 import re
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from ofera.mapping.layouts import OVR63_NAMES, OVR70_NAMES, Layout, LayoutError, get_layout
 from ofera.sources.facelog import DATA_SOURCES, FaceLog, SourceFormatError
+from ofera.sources.report import LogReport, median_rate
 
 TRACKER_TIME_KEYS: tuple[str, ...] = ("facetime", "trackertime", "facestatetime")
 """Tracker sample time columns (matching keys), device seconds."""
@@ -52,6 +64,11 @@ CONFIDENCE_KEYS: tuple[tuple[str, ...], tuple[str, ...]] = (
 DATA_SOURCE_KEYS: tuple[str, ...] = ("facedatasource", "datasource")
 ENUM_EXTRA_KEYS: tuple[str, ...] = ("max", "invalid", "count")
 """Enum members that `Enum.GetNames` adds and that are not expressions."""
+_SPECIAL_KEYS = frozenset(TRACKER_TIME_KEYS + CLOCK_KEYS + STATUS_KEYS + CONFIDENCE_KEYS[0] + CONFIDENCE_KEYS[1]
+                          + DATA_SOURCE_KEYS)
+
+LONG_GAP_S = 3.0
+"""A step in the file's time longer than this (seconds: tracking lost, the app paused) is noted in the report."""
 
 MAX_MALFORMED_SHARE = 0.05
 """Largest share of malformed rows tolerated (dropped and reported); above it the file is refused."""
@@ -70,11 +87,14 @@ _STRICT_KEYS = frozenset({"time", "timems", "timestampms", "timestampus", "frame
 
 def column_key(name: str) -> str:
     """Matching key of a column name: quotes and an enum prefix (`FaceExpression.`) dropped, separators
-    (`_ - . space`) removed, lowercase. `Brow_Lowerer_L`, `BrowLowererL`, `BROW_LOWERER_L` -> `browlowererl`."""
+    (`_ - . space`) removed, lowercase. `Brow_Lowerer_L`, `BrowLowererL`, `BROW_LOWERER_L` -> `browlowererl`.
+    The whole name is tried first against the time, status, confidence and data-source keys, so that
+    `FaceState.Time` stays the tracker time (`facestatetime`) instead of becoming a Unity clock (`time`)."""
     name = name.strip().strip("\"'")
-    if "." in name and not _is_number(name):
-        name = name.rsplit(".", 1)[1]
-    return _SEPARATORS.sub("", name).lower()
+    full = _SEPARATORS.sub("", name).lower()
+    if full in _SPECIAL_KEYS or "." not in name or _is_number(name):
+        return full
+    return _SEPARATORS.sub("", name.rsplit(".", 1)[1]).lower()
 
 
 def _is_number(text: str) -> bool:
@@ -83,68 +103,6 @@ def _is_number(text: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-@dataclass
-class QuestLogReport:
-    """What the reader found and did. Counts are data rows (comment and blank lines excluded)."""
-
-    path: str
-    format: str
-    """`quest-v1` (63 names), `quest-v2` (70 names), `quest-headerless`, or `facelog` etc. for other readers."""
-    layout: str
-    rows: int = 0
-    samples: int = 0
-    duplicates: int = 0
-    invalid: int = 0
-    """Rows dropped as not faces (status false)."""
-    malformed: int = 0
-    """Rows dropped as unreadable (wrong field count, bad number or status)."""
-    time_source: str = ""
-    duration_s: float = 0.0
-    rate_hz: float | None = None
-    """Samples per second (1 / the median step, robust to gaps)."""
-    row_rate_hz: float | None = None
-    """Rows per second of the logger (when a time column gives it)."""
-    columns_ignored: list[str] = field(default_factory=list)
-    labels: list[str] = field(default_factory=list)
-    """Ignored columns holding text (e.g. `Emotion`)."""
-    confidence: bool = False
-    status_column: str | None = None
-    problems: list[str] = field(default_factory=list)
-    """The first few malformed rows, each `line N: why`; also notes such as an ignored --fps."""
-
-    MAX_PROBLEMS = 5
-
-    def to_dict(self) -> dict[str, object]:
-        d = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        d["duration_s"] = round(self.duration_s, 6)
-        for k in ("rate_hz", "row_rate_hz"):
-            d[k] = None if d[k] is None else round(float(d[k]), 3)
-        return d
-
-    def text(self) -> str:
-        """Human-readable lines, as `ofera replay inspect` prints them."""
-        rate = f"{self.rate_hz:.2f} Hz" if self.rate_hz else "-"
-        rows = f"{self.row_rate_hz:.2f} Hz" if self.row_rate_hz else "-"
-        lines = [
-            f"file          {self.path}",
-            f"format        {self.format}",
-            f"layout        {self.layout}",
-            f"rows          {self.rows}",
-            f"samples kept  {self.samples}",
-            f"duplicates    {self.duplicates} dropped (repeated samples)",
-            f"invalid       {self.invalid} dropped (not a face: status false)"
-            + (f", {self.malformed} malformed" if self.malformed else ""),
-            f"time source   {self.time_source}",
-            f"rate          {rate} samples" + (f", rows at {rows}" if self.row_rate_hz else ""),
-            f"duration      {self.duration_s:.3f} s",
-            f"confidence    {'lower/upper' if self.confidence else 'none'}",
-            "ignored       " + (", ".join(self.columns_ignored) or "none")
-            + (f" (labels: {', '.join(self.labels)})" if self.labels else ""),
-        ]
-        lines += [f"note          {p}" for p in self.problems]
-        return "\n".join(lines)
 
 
 @dataclass
@@ -233,11 +191,11 @@ def read_quest_csv(path: str | Path, layout: str | Layout = "auto", fps: float |
 
 def read_quest_csv_report(
     path: str | Path, layout: str | Layout = "auto", fps: float | None = None
-) -> tuple[FaceLog, QuestLogReport]:
+) -> tuple[FaceLog, LogReport]:
     """`read_quest_csv` and the report of what was found, kept and dropped.
 
     Returns a FaceLog (times (T,) s from 0, weights (T, 63|70) float32, confidence (T, 2) lower/upper in
-    [0, 1] or None) and a `QuestLogReport`. Raises SourceFormatError naming the file, line and problem.
+    [0, 1] or None) and a `LogReport`. Raises SourceFormatError naming the file, line and problem.
     """
     path = Path(path)
     if fps is not None and not (np.isfinite(fps) and fps > 0):
@@ -254,38 +212,66 @@ def read_quest_csv_report(
     if wanted is not None and wanted.family != "ovr":
         raise SourceFormatError(f"a Quest Pro log holds ovr63 or ovr70 weights, not {wanted.name!r}", path)
     cols = _columns(rows, wanted, path)
-    lay = cols.layout
-    report = QuestLogReport(path=str(path), format=cols.format, layout=lay.name, rows=len(rows.cells),
-                            columns_ignored=cols.ignored, confidence=cols.conf is not None,
-                            status_column=None if cols.status is None else rows.header[cols.status])  # type: ignore[index]
+    lay, names = cols.layout, cols.names
+    report = LogReport(path=str(path), format=cols.format, layout=lay.name, rows=len(rows.cells),
+                       columns_ignored=cols.ignored, confidence=cols.conf is not None,
+                       status_column=None if cols.status is None else names[cols.status],
+                       problems=list(cols.notes))
     parsed = _parse(rows, cols, path, report)
-    weights, tracker, clock, conf, source, status, index = parsed
-    keep = status
-    report.invalid = int((~status).sum())
-    report.labels = [rows.header[i] for i in cols.ignored_index if _texty(rows.cells, i)] if rows.header else []
+    keep = parsed.status.copy()
+    report.invalid = int((~keep).sum())
+    report.labels = [names[i] for i in cols.ignored_index if _texty(rows.cells, i)] if rows.header else []
+    tr = parsed.tracker
+    tracker_name = names[cols.tracker] if cols.tracker is not None else ""
+    clock_name = names[cols.clock] if cols.clock is not None else ""
+    if tr is not None:
+        timed = keep & (tr > 0)
+        distinct = np.unique(tr[timed]).size
+        if distinct == 0 or (distinct == 1 and keep.sum() > 1):
+            report.problems.append(f"{tracker_name} never changes"
+                                   + (" (never above 0)" if distinct == 0 else "")
+                                   + ": not used as the time source")
+            tr = None
+        else:
+            untimed = int((keep & ~timed).sum())
+            if untimed:  # tracker time 0: the logger wrote rows before tracking started (or while it was lost)
+                report.invalid += untimed
+                report.problems.append(f"{untimed} rows with {tracker_name} <= 0 (no tracker sample: before "
+                                       "tracking started, or while lost) dropped as invalid")
+            keep = timed
     if not keep.any():
         raise SourceFormatError(f"no valid face rows ({report.invalid} rows have status false"
                                 + (f", {report.malformed} are malformed" if report.malformed else "") + ")", path)
-    w, lines_kept = weights[keep], np.asarray(rows.lines)[index][keep]
-    tr = tracker[keep] if tracker is not None else None
-    ck = clock[keep] if clock is not None else None
-    positions = index[keep]
-    if tr is not None and len(tr) > 1 and np.all(tr == tr[0]):
-        report.problems.append(f"{rows.header[cols.tracker]} never changes: not used as the time source")  # type: ignore[index]
-        tr = None
+    w, lines_kept = parsed.weights[keep], np.asarray(rows.lines)[parsed.index][keep]
+    ck = parsed.clock[keep] if parsed.clock is not None else None
+    positions = parsed.index[keep]
     if tr is not None:
-        _check_order(tr, lines_kept, rows.header[cols.tracker], path)  # type: ignore[index]
+        tr = tr[keep]
+        _check_order(tr, lines_kept, tracker_name, path)
+        clash = (tr[1:] == tr[:-1]) & np.any(w[1:] != w[:-1], axis=1)
+        if clash.any():  # one tracker time, two faces: the time is too coarse to tell samples apart
+            line = int(lines_kept[int(np.flatnonzero(clash)[0]) + 1])
+            instead = (f"the Unity clock ({clock_name})" if ck is not None
+                       else f"--fps {fps:g}" if fps is not None else None)
+            what = (f"{tracker_name} is too coarse to tell samples apart: {int(clash.sum())} rows have the "
+                    f"tracker time of the row before but a different face (first at line {line})")
+            if instead is None:
+                raise SourceFormatError(f"{what}, and the file has no Unity clock: give --fps (rows per second)",
+                                        path)
+            report.problems.append(f"{what}; samples found by weight changes and timed by {instead} instead")
+            tr = None
+    if tr is not None:
         first = np.ones(len(tr), bool)
         first[1:] = tr[1:] != tr[:-1]
         times = tr[first]
-        report.time_source = f"tracker ({rows.header[cols.tracker]}, device seconds)"  # type: ignore[index]
+        report.time_source = f"tracker ({tracker_name}, device seconds)"
     else:
         first = np.ones(len(w), bool)
         first[1:] = np.any(w[1:] != w[:-1], axis=1)
         if ck is not None:
-            _check_order(ck, lines_kept, rows.header[cols.clock], path)  # type: ignore[index]
+            _check_order(ck, lines_kept, clock_name, path)
             times = ck[first]
-            report.time_source = f"unity clock ({rows.header[cols.clock]}, seconds)"  # type: ignore[index]
+            report.time_source = f"unity clock ({clock_name}, seconds)"
         elif fps is not None:
             times = positions[first] / float(fps)
             report.time_source = f"--fps {fps:g} (rows paced at 1/{fps:g} s)"
@@ -295,31 +281,37 @@ def read_quest_csv_report(
                                     "column)", path)
     if fps is not None and (tr is not None or ck is not None):
         report.problems.append(f"--fps {fps:g} ignored: the file has its own time")
+    if tr is not None or ck is not None:
+        _note_gaps(times, lines_kept[first], report)
     report.samples = int(first.sum())
     report.duplicates = len(w) - report.samples
     times = times - times[0]
     report.duration_s = float(times[-1])
-    report.rate_hz = _median_rate(times)
-    report.row_rate_hz = None if clock is None else _median_rate(clock)
+    report.rate_hz = median_rate(times)
+    report.row_rate_hz = None if parsed.clock is None else median_rate(parsed.clock)
     metadata = dict(rows.metadata)
     metadata.update({"format": report.format, "time_source": report.time_source})
     log = FaceLog(
         times=times,
         weights=w[first].astype(np.float32),
         layout=lay,
-        confidence=None if conf is None else np.clip(conf[keep][first], 0.0, 1.0).astype(np.float32),
-        data_source=None if source is None else source[keep][first],
+        confidence=None if parsed.conf is None else np.clip(parsed.conf[keep][first], 0.0, 1.0).astype(np.float32),
+        data_source=None if parsed.source is None else parsed.source[keep][first],
         source=metadata.pop("source", f"Quest Pro log {path}"),
         metadata=metadata,
     )
     return log, report
 
 
-def _median_rate(t: np.ndarray) -> float | None:
-    """1 / the median positive step of `t` (seconds), robust to gaps; None with fewer than two times."""
-    steps = np.diff(t)
-    steps = steps[steps > 0]
-    return float(1.0 / np.median(steps)) if steps.size else None
+def _note_gaps(times: np.ndarray, lines: np.ndarray, report: LogReport) -> None:
+    """Note steps over LONG_GAP_S in the samples' times (kept: the replay waits through them)."""
+    steps = np.diff(times)
+    long = np.flatnonzero(steps > LONG_GAP_S)
+    if long.size:
+        j = int(long[np.argmax(steps[long])])
+        report.problems.append(f"{long.size} step(s) over {LONG_GAP_S:g} s in the time (tracking lost or the app "
+                               f"paused?); the longest, {steps[j]:.3f} s, ends at line {int(lines[j + 1])}: kept, "
+                               "the replay waits through it")
 
 
 def _check_order(t: np.ndarray, lines: np.ndarray, name: str, path: Path) -> None:
@@ -334,8 +326,11 @@ class _Columns:
     layout: Layout
     format: str
     width: int
+    """Cells a row holds (the header's columns, less trailing separators and value-less enum extras)."""
     shapes: np.ndarray
     """(K,) column of each expression, in layout order."""
+    names: list[str]
+    """Name of each of the `width` columns (`value N` in a headerless file)."""
     tracker: int | None = None
     clock: int | None = None
     status: int | None = None
@@ -343,6 +338,7 @@ class _Columns:
     source: int | None = None
     ignored: list[str] = field(default_factory=list)
     ignored_index: list[int] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
 
 def _columns(rows: _Rows, wanted: Layout | None, path: Path) -> _Columns:
@@ -357,44 +353,63 @@ def _columns(rows: _Rows, wanted: Layout | None, path: Path) -> _Columns:
         if width != wanted.length:
             raise SourceFormatError(f"headerless rows have {width} values; layout {wanted.name} needs "
                                     f"{wanted.length} in enum order", path, rows.lines[0])
-        return _Columns(wanted, "quest-headerless", width, np.arange(wanted.length))
-    keys = [column_key(h) for h in rows.header]
+        return _Columns(wanted, "quest-headerless", width, np.arange(wanted.length),
+                        [f"value {j + 1}" for j in range(width)])
+    header = list(rows.header)
+    keys = [column_key(h) for h in header]
     width = len(keys)
     while width and not keys[width - 1] and all(len(r) < width or not r[width - 1] for r in rows.cells[:50]):
         width -= 1  # a trailing separator on the header (and rows)
+    header, keys = header[:width], keys[:width]
+    dropped: list[str] = []
+    extras = [i for i, k in enumerate(keys) if k in ENUM_EXTRA_KEYS]
+    if extras:
+        usual = Counter(len(r) for r in rows.cells).most_common(1)[0][0]
+        if usual == width - len(extras):  # `Enum.GetNames` in the header, no value for `Max` in the rows
+            dropped = [header[i] for i in extras]
+            header = [h for i, h in enumerate(header) if i not in extras]
+            keys = [k for i, k in enumerate(keys) if i not in extras]
+            width -= len(extras)
     shapes: dict[int, int] = {}
-    out = _Columns(get_layout("ovr63"), "", width, np.zeros(0, np.int64))
-    conf: list[int | None] = [None, None]
-    for i, k in enumerate(keys[:width]):
+    out = _Columns(get_layout("ovr63"), "", width, np.zeros(0, np.int64), header)
+    if dropped:
+        out.ignored += dropped
+        out.notes.append(f"header column{'s' if len(dropped) > 1 else ''} {', '.join(dropped)} (from Enum.GetNames, "
+                         f"not expressions) ha{'ve' if len(dropped) > 1 else 's'} no value in the rows: left out "
+                         f"of the header")
+    lower: int | None = None
+    upper: int | None = None
+    for i, k in enumerate(keys):
         if k in _OVR_KEYS and _OVR_KEYS[k] not in shapes:
             shapes[_OVR_KEYS[k]] = i
         elif k in _OVR_KEYS:
-            raise SourceFormatError(f"duplicate column {rows.header[i]!r} (also column {shapes[_OVR_KEYS[k]] + 1})",
+            raise SourceFormatError(f"duplicate column {header[i]!r} (also column {shapes[_OVR_KEYS[k]] + 1})",
                                     path, rows.header_line)
         elif k in TRACKER_TIME_KEYS and out.tracker is None:
             out.tracker = i
         elif k in CLOCK_KEYS and (out.clock is None or CLOCK_KEYS.index(k) < CLOCK_KEYS.index(keys[out.clock])):
             if out.clock is not None:
-                out.ignored.append(rows.header[out.clock])
+                out.ignored.append(header[out.clock])
                 out.ignored_index.append(out.clock)
             out.clock = i
         elif k in STATUS_KEYS and out.status is None:
             out.status = i
-        elif k in CONFIDENCE_KEYS[0] and conf[0] is None:
-            conf[0] = i
-        elif k in CONFIDENCE_KEYS[1] and conf[1] is None:
-            conf[1] = i
+        elif k in CONFIDENCE_KEYS[0] and lower is None:
+            lower = i
+        elif k in CONFIDENCE_KEYS[1] and upper is None:
+            upper = i
         elif k in DATA_SOURCE_KEYS and out.source is None:
             out.source = i
         else:
-            out.ignored.append(rows.header[i] or f"(column {i + 1}, unnamed)")
+            out.ignored.append(header[i] or f"(column {i + 1}, unnamed)")
             out.ignored_index.append(i)
-    if (conf[0] is None) != (conf[1] is None):
-        lone = conf[0] if conf[0] is not None else conf[1]
-        out.ignored.append(rows.header[lone])  # type: ignore[index]
-        out.ignored_index.append(lone)  # type: ignore[arg-type]
-    elif conf[0] is not None:
-        out.conf = (conf[0], conf[1])  # type: ignore[assignment]
+    if lower is not None and upper is not None:
+        out.conf = (lower, upper)
+    else:  # one confidence alone is not the lower/upper pair: ignored
+        for lone in (lower, upper):
+            if lone is not None:
+                out.ignored.append(header[lone])
+                out.ignored_index.append(lone)
     found = set(shapes)
     tongue = found - set(range(len(OVR63_NAMES)))
     lay = get_layout("ovr70" if tongue or (wanted is not None and wanted.name == "ovr70") else "ovr63")
@@ -416,9 +431,26 @@ def _texty(cells: list[list[str]], column: int) -> bool:
     return any(column < len(r) and r[column] and not _is_number(r[column]) for r in cells[:200])
 
 
-def _parse(rows: _Rows, cols: _Columns, path: Path, report: QuestLogReport):
-    """(weights (R, K) float64, tracker (R,) | None, clock (R,) | None, conf (R, 2) | None,
-    data_source (R,) uint8 | None, status (R,) bool, index (R,) int64 row positions) of the good rows."""
+class _Parsed(NamedTuple):
+    """The rows `_parse` could read (malformed ones dropped), R of them."""
+
+    weights: np.ndarray
+    """(R, K) float64, in layout order."""
+    tracker: np.ndarray | None
+    """(R,) tracker time, device seconds."""
+    clock: np.ndarray | None
+    """(R,) Unity clock, seconds."""
+    conf: np.ndarray | None
+    """(R, 2) lower/upper confidence, as written."""
+    source: np.ndarray | None
+    """(R,) uint8 data source codes (DATA_SOURCES)."""
+    status: np.ndarray
+    """(R,) bool: a valid face (status true, or no status column)."""
+    index: np.ndarray
+    """(R,) int64 positions of the rows in `rows.cells`."""
+
+
+def _parse(rows: _Rows, cols: _Columns, path: Path, report: LogReport) -> _Parsed:
     numeric = [*cols.shapes.tolist()]
     extra = {}
     for name, col in (("tracker", cols.tracker), ("clock", cols.clock)):
@@ -429,7 +461,7 @@ def _parse(rows: _Rows, cols: _Columns, path: Path, report: QuestLogReport):
         extra["conf"] = len(numeric)
         numeric += list(cols.conf)
     comma = rows.delimiter != ","
-    names = rows.header or [f"value {j + 1}" for j in range(cols.width)]
+    names = cols.names
     values: list[list[float]] = []
     status: list[bool] = []
     sources: list[int] = []
@@ -477,12 +509,12 @@ def _parse(rows: _Rows, cols: _Columns, path: Path, report: QuestLogReport):
         raise SourceFormatError(f"{problem} ({report.malformed} of {len(rows.cells)} rows malformed)", path, line)
     a = np.array(values, dtype=np.float64).reshape(len(values), len(numeric))
     k = len(cols.shapes)
-    return (
-        a[:, :k],
-        a[:, extra["tracker"]] if "tracker" in extra else None,
-        a[:, extra["clock"]] if "clock" in extra else None,
-        a[:, extra["conf"]: extra["conf"] + 2] if "conf" in extra else None,
-        np.array(sources, np.uint8) if cols.source is not None else None,
-        np.array(status, bool),
-        np.array(index, np.int64),
+    return _Parsed(
+        weights=a[:, :k],
+        tracker=a[:, extra["tracker"]] if "tracker" in extra else None,
+        clock=a[:, extra["clock"]] if "clock" in extra else None,
+        conf=a[:, extra["conf"]: extra["conf"] + 2] if "conf" in extra else None,
+        source=np.array(sources, np.uint8) if cols.source is not None else None,
+        status=np.array(status, bool),
+        index=np.array(index, np.int64),
     )

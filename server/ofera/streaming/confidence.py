@@ -10,7 +10,9 @@ belong to both. In arkit51 terms (after the layout adapter, so every layout is t
 - both:  `cheekPuff`, `cheekSquintLeft/Right`, `noseSneerLeft/Right` (held while either region is low).
 
 A region whose confidence is below the threshold gets the values it had in the last sample where it was
-confident (neutral 0 before the first one); a confident region passes through and refreshes that memory.
+confident (neutral 0 before the first one); a region at or above the threshold passes through and refreshes
+that memory. The comparison is in float32, the wire's precision, so that `conf` equal to the threshold
+(e.g. 0.7 sent as float32 0.69999999) counts as at the threshold.
 """
 
 from __future__ import annotations
@@ -42,24 +44,27 @@ DEFAULT_THRESHOLD = 0.5
 class RegionHold:
     """Per-session memory of the last confident arkit51 values of each region.
 
-    ``hold(x, conf)`` edits `x` (51,) float32 in place and returns it: `conf` (2,) [lower, upper] in [0, 1]
-    or None (full confidence). `threshold` 0 passes everything through. `held` counts the samples in which
-    some region was held.
+    Call the instance (``region_hold(x, conf)``, i.e. ``__call__``): it edits `x` (51,) float32 in place and
+    returns it; `conf` (2,) [lower, upper] in [0, 1], or None (full confidence). `threshold` 0 passes
+    everything through. `held` counts the samples in which some region was held.
     """
 
     def __init__(self, threshold: float = DEFAULT_THRESHOLD) -> None:
         if not 0.0 <= threshold <= 1.0:
             raise ValueError(f"confidence threshold must be in [0, 1], got {threshold}")
         self.threshold = float(threshold)
+        self._threshold32 = np.float32(threshold)
         self.last = np.zeros(len(ARKIT51_NAMES), np.float32)
         self.held = 0
 
     def __call__(self, x: np.ndarray, conf: np.ndarray | None) -> np.ndarray:
+        """Hold the regions of `x` whose confidence in `conf` is below the threshold (see the class)."""
         if conf is None or self.threshold <= 0.0:
             self.last[:] = x
             return x
-        low_lower = float(conf[0]) < self.threshold
-        low_upper = float(conf[1]) < self.threshold
+        c = np.asarray(conf, np.float32)
+        low_lower = bool(c[0] < self._threshold32)
+        low_upper = bool(c[1] < self._threshold32)
         if not (low_lower or low_upper):
             self.last[:] = x
             return x

@@ -31,6 +31,10 @@ class Metrics:
         self.server_latency = Histogram("ofera_server_latency_seconds", "From a bs arriving to its frame "
                                         "being handed to the socket.", buckets=_STAGE_BUCKETS, registry=r)
         self.bytes_out = Counter("ofera_bytes_sent", "Bytes of frame and avatar messages sent.", registry=r)
+        self.bs_conf = Counter("ofera_bs_conf", "bs messages received that carried a face confidence (bs.conf).",
+                               registry=r)
+        self.conf_held = Counter("ofera_bs_conf_held", "Computed bs in which a face region was held (its bs.conf "
+                                 "below the confidence threshold: streaming.confidence).", registry=r)
         for role in ("source", "viewer"):
             self.sessions.labels(role)
         for stage in ("bs", "frame"):

@@ -80,9 +80,7 @@ class AvatarRegistry:
         self.settings = settings
         self.sources = scan_avatars(settings.avatars, settings.avatar_zip)
         self.devices = scan_devices(settings.devices)
-        self.default_id = settings.default_avatar
-        if settings.avatar_zip is not None and "default_avatar" not in settings.model_fields_set:
-            self.default_id = _stem(settings.avatar_zip)
+        self.default_id = self.default_id_for(settings)
         if self.default_id not in self.sources:
             raise ValueError(f"default avatar {self.default_id!r} is not in {settings.avatars} "
                              f"(available: {', '.join(self.sources)})")
@@ -90,6 +88,14 @@ class AvatarRegistry:
         self._bdas: dict[str, BDA] = {}
         self._lock = threading.Lock()
         self._locks: dict[str, threading.Lock] = {}
+
+    @staticmethod
+    def default_id_for(settings: Settings) -> str:
+        """The id `default` means: `settings.default_avatar` when set, else the `--avatar-zip` avatar's (its name up
+        to the first dot) when one is given, else `default`."""
+        if settings.avatar_zip is not None and "default_avatar" not in settings.model_fields_set:
+            return _stem(settings.avatar_zip)
+        return settings.default_avatar
 
     def resolve(self, avatar_id: str) -> str | None:
         """The id a hello's `avatar` names (`default` -> the default avatar's id), or None if unknown."""
@@ -139,8 +145,11 @@ class AvatarRegistry:
         out = []
         for aid, src in self.sources.items():
             a = self._loaded.get(aid)
+            # ARKit-driven avatars (LAM: a loaded arkit51 avatar, or a zip) load no EPM, whatever sits beside them
+            arkit = (a.expression == "arkit51") if a else (src.path is not None and src.path.suffix.lower() == ".zip")
+            epm = "none" if arkit else src.epm.name if src.epm else "default"
             out.append({"id": aid, "source": "built-in" if src.path is None else src.path.name,
-                        "epm": src.epm.name if src.epm else "default", "bda": src.bda.name if src.bda else "identity",
+                        "epm": epm, "bda": src.bda.name if src.bda else "identity",
                         "loaded": a is not None, "count": a.count if a else None,
                         "sh_degree": a.sh_degree if a else None, "expression": a.expression if a else None})
         return out

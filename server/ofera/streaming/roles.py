@@ -129,7 +129,11 @@ class Source:
     def _compute(self, p: PendingBs) -> ComputedFrame:
         start = time.monotonic_ns()
         conf = p.bs.conf  # optional face confidence: passed only when sent (pipeline stand-ins take w alone)
+        hold = getattr(self.pipeline, "hold", None)  # streaming.confidence.RegionHold (not on stand-ins)
+        held = hold.held if hold is not None else 0
         state, stages = self.pipeline.run(p.bs.w) if conf is None else self.pipeline.run(p.bs.w, conf)
+        if hold is not None and hold.held != held:
+            self.metrics.conf_held.inc()
         end = time.monotonic_ns()
         # PROTOCOL.md section 9 names (`map` = layout adapter + BDA), plus the pipeline's own stages.
         timing = {"decode": p.decode_us, "queue": (start - p.received_ns) // 1000, **stages}

@@ -314,6 +314,8 @@ class Session:
                 continue
             if isinstance(msg, Blendshapes):
                 self.metrics.bs_in.inc()
+                if msg.conf is not None:
+                    self.metrics.bs_conf.inc()
                 if not await self._allow(msg.seq):
                     continue
                 if not (np.abs(msg.w) <= WEIGHT_LIMIT).all():  # finite but huge: see WEIGHT_LIMIT

@@ -226,8 +226,10 @@ namespace Ofera.Client
             {
                 avatar = _pendingAvatar; welcome = _pendingWelcome; session = _pendingSession;
                 _pendingAvatar = null; _pendingWelcome = null;
-                return avatar != null;
             }
+            if (avatar == null) return false;
+            _frames.ReleaseBefore(session);  // the main thread has moved on: older sessions' member frames are free
+            return true;
         }
 
         /// <summary>
@@ -245,7 +247,15 @@ namespace Ofera.Client
         }
 
         /// <summary>Rooms: the next member joined (avatar complete) or left, in arrival order.</summary>
-        public bool TryTakeRoomEvent(out RoomEvent e) { return _roomEvents.TryDequeue(out e); }
+        /// <remarks>A member's last frame (from TryTakeFrame(member)) stays valid until you take its Left event (or,
+        /// after a reconnect, an event or avatar of the new session): it then returns to the frame pool.</remarks>
+        public bool TryTakeRoomEvent(out RoomEvent e)
+        {
+            if (!_roomEvents.TryDequeue(out e)) return false;
+            if (e.Kind == RoomEventKind.Left) _frames.Release(e.Member);
+            _frames.ReleaseBefore(e.Session);
+            return true;
+        }
 
         public bool TryDequeueEvent(out ClientEvent e) { return _events.TryDequeue(out e); }
 
@@ -347,7 +357,7 @@ namespace Ofera.Client
                 }
                 int session = Interlocked.Increment(ref _sessionNumber);
                 Interlocked.Increment(ref Stats.Sessions);
-                _frames.Reset();
+                _frames.Reset(session);
                 lock (_bsLock) { _bsPending = false; }
 
                 ClientConnection conn = new ClientConnection();

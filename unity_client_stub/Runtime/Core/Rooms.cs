@@ -29,7 +29,11 @@ namespace Ofera.Client
     /// Newest-wins frame handoff, one slot per member (null: the session's own avatar, v1), sharing one
     /// pool of <see cref="FrameData"/>. The receive thread decodes into <see cref="DecodeTarget"/> and
     /// calls <see cref="Publish"/>; the main thread calls <see cref="Take"/>, and the frame it gets stays
-    /// valid until its next Take for that member. No allocation once every slot has its frames.
+    /// valid until its next Take for that member. No allocation once every slot has its frames, across joins,
+    /// leaves and new sessions too: a departed member's held frame (which the main thread may still be reading
+    /// when the receive thread drops the member) is parked, and returns to the pool when the main thread is done
+    /// with it: its next Take for that member id, <see cref="Release"/> (OferaClient calls it when the main thread
+    /// takes the member's Left event) or <see cref="ReleaseBefore"/> (an event or avatar of a newer session).
     /// </summary>
     public sealed class FrameExchange
     {
@@ -38,17 +42,32 @@ namespace Ofera.Client
             public FrameData Ready, Held;
         }
 
+        struct Parked
+        {
+            public string Member;  // null: the session's own avatar
+            public int Session;
+            public FrameData Frame;
+        }
+
         readonly object _lock = new object();
         readonly Stack<FrameData> _pool = new Stack<FrameData>();
         readonly Dictionary<string, Slot> _members = new Dictionary<string, Slot>();
         readonly Slot _own = new Slot();
+        readonly List<Parked> _parked = new List<Parked>();
         FrameData _rx = new FrameData();
+        int _session, _allocated = 1;
 
         /// <summary>Receive thread only: the container the next frame is decoded into.</summary>
         public FrameData DecodeTarget { get { return _rx; } }
 
         /// <summary>Frames currently pooled (tests).</summary>
         public int Pooled { get { lock (_lock) return _pool.Count; } }
+
+        /// <summary>FrameData objects this exchange has created so far (tests: flat once every slot has its frames).</summary>
+        public int Allocated { get { lock (_lock) return _allocated; } }
+
+        /// <summary>Held frames of departed members not yet returned to the pool (tests).</summary>
+        public int ParkedCount { get { lock (_lock) return _parked.Count; } }
 
         /// <summary>Receive thread: hands the frame in DecodeTarget to its member's slot. True if an untaken frame was replaced (dropped).</summary>
         public bool Publish(string member)
@@ -57,7 +76,7 @@ namespace Ofera.Client
             {
                 Slot s = SlotFor(member, true);
                 bool dropped = s.Ready != null;
-                FrameData next = dropped ? s.Ready : _pool.Count > 0 ? _pool.Pop() : new FrameData();
+                FrameData next = dropped ? s.Ready : _pool.Count > 0 ? _pool.Pop() : NewFrame();
                 s.Ready = _rx;
                 _rx = next;
                 return dropped;
@@ -80,6 +99,7 @@ namespace Ofera.Client
         {
             lock (_lock)
             {
+                if (_parked.Count > 0) ReleaseWhere(member, false, 0);  // its earlier life's frame: done with it too
                 Slot s = SlotFor(member, false);
                 if (s == null) return null;
                 if (s.Held != null) { _pool.Push(s.Held); s.Held = null; }
@@ -90,7 +110,9 @@ namespace Ofera.Client
             }
         }
 
-        /// <summary>Receive thread, on leave: forgets the member (its untaken frame returns to the pool; the main thread may finish with the one it holds).</summary>
+        /// <summary>Receive thread, on leave: forgets the member. Its untaken frame returns to the pool; the one the
+        /// main thread holds is parked (the main thread may finish with it) until <see cref="Release"/>, the next
+        /// Take for that id, or <see cref="ReleaseBefore"/> a newer session.</summary>
         public void Drop(string member)
         {
             lock (_lock)
@@ -98,20 +120,73 @@ namespace Ofera.Client
                 Slot s;
                 if (member == null || !_members.TryGetValue(member, out s)) return;
                 if (s.Ready != null) _pool.Push(s.Ready);
+                Park(member, s.Held);
                 _members.Remove(member);
             }
         }
 
-        /// <summary>New session: untaken frames of every slot return to the pool; members are forgotten.</summary>
-        public void Reset()
+        /// <summary>New session (receive thread): untaken frames of every slot return to the pool; members are
+        /// forgotten and their held frames parked until the main thread sees the new session
+        /// (<see cref="ReleaseBefore"/>) or takes that id again. The own slot keeps its held frame (recycled by
+        /// the next Take(null), as always).</summary>
+        public void Reset() { Reset(_session + 1); }
+
+        /// <summary>As <see cref="Reset()"/>, numbering the new session (OferaClient: its SessionNumber).</summary>
+        public void Reset(int session)
         {
             lock (_lock)
             {
                 if (_own.Ready != null) { _pool.Push(_own.Ready); _own.Ready = null; }
                 foreach (KeyValuePair<string, Slot> kv in _members)
+                {
                     if (kv.Value.Ready != null) _pool.Push(kv.Value.Ready);
+                    Park(kv.Key, kv.Value.Held);
+                }
                 _members.Clear();
+                _session = session;
             }
+        }
+
+        /// <summary>Main thread: done with a departed member's last frame (OferaClient calls this as the main thread
+        /// takes the member's Left event): it returns to the pool.</summary>
+        public void Release(string member)
+        {
+            if (member == null) return;
+            lock (_lock) ReleaseWhere(member, false, 0);
+        }
+
+        /// <summary>Main thread: it has seen session <paramref name="session"/> (an event or avatar of it): the held
+        /// frames of members of older sessions return to the pool.</summary>
+        public void ReleaseBefore(int session)
+        {
+            lock (_lock) ReleaseWhere(null, true, session);
+        }
+
+        void Park(string member, FrameData held)
+        {
+            if (held == null) return;
+            Parked p;
+            p.Member = member; p.Session = _session; p.Frame = held;
+            _parked.Add(p);
+        }
+
+        void ReleaseWhere(string member, bool bySession, int session)
+        {
+            for (int i = _parked.Count - 1; i >= 0; i--)
+            {
+                Parked p = _parked[i];
+                if (bySession ? p.Session < session : p.Member == member)
+                {
+                    _pool.Push(p.Frame);
+                    _parked.RemoveAt(i);
+                }
+            }
+        }
+
+        FrameData NewFrame()
+        {
+            _allocated++;
+            return new FrameData();
         }
 
         Slot SlotFor(string member, bool create)
@@ -120,7 +195,7 @@ namespace Ofera.Client
             Slot s;
             if (_members.TryGetValue(member, out s)) return s;
             if (!create) return null;
-            s = new Slot();
+            s = new Slot();  // one per member join (small, no frame data)
             _members[member] = s;
             return s;
         }

@@ -19,6 +19,7 @@ namespace Ofera.Client.Unity
     }
 
     [AddComponentMenu("OFERA/Face Log Recorder")]
+    [DefaultExecutionOrder(200)] // reads after the face source (OvrFaceSource: 100), itself after OVRFaceExpressions (0)
     public sealed class FaceLogRecorder : MonoBehaviour
     {
         [Tooltip("Face source to record (e.g. OvrFaceSource).")]

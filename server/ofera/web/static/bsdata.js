@@ -31,6 +31,12 @@ export function parseBsData(text, table) {
     if (i < 0) throw new FaceLogError(`'${n}' is not an ARKit blendshape name`);
     return i;
   });
+  columnOf.forEach((c, k) => {
+    const first = columnOf.indexOf(c);
+    if (first !== k) {
+      throw new FaceLogError(`names '${names[first]}' and '${names[k]}' are both the ARKit shape '${table.arkit52[c]}'`);
+    }
+  });
   const fps = Number(meta.fps ?? doc.fps ?? 30);
   if (!(fps > 0) || !Number.isFinite(fps)) throw new FaceLogError(`fps ${meta.fps} is not a positive number`);
   const rows = doc.frames.length;
@@ -49,6 +55,11 @@ export function parseBsData(text, table) {
     });
     times[r] = typeof f?.time === "number" && Number.isFinite(f.time) ? f.time : r / fps;
   });
+  for (let r = 1; r < rows; r++) {
+    if (!(times[r] > times[r - 1])) {
+      throw new FaceLogError(`frame times must increase, frame ${r} is at ${times[r]} s after ${times[r - 1]} s`);
+    }
+  }
   const t0 = times[0];
   for (let r = 0; r < rows; r++) times[r] -= t0;
   return { times, frames, layout: "arkit52", kind: "bsData.json", rows, duration: times[rows - 1] };

@@ -135,11 +135,13 @@ export function parseFaceLog(text, table, name = "file") {
 
 // ----- Quest Pro Unity logs (the port of server/ofera/sources/quest_csv.py; protocol/FACELOG.md) ----------
 // Meta enum names in any spelling and order (v1 63 CamelCase, v2 70 with underscores), `Max`/`Invalid`
-// ignored, tracker time `Face_Time` > a Unity clock > a row rate, `Face_Status` false rows dropped,
+// ignored (left out of the header when the rows hold no value for them), tracker time `Face_Time` > a Unity
+// clock > a row rate, `Face_Status` false rows and rows with `Face_Time` <= 0 dropped as invalid,
 // `FaceRegionConfidence_Lower/_Upper` kept, labels ignored; repeated samples sent once (a new tracker time,
-// or without one a row differing from the previous kept row). The page has no --layout/--fps: a headerless
-// file's layout is taken from its width (63: ovr63, 70: ovr70) or `# layout:`, and a log without time is
-// paced at `# fps:` or 30 rows per second; the play info says so.
+// or without one a row differing from the previous kept row; a tracker time too coarse to tell samples
+// apart is not used). The page has no --layout/--fps: a headerless file's layout is taken from its width
+// (63: ovr63, 70: ovr70) or `# layout:`, and a log without time is paced at `# fps:` or 30 rows per second;
+// the play info says so.
 
 const TRACKER_KEYS = ["facetime", "trackertime", "facestatetime"];
 const CLOCK_KEYS = ["timesincestartup", "realtimesincestartup", "timefromstart", "time", "timestamp"];
@@ -147,6 +149,10 @@ const STATUS_KEYS = ["facestatus", "facevalid", "isvalid"];
 const CONF_KEYS = [["faceregionconfidencelower", "confidencelower", "lowerfaceconfidence"],
   ["faceregionconfidenceupper", "confidenceupper", "upperfaceconfidence"]];
 const SOURCE_KEYS = ["facedatasource", "datasource"];
+const ENUM_EXTRA_KEYS = ["max", "invalid", "count"];
+const SPECIAL_KEYS = new Set([...TRACKER_KEYS, ...CLOCK_KEYS, ...STATUS_KEYS, ...CONF_KEYS[0], ...CONF_KEYS[1],
+  ...SOURCE_KEYS]);
+const LONG_GAP_S = 3;
 const STRICT_KEYS = new Set(["time", "timems", "timestampms", "timestampus", "frame", "frameindex", "framenumber",
   "confidencelower", "confidenceupper", "datasource"]);
 const STATUS_VALUES = { true: true, 1: true, valid: true, yes: true, false: false, 0: false, invalid: false, no: false };
@@ -155,11 +161,22 @@ const DEFAULT_FPS = 30;
 
 const isNumber = (s) => s.trim() !== "" && Number.isFinite(Number(s));
 
-/** Matching key of a column name: quotes and an enum prefix dropped, separators removed, lowercase. */
+/** Matching key of a column name: quotes and an enum prefix dropped, separators removed, lowercase; the
+ * whole name is tried first against the time/status/confidence keys (`FaceState.Time` is the tracker time). */
 export function columnKey(name) {
-  let s = name.trim().replace(/^["']+|["']+$/g, "");
-  if (s.includes(".") && !isNumber(s)) s = s.slice(s.lastIndexOf(".") + 1);
-  return s.replace(/[\s_\-.]+/g, "").toLowerCase();
+  const s = name.trim().replace(/^["']+|["']+$/g, "");
+  const full = s.replace(/[\s_\-.]+/g, "").toLowerCase();
+  if (SPECIAL_KEYS.has(full) || !s.includes(".") || isNumber(s)) return full;
+  return s.slice(s.lastIndexOf(".") + 1).replace(/[\s_\-.]+/g, "").toLowerCase();
+}
+
+/** The most common number of cells in a row. */
+function usualWidth(rows) {
+  const count = new Map();
+  for (const [, c] of rows) count.set(c.length, (count.get(c.length) ?? 0) + 1);
+  let best = -1, most = 0;
+  for (const [w, n] of count) if (n > most) { best = w; most = n; }
+  return best;
 }
 
 function ovrKeys(table) {
@@ -244,9 +261,22 @@ export function parseQuestLog(text, table, name = "file") {
   } else {
     [headerLine, header] = rows[0];
     rows = rows.slice(1);
-    const keys = header.map(columnKey);
+    let keys = header.map(columnKey);
     width = keys.length;
     while (width && !keys[width - 1] && rows.slice(0, 50).every(([, c]) => c.length < width || !c[width - 1])) width--;
+    header = header.slice(0, width);
+    keys = keys.slice(0, width);
+    const extras = keys.map((k, i) => (ENUM_EXTRA_KEYS.includes(k) ? i : -1)).filter((i) => i >= 0);
+    if (extras.length && rows.length && usualWidth(rows) === width - extras.length) {
+      // `Enum.GetNames` in the header (`...,UpperLipRaiserR,Max`), no value for `Max` in the rows
+      const dropped = extras.map((i) => header[i]);
+      header = header.filter((_, i) => !extras.includes(i));
+      keys = keys.filter((_, i) => !extras.includes(i));
+      width -= extras.length;
+      ignored.push(...dropped);
+      problems.push(`header column${dropped.length > 1 ? "s" : ""} ${dropped.join(", ")} (from Enum.GetNames, not `
+        + `expressions) ha${dropped.length > 1 ? "ve" : "s"} no value in the rows: left out of the header`);
+    }
     const shapes = new Map();
     const take = (k, list, slot) => list.includes(k) && col[slot] < 0;
     for (let i = 0; i < width; i++) {
@@ -321,15 +351,40 @@ export function parseQuestLog(text, table, name = "file") {
   if (malformed && (!good.length || malformed > MAX_MALFORMED_SHARE * rows.length)) {
     throw new FaceLogError(`${name}, line ${firstProblem[0]}: ${firstProblem[1]} (${malformed} of ${rows.length} rows malformed)`);
   }
-  const valid = good.filter((g) => g.ok);
-  const invalid = good.length - valid.length;
+  let valid = good.filter((g) => g.ok);
+  let invalid = good.length - valid.length;
   if (!valid.length) throw new FaceLogError(`${name}: no valid face rows (${invalid} have status false)`);
   let useTracker = col.tracker >= 0;
-  if (useTracker && valid.length > 1 && valid.every((g) => g.tracker === valid[0].tracker)) {
-    problems.push(`${header[col.tracker]} never changes: not used as the time source`);
-    useTracker = false;
-  }
   const fps = meta.fps ? Number(meta.fps) : DEFAULT_FPS;
+  if (useTracker) {
+    // Face_Time 0 (or below): no tracker sample (rows before tracking started): invalid, unless it never rises
+    const timed = valid.filter((g) => g.tracker > 0);
+    const distinct = new Set(timed.map((g) => g.tracker)).size;
+    if (distinct === 0 || (distinct === 1 && valid.length > 1)) {
+      problems.push(`${header[col.tracker]} never changes${distinct === 0 ? " (never above 0)" : ""}: not used as the time source`);
+      useTracker = false;
+    } else if (timed.length < valid.length) {
+      const untimed = valid.length - timed.length;
+      invalid += untimed;
+      problems.push(`${untimed} rows with ${header[col.tracker]} <= 0 (no tracker sample: before tracking started, `
+        + "or while lost) dropped as invalid");
+      valid = timed;
+    }
+  }
+  if (useTracker) {
+    let clashes = 0, firstLine = 0;
+    for (let i = 1; i < valid.length; i++) {
+      const [a, b] = [valid[i - 1], valid[i]];
+      if (b.tracker === a.tracker && b.w.some((v, k) => v !== a.w[k])) { clashes++; firstLine ||= b.line; }
+    }
+    if (clashes) { // one tracker time, two faces: too coarse to tell samples apart
+      const instead = col.clock >= 0 ? `the Unity clock (${header[col.clock]})` : `${fps} rows/s`;
+      problems.push(`${header[col.tracker]} is too coarse to tell samples apart: ${clashes} rows have the tracker time `
+        + `of the row before but a different face (first at line ${firstLine}); samples found by weight changes and `
+        + `timed by ${instead} instead`);
+      useTracker = false;
+    }
+  }
   let timeSource;
   const samples = [];
   for (const g of valid) {
@@ -353,6 +408,17 @@ export function parseQuestLog(text, table, name = "file") {
     for (const [dst, src, v] of info.to_arkit52) out[dst] += v * g.w[src];
     for (let k = 0; k < 52; k++) out[k] = Math.min(1, Math.max(0, out[k]));
     if (conf) { conf[2 * r] = Math.min(1, Math.max(0, g.conf[0])); conf[2 * r + 1] = Math.min(1, Math.max(0, g.conf[1])); }
+  }
+  if (useTracker || col.clock >= 0) {
+    let long = 0, longest = 0, at = 0;
+    for (let r = 1; r < n; r++) {
+      const step = times[r] - times[r - 1];
+      if (step > LONG_GAP_S) { long++; if (step > longest) { longest = step; at = samples[r].line; } }
+    }
+    if (long) {
+      problems.push(`${long} step(s) over ${LONG_GAP_S} s in the time (tracking lost or the app paused?); the longest, `
+        + `${longest.toFixed(3)} s, ends at line ${at}: kept, the replay waits through it`);
+    }
   }
   const t0 = times[0];
   for (let r = 0; r < n; r++) times[r] -= t0;

@@ -21,6 +21,7 @@ using System;
 using GaussianSplatting.Runtime;
 using Unity.Collections;
 using UnityEngine;
+using UnityEngine.Rendering;
 
 namespace Ofera.Client.Unity
 {
@@ -38,6 +39,11 @@ namespace Ofera.Client.Unity
 
         [Tooltip("Payload buffers in flight (one is written per frame; the GPU may still read the previous ones).")]
         [Range(2, 4)] public int payloadBuffers = 3;
+
+        public enum PayloadUpload { Auto, LockBufferForWrite, SetData }
+
+        [Tooltip("How the payload reaches the GPU. Auto: LockBufferForWrite on Vulkan (Quest), D3D11, D3D12 and Metal, SetData elsewhere (see UsesLockBufferForWrite).")]
+        public PayloadUpload payloadUpload = PayloadUpload.Auto;
 
         const int GroupSize = 256;
         const int PosStride = 12, OtherStride = 16;
@@ -276,6 +282,31 @@ namespace Ofera.Client.Unity
             cs.Dispatch(_kHide, (splats + GroupSize - 1) / GroupSize, 1, 1);
         }
 
+        /// <summary>
+        /// Whether payload buffers are created with GraphicsBuffer.UsageFlags.LockBufferForWrite, decided up front
+        /// by a capability check rather than by catching an exception: Unity reports an unsupported buffer usage by
+        /// logging, not throwing, and has no query for this flag. Documented: LockBufferForWrite returns GPU memory
+        /// where the platform can map it, else a temporary CPU buffer that Unity copies (no gain over SetData); the
+        /// GPU only reads such a buffer (ByteAddressBuffer, as OferaSplatUpload.compute declares the payload).
+        /// Auto uses it where buffers are mapped memory (Vulkan, which the Quest runs; D3D11, D3D12, Metal) and
+        /// SetData elsewhere (OpenGL ES / Core: not measured); compute shaders are needed either way.
+        /// </summary>
+        public static bool UsesLockBufferForWrite(PayloadUpload mode, GraphicsDeviceType api, bool computeShaders)
+        {
+            if (!computeShaders || mode == PayloadUpload.SetData) return false;
+            if (mode == PayloadUpload.LockBufferForWrite) return true;
+            switch (api)
+            {
+                case GraphicsDeviceType.Vulkan:
+                case GraphicsDeviceType.Direct3D11:
+                case GraphicsDeviceType.Direct3D12:
+                case GraphicsDeviceType.Metal:
+                    return true;
+                default:
+                    return false;
+            }
+        }
+
         void EnsurePayloadBuffers(int words)
         {
             int n = Mathf.Clamp(payloadBuffers, 2, 4);
@@ -283,19 +314,14 @@ namespace Ofera.Client.Unity
             ReleasePayloadBuffers();
             _payload = new GraphicsBuffer[n];
             _lockable = new bool[n];
+            bool lockable = UsesLockBufferForWrite(payloadUpload, SystemInfo.graphicsDeviceType, SystemInfo.supportsComputeShaders);
             for (int i = 0; i < n; i++)
             {
-                try
-                {
-                    // LockBufferForWrite: the payload is copied straight into GPU-visible memory
-                    _payload[i] = new GraphicsBuffer(GraphicsBuffer.Target.Raw, GraphicsBuffer.UsageFlags.LockBufferForWrite, words, 4) { name = "OFERA frame payload" };
-                    _lockable[i] = true;
-                }
-                catch (Exception)
-                {
-                    _payload[i] = new GraphicsBuffer(GraphicsBuffer.Target.Raw, words, 4) { name = "OFERA frame payload" };
-                    _lockable[i] = false;
-                }
+                // LockBufferForWrite: the payload is copied straight into GPU-visible memory; else SetData from _staging
+                _payload[i] = lockable
+                    ? new GraphicsBuffer(GraphicsBuffer.Target.Raw, GraphicsBuffer.UsageFlags.LockBufferForWrite, words, 4) { name = "OFERA frame payload" }
+                    : new GraphicsBuffer(GraphicsBuffer.Target.Raw, words, 4) { name = "OFERA frame payload" };
+                _lockable[i] = lockable;
             }
             _next = 0;
         }
