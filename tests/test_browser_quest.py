@@ -7,13 +7,14 @@ Needs /usr/bin/chromium and the `playwright` package, like tests/test_browser_pr
 
 from __future__ import annotations
 
+import urllib.request
 from pathlib import Path
 
 import numpy as np
 import pytest
 from browser_support import open_page, page_errors
 from ofera.mapping.layouts import convert
-from ofera.sources import read_facelog
+from ofera.sources import read_facelog, read_facelog_report
 from quest_logs import v1_names, write_quest_log
 
 
@@ -44,6 +45,10 @@ VARIANTS = {
     "v2_tracker_bom_max_label_shuffled": dict(version=2, bom=True, max_column=True, label=True, shuffle=True),
     "v1_unity_clock_repeats": dict(version=1, tracker_time=False, clock="TimeFromStart", confidence=False),
     "v1_status_timestamp": dict(version=1, tracker_time=False, clock="Timestamp"),
+    "v1_max_without_cells": dict(version=1, max_column=True, max_cell=False, label=True),
+    "v2_tracker_zero_before_tracking_no_status": dict(version=2, status=False, lead_s=0.5),
+    "v2_coarse_tracker_time": dict(version=2, device_t0=123456.0, tracker_csharp=True),
+    "v2_facestate_time": dict(version=2, tracker_name="FaceState.Time"),
 }
 
 
@@ -53,10 +58,13 @@ def test_page_reader_matches_the_python_reader(browser, server, tmp_path):
         for name, options in VARIANTS.items():
             path = tmp_path / f"{name}.csv"
             write_quest_log(path, seconds=1.5, **options)
-            log = read_facelog(path)
+            log, rep = read_facelog_report(path)
             got = parse_in_page(page, path)
             assert "error" not in got, (name, got)
             assert got["layout"] == log.layout.name and got["rows"] == len(log), name
+            assert got["report"]["invalid"] == rep.invalid and got["report"]["duplicates"] == rep.duplicates, name
+            assert got["report"]["problems"] == rep.problems, name  # the same notes, word for word
+            assert got["report"]["timeSource"].split(" (")[0] == rep.time_source.split(" (")[0], name
             np.testing.assert_allclose(got["times"], log.times, atol=1e-6, err_msg=name)
             frames = np.array(got["frames"], np.float32).reshape(-1, 52)
             np.testing.assert_allclose(frames, convert(log.layout, log.weights, "arkit52"), atol=1e-5, err_msg=name)
@@ -89,7 +97,16 @@ def test_page_reader_matches_the_python_reader(browser, server, tmp_path):
         page.close()
 
 
+def metric(server, name: str) -> float:
+    """A counter of the server's /metrics (0 if absent)."""
+    text = urllib.request.urlopen(f"{server.http_url}/metrics", timeout=30).read().decode()
+    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name + " "))
+
+
 def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
+    """Every sample is sent once, with its confidence: the page's bs count and the server's count of bs
+    that carried `conf` both grow by exactly the log's samples (36 Hz, well within the page's flow control:
+    it holds a bs back only while two are unanswered, and the small avatar answers in a few ms)."""
     path = tmp_path / "quest.csv"
     truth = write_quest_log(path, seconds=1.0, bom=True, label=True)
     page = open_page(browser, f"{server.http_url}/", viewport={"width": 800, "height": 600})
@@ -97,12 +114,14 @@ def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
     try:
         page.uncheck("#loop")
         seq = page.evaluate("__ofera.lastSentSeq")
+        with_conf = metric(server, "ofera_bs_conf_total")
         out = page.evaluate("t => __ofera.playText(t, 'quest.csv')", path.read_bytes().decode("utf-8"))
         assert out.get("rows") == len(truth.times) and out.get("layout") == "ovr70", out
         assert "Quest Pro log (quest-v2" in page.text_content("#playinfo")
         page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=120_000)
-        assert page.evaluate("__ofera.lastSentSeq") > seq + 1, "playback sent no bs"
+        assert page.evaluate("__ofera.lastSentSeq") - seq == len(truth.times), "not one bs per sample"
         assert not page.evaluate("__ofera.errors"), page.evaluate("__ofera.errors")  # conf accepted by the server
+        assert metric(server, "ofera_bs_conf_total") - with_conf == len(truth.times)  # each with its conf
         assert not problems, problems
     finally:
         page.close()

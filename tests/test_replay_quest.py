@@ -46,10 +46,11 @@ VARIANTS: dict[str, dict] = {
 
 
 # Answered share. The server drops a bs only when a newer one arrives while it is still waiting to be
-# computed (newest wins). At --speed 4 a 36 Hz log sends a bs every ~7 ms; the small avatar (2,000
-# Gaussians) computes one in about a millisecond, so every bs is answered unless the shared test machine
-# stalls the server for longer than two sends (~14 ms). The done-when's bound, >= 90 %, leaves room for such
-# a stall; the last bs is always answered (nothing newer replaces it).
+# computed (newest wins). At --speed 4 a 36 Hz log sends a bs every ~7 ms; with the small avatar (2,000
+# Gaussians) a frame comes back ~3 ms after its bs (measured: 280 of 280 answered, latency p50 2.7 ms, max
+# 5 ms), so every bs is answered unless the shared test machine stalls the server for longer than two sends
+# (~14 ms). The bound is the done-when's, >= 90 %: room for a few such stalls, while a server that skips
+# systematically fails it. The last bs is always answered (nothing newer replaces it).
 ANSWERED_MIN = 0.9
 
 
@@ -61,7 +62,7 @@ def test_variant_replays_one_bs_per_sample(server, tmp_path, name):
     assert code == 0, text
     assert s["sent"] == s["frames_in_log"] == len(truth.times) and s["errors"] == 0 and s["skipped"] == 0
     assert s["rows_in_log"] == truth.rows and s["log_format"].startswith("quest-")
-    assert s["log_duration_s"] == pytest.approx(truth.times[-1], abs=2e-5)
+    assert s["log_duration_s"] == pytest.approx(truth.times[-1], abs=1e-4)  # rounded to 0.1 ms
     assert s["confidence_sent"] is (truth.confidence is not None)
     assert s["answered"] >= ANSWERED_MIN and s["received"] <= s["sent"]
     assert s["last_seq_answered"] == len(truth.times) - 1
@@ -135,13 +136,13 @@ def test_replay_help_lists_the_replay_and_inspect():
         result = runner.invoke(app, ["replay", flag])
         assert result.exit_code == 0, result.output
         usage = next(line for line in result.output.splitlines() if "Usage:" in line)
-        assert "replay [OPTIONS]" in usage and "play" not in usage, usage
+        assert "replay [OPTIONS]" in usage and "replay play" not in usage, usage
         assert "--url" in result.output and "--speed" in result.output and "inspect" in result.output
     result = runner.invoke(app, ["replay", "inspect", "--help"])
     assert result.exit_code == 0 and "replay inspect [OPTIONS]" in result.output and "--json" in result.output
     result = runner.invoke(app, ["replay", "some.csv", "--help"])
     usage = next(line for line in result.output.splitlines() if "Usage:" in line)
-    assert result.exit_code == 0 and "play" not in usage, usage
+    assert result.exit_code == 0 and "replay play" not in usage, usage
 
 
 def test_replay_prints_the_readers_notes(server, tmp_path):
