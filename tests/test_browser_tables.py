@@ -40,7 +40,8 @@ def page_url() -> Iterator[str]:
 
 JS_TABLES = """async () => {
   const P = await import("/protocol.js");
-  return { protocol: P.PROTOCOL, endpoint: P.ENDPOINT, encodings: P.ENCODINGS, field_bytes: P.FIELD_BYTES };
+  return { protocol: P.PROTOCOL, endpoint: P.ENDPOINT, encodings: P.ENCODINGS, field_bytes: P.FIELD_BYTES,
+           close_codes: P.CLOSE_CODES, unknown_fatal: P.CLOSE_UNKNOWN_FATAL };
 }"""
 
 
@@ -57,3 +58,7 @@ def test_protocol_js_tables_are_the_protocols(browser, page_url) -> None:
     for name, row in TABLES["encodings"].items():
         assert js["field_bytes"][name] == [row["position"], row["rotation"], row["scale"]], name
         assert sum(js["field_bytes"][name]) == row["bytes_per_gaussian"], name
+    assert js["close_codes"], "protocol.js has no CLOSE_CODES"
+    for code, close in js["close_codes"].items():  # the errors the browser client raises itself
+        assert TABLES["errors"][code]["close_code"] == close, code
+    assert js["unknown_fatal"] == TABLES["close_codes"]["unknown_fatal"]

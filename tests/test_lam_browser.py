@@ -3,8 +3,8 @@ browser_support.py). The avatar is shown, the jawOpen slider moves its lower fac
 
 Runs on a small LAM zip written here (tests/lam_fixtures.py) everywhere, CI included (conftest.py's `browser`
 fixture skips locally without Chromium or playwright, fails in CI), and again on the real statue
-(../shared/data/lam_statue.zip, 20k Gaussians) when it is present; only the statue writes the README's
-screenshot, docs/browser.png.
+(../shared/data/lam_statue.zip, 20k Gaussians) when it is present; with OFERA_DOCS_SCREENSHOTS=1 the statue run
+writes the README's screenshot, docs/browser.png.
 """
 
 from __future__ import annotations
@@ -74,8 +74,9 @@ def test_lam_avatar_is_shown_and_its_jaw_opens(browser, lam) -> None:
         assert foreground(before[int(h * 0.3):int(h * 0.7), int(w * 0.4):int(w * 0.6)]).mean() > 0.9
         assert "arkit51" in page.inner_text("#hud")
         if lam.kind == "statue":
-            SCREENSHOT.parent.mkdir(exist_ok=True)
-            page.screenshot(path=str(SCREENSHOT))
+            if os.environ.get("OFERA_DOCS_SCREENSHOTS"):  # regenerate the README's picture on request only
+                SCREENSHOT.parent.mkdir(exist_ok=True)
+                page.screenshot(path=str(SCREENSHOT))
         seq = page.evaluate("__ofera.lastFrameSeq")
         page.locator("#bs-jawOpen").fill("1")
         wait_settled(page, seq)

@@ -18,10 +18,10 @@ from ofera_protocol import (  # noqa: E402
     Bye,
     ClientConnection,
     ClientState,
+    ConnectionUsageError,
     ErrorMessage,
     Frame,
     Hello,
-    LocalProtocolError,
     Ping,
     Pong,
     ProtocolError,
@@ -148,7 +148,7 @@ def test_bs_before_hello_is_fatal() -> None:
     assert srv.state is ServerState.CLOSED
     err = decode_server_message(srv.error(e))
     assert err == ErrorMessage("not_ready", e.message, True)
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         srv.receive(encode(Ping(1)))
 
 
@@ -231,26 +231,26 @@ def test_non_fatal_server_errors() -> None:
 
 def test_server_misuse() -> None:
     srv = ServerConnection()
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         srv.accept("s", AvatarInfo("a", 1, 0))
     srv.receive(encode(Hello(layout="arkit52", encoding="q13", max_gaussians=10)))
-    with pytest.raises(LocalProtocolError, match="quant"):
+    with pytest.raises(ConnectionUsageError, match="quant"):
         srv.accept("s", AvatarInfo("a", 5, 0))
-    with pytest.raises(LocalProtocolError, match="allows"):
+    with pytest.raises(ConnectionUsageError, match="allows"):
         srv.accept("s", AvatarInfo("a", 11, 0), encoding="f16")
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         srv.accept("s", AvatarInfo("a", 5, 0), encoding="f8")
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         srv.avatar(make_avatar(5))
     srv.accept("s", AvatarInfo("a", 5, 1), encoding="f16")  # the server may choose another encoding
-    with pytest.raises(LocalProtocolError, match="avatar"):
+    with pytest.raises(ConnectionUsageError, match="avatar"):
         srv.frame(frame_for(make_avatar(5), 0))
-    with pytest.raises(LocalProtocolError, match="announced"):
+    with pytest.raises(ConnectionUsageError, match="announced"):
         srv.avatar(make_avatar(6))
     srv.avatar(make_avatar(5))
     srv.frame(frame_for(make_avatar(5), 0))
     srv.receive(encode(Bye()))
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         srv.pong(1)
 
 
@@ -259,23 +259,23 @@ def test_server_misuse() -> None:
 
 def test_client_misuse() -> None:
     cli = ClientConnection()
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         cli.bs(0, 0, np.zeros(52))
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         cli.hello("arkit99")
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         cli.hello("arkit52", coords="unreal")
     cli.hello("arkit52")
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         cli.hello("arkit52")
     srv = ServerConnection()
     srv.receive(encode(Hello(layout="arkit52")))
     cli.receive(srv.accept("s", AvatarInfo("a", 1, 0)))
-    with pytest.raises(LocalProtocolError, match="52"):
+    with pytest.raises(ConnectionUsageError, match="52"):
         cli.bs(0, 0, np.zeros(51))
     cli.bs(0, 0, np.zeros(52))  # allowed while the avatar arrives
     cli.bye()
-    with pytest.raises(LocalProtocolError):
+    with pytest.raises(ConnectionUsageError):
         cli.ping(1)
 
 

@@ -14,7 +14,7 @@ from ofera_protocol import (
     AvatarInfo,
     Blendshapes,
     ClientConnection,
-    LocalProtocolError,
+    ConnectionUsageError,
     ProtocolError,
     ServerConnection,
     decode_client_message,
@@ -64,7 +64,7 @@ def test_client_connection_refuses_bad_conf_before_sending():
     conn.receive(srv.accept("s", AvatarInfo("a", 1, 0)))
     good = srv.receive(conn.bs(1, 0, W63, conf=[0.5, 1.0]))
     np.testing.assert_array_equal(good.conf, [0.5, 1.0])
-    with pytest.raises(LocalProtocolError, match=r"conf must be 2 values \[lower, upper\] in \[0, 1\]"):
+    with pytest.raises(ConnectionUsageError, match=r"conf must be 2 values \[lower, upper\] in \[0, 1\]"):
         conn.bs(1, 0, W63, conf=[0.5, 2.0])
 
 

@@ -29,7 +29,7 @@ from .constants import (
 )
 from .coords import mirror_x_position, mirror_x_rotation, mirror_x_sh, to_coords
 from .encodings import FrameFormat, decode_arrays, encode_arrays, make_quant
-from .errors import CLOSE_NORMAL, ERRORS, ConnectionUsageError, LocalProtocolError, ProtocolError, close_code
+from .errors import CLOSE_NORMAL, ERRORS, ConnectionUsageError, ProtocolError, close_code
 from .messages import (
     AvatarChunk,
     AvatarInfo,
@@ -52,7 +52,7 @@ __all__ = [
     "MAX_CLIENT_MESSAGE", "MAX_SERVER_MESSAGE", "PROTOCOL_VERSION",
     "Avatar", "AvatarAssembler", "AvatarChunk", "AvatarInfo", "Blendshapes", "Bye", "ClientConnection",
     "ClientMessage", "ClientState", "ConnectionUsageError", "ErrorMessage", "Frame", "FrameFormat", "GaussianState",
-    "Hello", "LocalProtocolError", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
+    "Hello", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
     "ServerMessage", "ServerState", "Welcome",
     "close_code", "decode_arrays", "decode_client_message", "decode_server_message", "encode",
     "encode_arrays", "encode_avatar_chunk", "encode_frame", "frame_format", "make_quant",

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .constants import BYTES_PER_GAUSSIAN, ENCODINGS, UINT32_MAX
+from .constants import BYTES_PER_GAUSSIAN, ENCODINGS, FIELD_BYTES, UINT32_MAX  # noqa: F401 - FIELD_BYTES: re-exported
 from .errors import BAD_LENGTH, NON_FINITE, ProtocolError
 from .messages import Quant
 
@@ -35,8 +35,6 @@ POS_LEVELS = 65535
 ROT_LEVELS = 511  # SNORM10: -511..511
 SCALE_LEVELS = 255
 
-FIELD_BYTES: dict[str, tuple[int, int, int]] = {"f32": (12, 16, 12), "f16": (6, 8, 6), "q13": (6, 4, 3)}
-"""Bytes per Gaussian of (position, rotation, scale) for each encoding."""
 
 _DTYPES: dict[str, tuple[str, str, str]] = {
     "f32": ("<f4", "<f4", "<f4"),

@@ -126,6 +126,3 @@ class ConnectionUsageError(RuntimeError):
     `LocalProtocolError` is an HTTP protocol violation by the local side, hence the different name.)
     """
 
-
-LocalProtocolError = ConnectionUsageError
-"""The former name, kept while callers move to `ConnectionUsageError`."""

@@ -7,7 +7,7 @@ write each encoded field directly into its place in one buffer, selecting the fr
 (`gather`) and mirroring coordinates on the way. The bytes are identical to
 ``encode_frame(Frame(...), fmt)`` after ``to_coords`` and the gather (tests check it).
 
-Kernels are an object with five methods (:class:`NumpyKernels` is the plain numpy one; every value is
+Kernels are a :class:`FrameKernels`, five methods (:class:`NumpyKernels` is the plain numpy one; every value is
 finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` per component):
 
     f32(src (N, k) f32, gather (M,) int64 | None, sign (k,) f32, dst (M k,) f32) -> bool finite
@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from typing import Any
+from typing import Protocol
 
 import msgpack
 import numpy as np
@@ -87,6 +87,22 @@ def scale_thresholds(quant: Quant) -> np.ndarray:
         hi = np.where(open_ & up, mid, hi)
         lo = np.where(open_ & ~up, mid, lo)
     return hi.astype(np.uint32).view(np.float32).copy()
+
+
+class FrameKernels(Protocol):
+    """The kernel interface of :class:`FrameWriter` (the module docstring says each method's contract)."""
+
+    def f32(self, src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray, dst: np.ndarray) -> bool: ...
+
+    def f16(self, src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray, dst: np.ndarray) -> bool: ...
+
+    def q13_position(self, src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray, lo: np.ndarray,
+                     k: np.ndarray, dst: np.ndarray) -> None: ...
+
+    def q13_rotation(self, src: np.ndarray, gather: np.ndarray | None, sign: np.ndarray, dst: np.ndarray) -> None: ...
+
+    def q13_scale(self, src: np.ndarray, gather: np.ndarray | None, thresholds: np.ndarray,
+                  dst: np.ndarray) -> None: ...
 
 
 class NumpyKernels:
@@ -177,7 +193,7 @@ class FrameWriter:
     """
 
     def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
-                 index: np.ndarray | None = None, kernels: Any = None, pool: int = 4) -> None:
+                 index: np.ndarray | None = None, kernels: FrameKernels | None = None, pool: int = 4) -> None:
         self.format = fmt
         self.coords = coords
         self.kernels = kernels if kernels is not None else NumpyKernels()

@@ -31,6 +31,13 @@ LIMITS: dict[str, int] = {
 }
 """Limits of section 1 and 2 (bytes, entries, characters), by name."""
 
+FIELD_TYPES: dict[str, tuple[str, str, str]] = {
+    "f32": ("3 x float32", "4 x float32 (x, y, z, w)", "3 x float32"),
+    "f16": ("3 x float16", "4 x float16 (x, y, z, w)", "3 x float16"),
+    "q13": ("3 x uint16", "1 x uint32 (10.10.10.2)", "3 x uint8"),
+}
+"""What `position`, `rotation` and `scale` hold per Gaussian in each encoding (PROTOCOL.md section 6)."""
+
 _MESSAGE_LIMIT_RULES = (
     ("client -> server", C.MAX_CLIENT_MESSAGE, "a client MUST NOT send more; a server MUST accept up to this (a `bs` "
      "is 230 to 310 B)"),
@@ -67,7 +74,15 @@ def markdown_tables() -> dict[str, str]:
     errors = ["| code | fatal | close code | meaning |", "|---|---|---|---|"]
     errors += [f"| `{code}` | {s.fatality.value} | {'-' if s.close_code is None else s.close_code} | {s.description} |"
                for code, s in ERRORS.items()]
-    return {"limits": "\n".join(limits), "layouts": "\n".join(layouts), "errors": "\n".join(errors)}
+    encodings = ["| encoding | `position` | `rotation` | `scale` | bytes | 100k Gaussians at 72 Hz |",
+                 "|---|---|---|---|---|---|"]
+    for e in C.ENCODINGS:
+        sizes, total = C.FIELD_BYTES[e], C.BYTES_PER_GAUSSIAN[e]
+        rate = round(total * 100_000 * 72 * 8 / 1e9, 2)
+        encodings.append(f"| `{e}` | {' | '.join(FIELD_TYPES[e])} | {' + '.join(map(str, sizes))} = **{total}** | "
+                         f"{rate:g} Gbit/s |")
+    return {"limits": "\n".join(limits), "layouts": "\n".join(layouts), "encodings": "\n".join(encodings),
+            "errors": "\n".join(errors)}
 
 
 def begin_marker(name: str) -> str:

@@ -29,12 +29,12 @@ import numba as nb
 import numpy as np
 
 from ..head.lbs import HeadSubject
+from ..jit import NB as _NB
 from .binding import VertexBinding
 from .deform import make_deformer
 from .fast import StatePool
 from .state import GaussianState
 
-_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
 _EYE5 = np.broadcast_to(np.eye(3), (5, 3, 3))
 
 

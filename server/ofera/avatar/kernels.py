@@ -26,7 +26,8 @@ import math
 import numba as nb
 import numpy as np
 
-_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
+from ..jit import NB as _NB
+
 _NBC = {**_NB, "fastmath": {"contract"}}  # fused multiply-add allowed (no reassociation)
 _EPS2 = 1e-20  # frames._EPS2: clamp on squared lengths
 

@@ -13,26 +13,12 @@ from typing import Any
 
 import numba as nb
 import numpy as np
-from llvmlite import ir
-from numba.core import types
-from numba.extending import intrinsic
 from ofera_protocol import Frame, FrameFormat
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS
 from ofera_protocol.messages import DeltaFrame
 
-_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
-
-
-@intrinsic
-def f16_bits_to_f32(typingctx, h):
-    """uint16 bits of an IEEE binary16 -> float32 (exact; LLVM's fpext half -> float)."""
-    if not isinstance(h, types.Integer) or h.bitwidth != 16:
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
-
-    return types.float32(h), codegen
+from ..jit import NB as _NB
+from ..jit import f16_bits_to_f32
 
 
 @nb.njit(**_NB)

@@ -21,9 +21,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from ..jit import NB as _NB
 from .lbs import HeadSubject, lbs
-
-_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
 
 
 @nb.njit(**_NB)

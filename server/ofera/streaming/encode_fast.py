@@ -41,7 +41,9 @@ from ofera_protocol.fast_encodings import (
     NumpyKernels,
 )
 
-_NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
+from ..jit import NB as _NB
+from ..jit import f16_bits_to_f32
+
 _SQRT2_511 = np.float32(np.sqrt(2.0) * ROT_LEVELS)  # the reference's float32 constant
 
 
@@ -99,17 +101,6 @@ def f16_flat_kernel(src, dst):
         v = src[i]
         ok &= abs(v) <= F16_MAX
         dst[i] = f32_to_f16_bits(v)
-    return ok
-
-
-@nb.njit(**_NB)
-def f32_flat_kernel(src, dst):
-    """Contiguous no-gather no-mirror case of :func:`f32_kernel`."""
-    ok = True
-    for i in range(src.shape[0]):
-        v = src[i]
-        ok &= abs(v) <= F32_MAX
-        dst[i] = v
     return ok
 
 
@@ -369,17 +360,6 @@ def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | N
 
 # ============================================================================= temporal deltas (PROTOCOL.md 7.1)
 
-
-@intrinsic
-def f16_bits_to_f32(typingctx, h):
-    """uint16 bits of an IEEE binary16 -> float32 (exact)."""
-    if not isinstance(h, types.Integer) or h.bitwidth != 16:
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
-
-    return types.float32(h), codegen
 
 
 @nb.njit(inline="always", **_NB)

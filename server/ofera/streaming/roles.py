@@ -1,4 +1,4 @@
-"""The two roles of a client, kept apart so that rooms can come later (DESIGN.md, "Growing into rooms").
+"""The two roles of a client, kept apart so that rooms (one source, several viewers) can come later.
 
 - Source: a client whose `bs` drive one avatar. At most one pending bs (newest wins: a bs replaced
   before its computation starts is counted as skipped 'bs'); the pipeline runs in a thread pool, one
@@ -22,12 +22,13 @@ import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 import numpy as np
 from ofera_protocol import Blendshapes, Frame, FrameFormat, ProtocolError, encode_frame, to_coords
 from ofera_protocol import errors as E
 
+from ..avatar.state import GaussianState
 from .metrics import Metrics
 from .pipeline import Pipeline
 
@@ -77,7 +78,7 @@ class ComputedFrame:
 
     seq: int
     t: int
-    state: Any  # GaussianState in FLAME space
+    state: GaussianState  # in FLAME space
     timing: dict[str, int]
     received_ns: int
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
@@ -162,6 +163,15 @@ class Source:
                 deliver(frame)
 
 
+class FrameEncoder(Protocol):
+    """What a Viewer encodes frames with: :class:`CodecWriter` (the reference),
+    ``ofera_protocol.fast_encodings.FrameWriter`` (numba kernels, the same bytes) or, in a delta session,
+    ``ofera_protocol.delta.DeltaEncoder``. The result is bytes or a pooled memoryview (not reused while referenced)."""
+
+    def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
+               scale: np.ndarray) -> bytes | memoryview: ...
+
+
 class CodecWriter:
     """The reference frame encoder of one wire format: gather, `to_coords`, `codec.encode_frame`.
     Same interface as `ofera_protocol.fast_encodings.FrameWriter`, which produces identical bytes."""
@@ -182,10 +192,12 @@ class CodecWriter:
 class Viewer:
     """Client role 2: receives an avatar's frames in its own wire format (newest unsent frame wins).
 
-    `writer` encodes a frame of this viewer's wire format (CodecWriter, or the numba FrameWriter of
-    `encode_fast`); `key` names that format: viewers with equal keys share one encoding per frame."""
+    `writer` encodes a frame of this viewer's wire format (a `FrameEncoder`: CodecWriter, the numba FrameWriter of
+    `encode_fast`, or a delta session's DeltaEncoder); `key` names that format: viewers with equal keys share one
+    encoding per frame."""
 
-    def __init__(self, send: SendBytes, writer: Any, key: tuple, executor: Executor, metrics: Metrics) -> None:
+    def __init__(self, send: SendBytes, writer: FrameEncoder, key: tuple, executor: Executor, metrics: Metrics
+                 ) -> None:
         self.send = send
         self.writer = writer
         self.key = key

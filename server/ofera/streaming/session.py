@@ -25,7 +25,7 @@ from .config import Settings
 from .metrics import Metrics
 from .pipeline import AvatarAssets
 from .registry import AvatarRegistry
-from .roles import CodecWriter, PendingBs, SessionFatal, Source, Viewer
+from .roles import CodecWriter, FrameEncoder, PendingBs, SessionFatal, Source, Viewer
 
 log = logging.getLogger("ofera.streaming")
 
@@ -84,7 +84,8 @@ class Transport:
         raise NotImplementedError
 
 
-def make_writer(fmt: FrameFormat, coords: str, gather: Any, index: Any, fast: bool) -> Any:
+def make_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, index: np.ndarray | None, fast: bool
+                ) -> FrameEncoder:
     """The frame encoder of one wire format: numba kernels writing straight into the message buffer
     (`encode_fast`, byte-identical to the codec) when `fast`, else the codec's reference encoder."""
     if fast:
@@ -94,7 +95,8 @@ def make_writer(fmt: FrameFormat, coords: str, gather: Any, index: Any, fast: bo
     return CodecWriter(fmt, coords, gather, index)
 
 
-def make_delta_writer(fmt: FrameFormat, coords: str, gather: Any, movable: tuple, settings: Settings) -> Any:
+def make_delta_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, movable: tuple, settings: Settings
+                      ) -> FrameEncoder:
     """The DeltaEncoder of one delta session (PROTOCOL.md 7.1): numba kernels when `settings.fast`, else the numpy
     reference; candidates = the avatar's movable Gaussians (`movable` = (state rows, session ids))."""
     from ofera_protocol.delta import DeltaEncoder, DeltaTolerance

@@ -7,7 +7,8 @@
 import { looksLikeJson, parseBsData } from "./bsdata.js";
 import { parseFaceLog } from "./facelog.js";
 import { decode } from "./msgpack.js";
-import { bsMessage, byeMessage, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError, resyncMessage } from "./protocol.js";
+import { bsMessage, byeMessage, CLOSE_CODES, CLOSE_UNKNOWN_FATAL, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError,
+  resyncMessage } from "./protocol.js";
 import { lookAt, perspective, SplatRenderer } from "./renderer.js";
 
 const params = new URLSearchParams(location.search);
@@ -345,8 +346,7 @@ function fatalClose(c, e) {
   setStatus(`protocol error: ${e.message}`, true);
   c.closing = true;
   c.state = "closed";
-  const codes = { malformed: 4000, unknown_type: 4001, bad_field: 4002, bad_length: 4003, non_finite: 4004, not_ready: 4005 };
-  try { c.ws.close(codes[e.code] ?? 4000, e.code ?? "internal"); } catch { /* gone */ }
+  try { c.ws.close(CLOSE_CODES[e.code] ?? CLOSE_UNKNOWN_FATAL, e.code ?? "internal"); } catch { /* gone */ }
 }
 
 function intField(msg, key) {

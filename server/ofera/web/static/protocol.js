@@ -8,6 +8,10 @@ export const ENDPOINT = "/v1/stream";
 export const ENCODINGS = ["f32", "f16", "q13"];
 /** Bytes per Gaussian of position, rotation, scale in each frame encoding (section 6). */
 export const FIELD_BYTES = { f32: [12, 16, 12], f16: [6, 8, 6], q13: [6, 4, 3] };
+/** Close codes of the errors this client finds in what it receives (section 10; tests check them against tables.json). */
+export const CLOSE_CODES = { malformed: 4000, unknown_type: 4001, bad_field: 4002, bad_length: 4003, non_finite: 4004, not_ready: 4005 };
+/** Close code of a fatal error code this client does not know (section 10). */
+export const CLOSE_UNKNOWN_FATAL = 4000;
 export const SH_C0 = 0.28209479;
 
 export class ProtocolError extends Error {
