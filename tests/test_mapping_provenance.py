@@ -31,9 +31,7 @@ def test_shipped_epm_records_how_it_was_made(shipped):
 
     prov, train = shipped["provenance"], shipped["train"]
     assert prov["recipe"] == "ofera mapping make-default"
-    # The generator moved from ofera.mapping.paired to ofera.training.paired after the shipped EPM was made
-    # (the sample hash below shows that it makes the same data); a re-shipped EPM records the new name.
-    assert prov["generator"] in ("ofera.training.paired.make_benchmark", "ofera.mapping.paired.make_benchmark")
+    assert prov["generator"] == "ofera.training.paired.make_benchmark"
     assert re.fullmatch(r"[0-9a-f]{16}", prov["generator_version"])
     assert re.fullmatch(r"[0-9a-f]{64}", prov["sample"]["sha256"])
     assert prov["threads"] == 1
