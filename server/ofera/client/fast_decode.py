@@ -42,24 +42,11 @@ def _q13_field(v, shift):
 @nb.njit(**_NB)
 def q13_decode_kernel(pos, rot, scale, lo, step, scale_lut, out_pos, out_rot, out_scale):
     """q13 codes -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic)."""
-    kf = np.float32(math.sqrt(0.5) / ROT_LEVELS)
     for m in range(rot.shape[0]):
         for c in range(3):
             out_pos[m, c] = np.float32(lo[c] + np.float64(pos[3 * m + c]) * step[c])
             out_scale[m, c] = scale_lut[scale[3 * m + c]]
-        v = rot[m]
-        i = v >> 30
-        a0 = _q13_field(v, 20) * kf
-        a1 = _q13_field(v, 10) * kf
-        a2 = _q13_field(v, 0) * kf
-        d = a0 * a0
-        d = d + a1 * a1
-        d = d + a2 * a2
-        big = np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
-        out_rot[m, 0] = big if i == 0 else a0
-        out_rot[m, 1] = big if i == 1 else (a0 if i == 0 else a1)
-        out_rot[m, 2] = big if i == 2 else (a2 if i == 3 else a1)
-        out_rot[m, 3] = big if i == 3 else a2
+        _q13_rotation_into(rot[m], out_rot, m)
 
 
 @nb.njit(inline="always", **_NB)
