@@ -326,6 +326,40 @@ def pct(samples, qs=(50, 90, 99, 99.9)) -> dict[str, float | None]:
     return out
 
 
+async def paced_session(client, weights: np.ndarray, start_us: float, period_us: float, total: int,
+                        on_message, tail_s: float) -> float:
+    """Send ``total`` bs without coordinated omission (bs k is due at ``start_us + k * period_us`` and carries
+    that time in ``t``) while every received message goes to ``on_message(data, received_us) -> bool`` (True:
+    the last one came). Waits ``tail_s`` seconds for the receiver after the last send; returns the end time (us).
+    ``weights`` (T, L) are used in a loop."""
+    import asyncio
+
+    from ofera.client import now_us
+
+    async def sender() -> None:
+        for k in range(total):
+            due = start_us + k * period_us
+            delay = (due - now_us()) / 1e6
+            if delay > 0:
+                await asyncio.sleep(delay)
+            await client.send_bs(weights[k % len(weights)], seq=k, t=int(due))
+
+    async def receiver() -> None:
+        while True:
+            data = await client.ws.recv()
+            if on_message(data, now_us()):
+                return
+
+    send_task = asyncio.create_task(sender())
+    recv_task = asyncio.create_task(receiver())
+    await send_task
+    try:
+        await asyncio.wait_for(recv_task, timeout=tail_s)
+    except asyncio.TimeoutError:
+        recv_task.cancel()
+    return now_us()
+
+
 def drop_latencies(scheduled_us: dict[int, float], arrivals: list[tuple[int, float]],
                    end_us: float) -> dict[int, float]:
     """seq -> latency (ms) of each bs that were sent but never answered (newest-wins dropped them).

@@ -151,45 +151,29 @@ async def session(url: str, http: str, scheme: str, weights: np.ndarray, layout:
     kept: list[tuple[int, bytes]] = []
     arrivals: list[tuple[int, float]] = []
 
-    async def sender() -> None:
-        for k in range(total):
-            due = start + k * period_us
-            delay = (due - now_us()) / 1e6
-            if delay > 0:
-                await asyncio.sleep(delay)
-            await client.send_bs(weights[k], seq=k, t=int(due))
+    got = 0
 
-    async def receiver() -> None:
-        got = 0
-        while True:
-            data = await client.ws.recv()
-            msg = dec.decode(data)
-            if not isinstance(msg, Frame):
-                continue
-            if msg.index is None:
-                state.position[...], state.rotation[...] = msg.position, msg.rotation
-            else:
-                state.position[msg.index], state.rotation[msg.index] = msg.position, msg.rotation
-            now = now_us()
-            got += 1
-            if keep == "all" or (keep == "some" and got % 30 == 0):
-                kept.append((msg.seq, bytes(data)))
-            if msg.seq >= first:
-                records.append((msg.seq, (now - msg.t) / 1000.0, len(data), bool(msg.key)))
-                arrivals.append((msg.seq, now))
-                if on_sample is not None and len(records) % sample == 0:
-                    on_sample(msg.seq, state.position.copy(), state.rotation.copy())
-            if msg.seq == total - 1:
-                return
+    def on_message(data: bytes, _received: float) -> bool:
+        nonlocal got
+        msg = dec.decode(data)
+        if not isinstance(msg, Frame):
+            return False
+        if msg.index is None:
+            state.position[...], state.rotation[...] = msg.position, msg.rotation
+        else:
+            state.position[msg.index], state.rotation[msg.index] = msg.position, msg.rotation
+        now = now_us()  # decoded and applied: the client's view is current
+        got += 1
+        if keep == "all" or (keep == "some" and got % 30 == 0):
+            kept.append((msg.seq, bytes(data)))
+        if msg.seq >= first:
+            records.append((msg.seq, (now - msg.t) / 1000.0, len(data), bool(msg.key)))
+            arrivals.append((msg.seq, now))
+            if on_sample is not None and len(records) % sample == 0:
+                on_sample(msg.seq, state.position.copy(), state.rotation.copy())
+        return msg.seq == total - 1
 
-    send_task = asyncio.create_task(sender())
-    recv_task = asyncio.create_task(receiver())
-    await send_task
-    try:
-        await asyncio.wait_for(recv_task, timeout=5.0)
-    except asyncio.TimeoutError:
-        recv_task.cancel()
-    end = now_us()
+    end = await C.paced_session(client, weights, start, period_us, total, on_message, tail_s=5.0)
     server_bytes = metric(http, "ofera_bytes_sent_total") - bytes0
     server_frames = metric(http, "ofera_frames_sent_total") - frames0
     await client.close()

@@ -79,45 +79,24 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     start = now_us() + 100_000
     records: list[tuple[int, float, dict, int, float]] = []
     arrivals: list[tuple[int, float]] = []  # (seq, decoded time) of every counted frame
-    done = asyncio.Event()
 
-    async def sender() -> None:
-        for k in range(total):
-            due = start + k * period_us
-            delay = (due - now_us()) / 1e6
-            if delay > 0:
-                await asyncio.sleep(delay)
-            await client.send_bs(weights[k % len(weights)], seq=k, t=int(due))
-        done.set()
+    def on_message(data: bytes, t_recv: float) -> bool:
+        if decode != "header":
+            msg = fast.decode(data) if fast is not None else client.conn.receive(data)
+            if not isinstance(msg, Frame):
+                return False
+            seq, t, timing = msg.seq, msg.t, msg.timing
+        else:  # header only: the arrays are left undecoded
+            seq, t, timing = _frame_header(data)
+            if seq is None:
+                return False
+        now = now_us()
+        if seq >= first_counted:
+            records.append((seq, (now - t) / 1000.0, timing, len(data), (now - t_recv) / 1000.0))
+            arrivals.append((seq, now))
+        return seq == total - 1
 
-    async def receiver() -> None:
-        while True:
-            data = await client.ws.recv()
-            t_recv = now_us()
-            if decode != "header":
-                msg = fast.decode(data) if fast is not None else client.conn.receive(data)
-                if not isinstance(msg, Frame):
-                    continue
-                seq, t, timing = msg.seq, msg.t, msg.timing
-            else:  # header only: the arrays are left undecoded
-                seq, t, timing = _frame_header(data)
-                if seq is None:
-                    continue
-            now = now_us()
-            if seq >= first_counted:
-                records.append((seq, (now - t) / 1000.0, timing, len(data), (now - t_recv) / 1000.0))
-                arrivals.append((seq, now))
-            if seq == total - 1:
-                return
-
-    send_task = asyncio.create_task(sender())
-    recv_task = asyncio.create_task(receiver())
-    await send_task
-    try:
-        await asyncio.wait_for(recv_task, timeout=2.0)
-    except asyncio.TimeoutError:
-        recv_task.cancel()
-    end = now_us()
+    end = await C.paced_session(client, weights, start, period_us, total, on_message, tail_s=2.0)
     await client.close()
     scheduled = {k: start + k * period_us for k in range(first_counted, total)}
     return {"sent": total - first_counted, "records": records, "count": client.count,
