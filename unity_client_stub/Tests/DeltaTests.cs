@@ -31,19 +31,8 @@ namespace Ofera.Client.Tests
 
         static FrameFormat Format(Dictionary<string, object> f)
         {
-            FrameEncoding e;
-            Protocol.TryParseEncoding((string)f["encoding"], out e);
-            Quant q = null;
-            if (J.Has(f, "quant"))
-            {
-                Dictionary<string, object> qj = J.O(f["quant"]);
-                q = new Quant();
-                double[] a = J.Flat(qj["pos_min"]), b = J.Flat(qj["pos_max"]), c = J.Flat(qj["log_scale"]);
-                for (int i = 0; i < 3; i++) { q.PosMin[i] = (float)a[i]; q.PosMax[i] = (float)b[i]; }
-                q.LogScale[0] = (float)c[0]; q.LogScale[1] = (float)c[1];
-            }
-            FrameFormat fmt = new FrameFormat(e, (int)J.I(f["count"]), false, q);
-            fmt.Delta = new DeltaState(e, fmt.Count, q);
+            FrameFormat fmt = Program.FormatFromJson(f); // a delta session is dense
+            fmt.Delta = new DeltaState(fmt.Encoding, fmt.Count, fmt.Quant);
             return fmt;
         }
 

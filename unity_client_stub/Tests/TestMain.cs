@@ -221,7 +221,7 @@ namespace Ofera.Client.Tests
             return J.O(Json.Parse(File.ReadAllText(Path.Combine(dir, name + ".json"))));
         }
 
-        static FrameFormat FormatFromJson(Dictionary<string, object> f)
+        internal static FrameFormat FormatFromJson(Dictionary<string, object> f)
         {
             FrameEncoding e;
             Protocol.TryParseEncoding((string)f["encoding"], out e);
@@ -234,7 +234,7 @@ namespace Ofera.Client.Tests
                 for (int i = 0; i < 3; i++) { q.PosMin[i] = (float)a[i]; q.PosMax[i] = (float)b[i]; }
                 q.LogScale[0] = (float)c[0]; q.LogScale[1] = (float)c[1];
             }
-            return new FrameFormat(e, (int)J.I(f["count"]), (bool)f["sparse"], q);
+            return new FrameFormat(e, (int)J.I(f["count"]), J.Has(f, "sparse") && (bool)f["sparse"], q);
         }
 
         static void VectorTests(string dir)
