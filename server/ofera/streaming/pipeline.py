@@ -204,25 +204,40 @@ class Pipeline:
             self._morph = morph_blend_reference
         self._x51 = np.zeros(51, np.float32)
         self._y = np.zeros(68, np.float32)
+        self.values: np.ndarray | None = None  # the last `run`'s expression values
 
-    def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[GaussianState, dict[str, int]]:
-        """Blendshape weights (L,) in the session's layout and optional `conf` (2,) [lower, upper] face
-        confidence (a region below the threshold keeps its last confident values: streaming.confidence) ->
-        (GaussianState in FLAME space, stage durations in microseconds). The returned state is the caller's:
-        never written again while referenced (fresh arrays on the reference path, a pooled read-only state on
-        the fast path)."""
+    @property
+    def values_length(self) -> int:
+        """Length of this avatar's expression values (`map`'s output): 68 FLAME values, or 51 ARKit morph weights."""
+        return 51 if self.arkit else 68
+
+    def map(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, int]]:
+        """Blendshape weights (L,) in the session's layout and optional `conf` (2,) [lower, upper] face confidence
+        (a region below the threshold keeps its last confident values: streaming.confidence) -> this avatar's
+        expression values (`values_length`,) float32 (the EPM's 68 FLAME values; arkit51: the 51 BDA-aligned
+        weights, which are its morph weights) and the layout, bda and epm stage durations (us). The values are a
+        fresh array (the caller's: rooms publish them, params frames carry them)."""
         clock = time.perf_counter_ns
         t0 = clock()
         x = self.hold(self.adapter(weights), conf)
         t1 = clock()
         a = self.bda.apply(x, out=self._x51)
         t2 = clock()
-        if self.arkit:  # the "epm" stage is skipped (0 us): BDA output (clamped to [0, 1]) = morph weights
-            expr, rotations = a, _IDENTITY5
-        else:
-            y = self.mapper.map(a, out=self._y)
-            expr, rotations = split_flame_values(y)
+        # arkit51: the "epm" stage is skipped (0 us): the BDA output (clamped to [0, 1]) is the morph weights
+        values = a.copy() if self.arkit else self.mapper.map(a, out=self._y).copy()
         t3 = clock()
+        return values, {"layout": (t1 - t0) // 1000, "bda": (t2 - t1) // 1000, "epm": (t3 - t2) // 1000}
+
+    def deform_values(self, values: np.ndarray) -> tuple[GaussianState, dict[str, int]]:
+        """Expression values from `map` (here, or on another server: rooms) -> (GaussianState in FLAME space, the
+        head and deform stage durations in us). The returned state is the caller's: never written again while
+        referenced (fresh arrays on the reference path, a pooled read-only state on the fast path)."""
+        clock = time.perf_counter_ns
+        t3 = clock()
+        if self.arkit:
+            expr, rotations = np.asarray(values, np.float32), _IDENTITY5
+        else:
+            expr, rotations = split_flame_values(np.asarray(values, np.float32))
         if self.fast is not None:
             verts = self.fast.head(expr, rotations)
             t4 = clock()
@@ -233,8 +248,14 @@ class Pipeline:
             t4 = clock()
             state = self.deformer.deform(verts)
         t5 = clock()
-        ts = (t0, t1, t2, t3, t4, t5)
-        return state, {name: (ts[i + 1] - ts[i]) // 1000 for i, name in enumerate(STAGES)}
+        return state, {"head": (t4 - t3) // 1000, "deform": (t5 - t4) // 1000}
+
+    def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[GaussianState, dict[str, int]]:
+        """`map` then `deform_values`: weights (L,) [and conf (2,)] -> (GaussianState in FLAME space, the STAGES'
+        durations in us); `self.values` keeps the frame's expression values."""
+        self.values, mapped = self.map(weights, conf)
+        state, deformed = self.deform_values(self.values)
+        return state, {**mapped, **deformed}
 
     def warm_up(self, frames: int = 3) -> None:
         """Run a few frames so that first-use costs (allocation, ONNX graph set-up) are paid now."""

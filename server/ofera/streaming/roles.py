@@ -81,6 +81,7 @@ class ComputedFrame:
     state: GaussianState  # in FLAME space
     timing: dict[str, int]
     received_ns: int
+    values: np.ndarray | None = None  # the avatar's expression values (68 FLAME values; arkit51: 51 weights)
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -141,7 +142,7 @@ class Source:
         if "layout" in stages and "bda" in stages:
             timing["map"] = stages["layout"] + stages["bda"]
         timing["total"] = (end - p.received_ns) // 1000
-        return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns)
+        return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, getattr(self.pipeline, "values", None))
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
