@@ -194,6 +194,7 @@ class ServerProcess:
     impl: str = "fast"
     threads: int = 2
     max_sessions: int = 64
+    extra: dict[str, Any] = field(default_factory=dict)  # more Settings (e.g. redis_url for benchmarks/rooms.py)
     port: int = field(default_factory=free_port)
     proc: subprocess.Popen | None = None
     log: Any = None
@@ -205,7 +206,7 @@ class ServerProcess:
     def start(self, timeout: float = 300.0) -> ServerProcess:
         settings = {"host": "127.0.0.1", "port": self.port, "avatars": str(self.avatars),
                     "default_avatar": AVATAR_ID, "compute_threads": self.threads, "log_level": "warning",
-                    "max_sessions": self.max_sessions, "bs_rate": 1000.0, "fast": self.impl == "fast"}
+                    "max_sessions": self.max_sessions, "bs_rate": 1000.0, "fast": self.impl == "fast", **self.extra}
         self.log = tempfile.TemporaryFile()
         self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "serve", json.dumps(settings),
                                       self.impl], stdout=self.log, stderr=subprocess.STDOUT)
@@ -380,6 +381,88 @@ def drop_latencies(scheduled_us: dict[int, float], arrivals: list[tuple[int, flo
         arrived = later_arrival[i] if i < seqs.size else end_us
         out[seq] = (float(arrived) - due) / 1000.0
     return out
+
+
+def cpu_seconds(pid: int | None = None) -> float:
+    """User + system CPU seconds used so far by process ``pid`` (default: this one, all threads), from /proc."""
+    with open(f"/proc/{pid or os.getpid()}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class CpuMeter:
+    """CPU used by the benchmark's own process (the clients) and by the server process over a window:
+    ``with CpuMeter(server_pid) as m: ...`` then ``m.report()`` -> cores used on average (CPU s / wall s)."""
+
+    def __init__(self, server_pid: int | None = None) -> None:
+        self.server_pid = server_pid
+        self.start = self.end = None
+
+    def _now(self) -> tuple[float, float, float | None]:
+        server = cpu_seconds(self.server_pid) if self.server_pid else None
+        return time.monotonic(), cpu_seconds(), server
+
+    def __enter__(self) -> CpuMeter:
+        self.start = self._now()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.end = self._now()
+
+    def report(self) -> dict[str, float | None]:
+        (w0, c0, s0), (w1, c1, s1) = self.start, self.end
+        wall = max(w1 - w0, 1e-9)
+        return {"wall_s": round(wall, 3), "client_cores": round((c1 - c0) / wall, 3),
+                "server_cores": None if s0 is None or s1 is None else round((s1 - s0) / wall, 3),
+                "cpus": os.cpu_count()}
+
+
+def metrics_text(http_url: str) -> str:
+    """The server's /metrics page ('' if it does not answer)."""
+    try:
+        return urllib.request.urlopen(f"{http_url}/metrics", timeout=5).read().decode()
+    except OSError:
+        return ""
+
+
+def stage_histograms(text: str) -> dict[str, dict[str, Any]]:
+    """``ofera_stage_seconds`` of a /metrics page: stage -> {"le": [upper bounds], "cum": [counts], "sum", "count"}."""
+    import re
+
+    out: dict[str, dict[str, Any]] = {}
+    for m in re.finditer(r'ofera_stage_seconds_bucket\{le="([^"]+)",stage="([^"]+)"\}\s+([0-9.eE+-]+)', text):
+        h = out.setdefault(m.group(2), {"le": [], "cum": [], "sum": 0.0, "count": 0.0})
+        h["le"].append(float(m.group(1)))
+        h["cum"].append(float(m.group(3)))
+    for kind in ("sum", "count"):
+        for m in re.finditer(rf'ofera_stage_seconds_{kind}\{{stage="([^"]+)"\}}\s+([0-9.eE+-]+)', text):
+            if m.group(1) in out:
+                out[m.group(1)][kind] = float(m.group(2))
+    return out
+
+
+def histogram_window(before: dict, after: dict, stage: str) -> dict[str, float | None]:
+    """Mean and p50/p99 (ms, linear within a bucket) of one stage between two ``stage_histograms`` snapshots."""
+    a = after.get(stage)
+    if a is None:
+        return {"mean": None, "p50": None, "p99": None, "count": 0}
+    b = before.get(stage) or {"cum": [0.0] * len(a["cum"]), "sum": 0.0, "count": 0.0}
+    cum = np.asarray(a["cum"]) - np.asarray(b["cum"])
+    n = float(a["count"] - b["count"])
+    if n <= 0:
+        return {"mean": None, "p50": None, "p99": None, "count": 0}
+    le = np.asarray(a["le"])
+
+    def q(f: float) -> float:
+        i = int(np.searchsorted(cum, f * n))
+        if i >= le.size or not np.isfinite(le[i]):
+            return float(le[-2]) * 1e3  # beyond the last finite bucket: its bound (a lower bound)
+        lo, c_lo = (0.0, 0.0) if i == 0 else (le[i - 1], cum[i - 1])
+        width = cum[i] - c_lo
+        return float(lo + (le[i] - lo) * ((f * n - c_lo) / width if width > 0 else 1.0)) * 1e3
+
+    return {"mean": round((a["sum"] - b["sum"]) / n * 1e3, 4), "p50": round(q(0.5), 4), "p99": round(q(0.99), 4),
+            "count": int(n)}
 
 
 def rss_mb(pid: int | None = None) -> float:

@@ -44,6 +44,8 @@ from ofera_protocol import (  # noqa: E402
     Frame,
     FrameFormat,
     Hello,
+    Join,
+    Leave,
     Ping,
     Pong,
     Quant,
@@ -56,6 +58,7 @@ from ofera_protocol.codec import encode_avatar_chunk, pack_map  # noqa: E402
 from ofera_protocol.encodings import SCALE_LEVELS  # noqa: E402
 from ofera_protocol.messages import Resync  # noqa: E402
 from ofera_protocol.tables import tables, update_markdown  # noqa: E402
+from params_vectors import params_vectors, rig_frames  # noqa: E402
 
 VECTOR_DIR = HERE / "vectors"
 PROTOCOL_MD = HERE / "PROTOCOL.md"
@@ -148,7 +151,7 @@ def describe(data: bytes, encoding: str | None = None) -> dict[str, Any]:
         assert encoding is not None
         schema = BIN_SCHEMA[f"frame.{encoding}"] | {"index": ("uint32", ())} | BIN_SCHEMA["frame.delta"]
         return _describe_bins(m, schema)
-    if t == "welcome" and "quant" in m:
+    if t in ("welcome", "join") and "quant" in m:
         m = dict(m, quant=_describe_bins(m["quant"], BIN_SCHEMA["welcome.quant"]))
     if t == "avatar":  # sh is n x K x 3
         k = (m["sh_degree"] + 1) ** 2
@@ -253,8 +256,67 @@ def build_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
                "fatal error; the server then closes with 4010"),
         _valid("pong", S2C, encode(Pong(t=T)), "pong"),
     ]
+    out += _room_vectors(avatar)
+    out += params_vectors(SEQ, T, TIMING)  # PROTOCOL.md 13
     out += _invalid_vectors()
     return out
+
+
+ROOM, ROOM_SECRET, MEMBER, OTHER = "lab-1", b"room-secret", "m-5f2a9c1e0b7d", "m-03c8e1aa42f6"
+
+
+def room_token(secret: bytes, room: str) -> str:
+    """A room's token (PROTOCOL.md 12.1): lowercase hex HMAC-SHA256 of the room name (UTF-8) under the secret."""
+    import hashlib
+    import hmac
+
+    return hmac.new(secret, room.encode(), hashlib.sha256).hexdigest()
+
+
+def _room_vectors(avatar: Avatar) -> list[tuple[str, bytes, dict[str, Any]]]:
+    """Rooms (PROTOCOL.md 12): hello, welcome, join, member avatar and frames, leave."""
+    info = AvatarInfo("default", COUNT, SH_DEGREE)
+    q13 = _frame_format("q13", False)
+    f16_sparse = _frame_format("f16", True)
+    chunk = split_avatar(avatar)[0]
+    chunk.member = OTHER
+    frame = _frame(False)
+    frame.member = OTHER
+    sparse = _frame(True)
+    sparse.member = OTHER
+    return [
+        _valid("hello_room", C2S, encode(Hello(layout="arkit52", avatar="default", encoding="q13", room=ROOM,
+                                               self=True, room_token=room_token(ROOM_SECRET, ROOM))),
+               f"hello joining room {ROOM!r} to publish, also receiving its own avatar, with the room token of "
+               f"secret {ROOM_SECRET.decode()!r}"),
+        _valid("hello_room_watch", C2S, encode(Hello(layout="arkit52", room=ROOM, publish=False)),
+               f"hello watching room {ROOM!r} (watch only: no bs, no avatar of its own)"),
+        _valid("welcome_room", S2C, encode(Welcome(session="s-0004", avatar=info, layout="arkit52", encoding="q13",
+                                                   server="ofera/0.1.0", room=ROOM, member=MEMBER)),
+               "welcome of a publishing room member (q13): its member id; the quantisation comes with each join"),
+        _valid("welcome_room_watch", S2C, encode(Welcome(session="s-0005", avatar=None, layout="arkit52",
+                                                         server="ofera/0.1.0", room=ROOM, member=OTHER)),
+               "welcome of a watch-only room member: no avatar"),
+        _valid("join", S2C, encode(Join(member=OTHER, avatar=info, quant=QUANT)),
+               "join of a publishing member, sent to a q13 viewer (its avatar's quantisation parameters)"),
+        _valid("join_f16", S2C, encode(Join(member=OTHER, avatar=info)),
+               "join of a publishing member, sent to an f16 viewer"),
+        _valid("join_watch", S2C, encode(Join(member=MEMBER, publish=False)), "join of a watch-only member"),
+        _valid("avatar_member", S2C, encode_avatar_chunk(chunk),
+               "the joined member's avatar (the 4 Gaussians of `avatar`) in one chunk"),
+        _valid("frame_q13_member", S2C, encode(frame, q13), "a frame of a room member in q13 (dense)", q13,
+               _decoded(frame, q13)),
+        _valid("frame_f16_sparse_member", S2C, encode(sparse, f16_sparse),
+               "a sparse frame of a room member in f16: Gaussians 1 and 3", f16_sparse, _decoded(sparse, f16_sparse)),
+        _valid("leave", S2C, encode(Leave(member=OTHER, reason="bye")), "the member left the room (it sent bye)"),
+    ]
+
+
+def _decoded(frame: Frame, fmt: FrameFormat) -> Frame:
+    from ofera_protocol.codec import decode_frame, unpack_message
+
+    data = encode(frame, fmt)
+    return decode_frame(unpack_message(data, len(data)), fmt)
 
 
 def _delta_motion() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -357,6 +419,11 @@ def _invalid_vectors() -> list[tuple[str, bytes, dict[str, Any]]]:
         _invalid("invalid_hello_encoding", C2S, pack_map({"type": "hello", "protocol": 1, "layout": "arkit52",
                                                           "encoding": "png"}),
                  "unknown_encoding", "hello with encoding png"),
+        _invalid("invalid_hello_room_name", C2S, encode(Hello(layout="arkit52", room="lab 1")), "bad_field",
+                 "room name with a space"),
+        _invalid("invalid_hello_room_avatar", C2S, pack_map({"type": "hello", "protocol": 1, "layout": "arkit52",
+                                                             "room": ROOM}),
+                 "bad_field", "publishing in a room without naming the avatar"),
         _invalid("invalid_hello_sparse_type", C2S, pack_map({"type": "hello", "protocol": 1, "layout": "arkit52",
                                                              "sparse": 1}),
                  "bad_field", "sparse must be a bool"),
@@ -438,6 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     md = PROTOCOL_MD.read_text(encoding="utf-8")
     expected[PROTOCOL_MD] = update_markdown(update_protocol_md(md, render_examples(vectors))).encode()
     expected[VECTOR_DIR / "tables.json"] = json_text(tables()).encode()  # the tables the C# and JS tests check
+    expected[VECTOR_DIR / "rig_tiny_frames.json"] = json_text(rig_frames(SEQ, T, TIMING)).encode()  # PROTOCOL.md 13
     stale = [p for p, b in expected.items() if not p.exists() or p.read_bytes() != b]
     extra = [p for p in VECTOR_DIR.glob("*") if p not in expected] if VECTOR_DIR.exists() else []
     if args.check:

@@ -282,7 +282,7 @@ JS_VECTOR_CHECK = """async (vectors) => {
         let b;
         if (F.type === "hello") b = P.helloMessage({ layout: F.layout, avatar: F.avatar, encoding: F.encoding,
           coords: F.coords, sparse: F.sparse, delta: F.delta, device: F.device, token: F.token,
-          maxGaussians: F.max_gaussians });
+          maxGaussians: F.max_gaussians, room: F.room, publish: F.publish, self: F.self, roomToken: F.room_token });
         else if (F.type === "bs") b = P.bsMessage(F.seq, F.t, F.w.values, F.conf?.values);
         else if (F.type === "ping") b = P.pingMessage(F.t);
         else if (F.type === "resync") b = P.resyncMessage();
@@ -315,7 +315,7 @@ JS_VECTOR_CHECK = """async (vectors) => {
       } else if (m.type === "avatar") {
         ok = ok && m.n === F.n && m.offset === F.offset && Math.abs(m.opacity[0] - F.opacity.values[0]) < 1e-7;
       } else if (m.type === "welcome") {
-        ok = ok && m.session === F.session && m.avatar.count === F.avatar.count && m.encoding === F.encoding
+        ok = ok && m.session === F.session && m.avatar?.count === F.avatar?.count && m.encoding === F.encoding
           && m.delta === (F.delta ?? false);
       } else if (m.type === "error") {
         ok = ok && m.code === F.code && m.fatal === F.fatal;

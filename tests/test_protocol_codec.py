@@ -219,7 +219,7 @@ def test_error_table_is_complete_and_consistent() -> None:
     expected = {"malformed", "unknown_type", "bad_field", "bad_length", "non_finite", "not_ready",
                 "duplicate_hello", "unsupported_protocol", "unknown_layout", "unknown_avatar",
                 "unknown_encoding", "unauthorized", "message_too_large", "rate_limited", "server_full",
-                "text_frame", "internal"}
+                "text_frame", "internal", "room_full", "too_many_rooms"}
     assert set(ERRORS) == expected
     for spec in ERRORS.values():
         assert (spec.close_code is None) == (spec.fatality is Fatality.NEVER)

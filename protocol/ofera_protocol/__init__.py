@@ -15,6 +15,7 @@ from .codec import (
     encode_avatar_chunk,
     encode_frame,
     frame_format,
+    member_format,
 )
 from .connection import ClientConnection, ClientState, ServerConnection, ServerState
 from .constants import (
@@ -39,6 +40,8 @@ from .messages import (
     ErrorMessage,
     Frame,
     Hello,
+    Join,
+    Leave,
     Message,
     Ping,
     Pong,
@@ -52,9 +55,9 @@ __all__ = [
     "MAX_CLIENT_MESSAGE", "MAX_SERVER_MESSAGE", "PROTOCOL_VERSION",
     "Avatar", "AvatarAssembler", "AvatarChunk", "AvatarInfo", "Blendshapes", "Bye", "ClientConnection",
     "ClientMessage", "ClientState", "ConnectionUsageError", "ErrorMessage", "Frame", "FrameFormat", "GaussianState",
-    "Hello", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
+    "Hello", "Join", "Leave", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
     "ServerMessage", "ServerState", "Welcome",
     "close_code", "decode_arrays", "decode_client_message", "decode_server_message", "encode",
-    "encode_arrays", "encode_avatar_chunk", "encode_frame", "frame_format", "make_quant",
+    "encode_arrays", "encode_avatar_chunk", "encode_frame", "frame_format", "make_quant", "member_format",
     "mirror_x_position", "mirror_x_rotation", "mirror_x_sh", "split_avatar", "to_coords",
 ]

@@ -7,6 +7,8 @@ arrays are copied once (into the returned bytes) after their encoding.
 
 from __future__ import annotations
 
+import re
+from collections.abc import Mapping
 from typing import Any
 
 import msgpack
@@ -16,7 +18,7 @@ from . import _fields as F
 from .avatar import sh_coeffs
 from .constants import (
     COORDS,
-    ENCODINGS,
+    HELLO_ENCODINGS,
     INT64_MAX,
     LAYOUTS,
     MAX_CLIENT_MESSAGE,
@@ -27,7 +29,9 @@ from .constants import (
     MAX_SH_DEGREE,
     MAX_STR_LEN,
     MAX_TIMING_STAGES,
+    PARAMS,
     PROTOCOL_VERSION,
+    ROOM_NAME,
     UINT32_MAX,
 )
 from .encodings import FrameFormat, decode_arrays, encode_arrays, validate_quant
@@ -56,11 +60,16 @@ from .messages import (
     ErrorMessage,
     Frame,
     Hello,
+    Join,
+    Leave,
     Message,
+    ParamsFormat,
+    ParamsFrame,
     Ping,
     Pong,
     Quant,
     Resync,
+    RigChunk,
     ServerMessage,
     Welcome,
 )
@@ -136,7 +145,9 @@ def encode_hello(m: Hello) -> bytes:
     return pack_map(_drop_none({
         "type": "hello", "protocol": m.protocol, "layout": m.layout, "avatar": m.avatar,
         "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse, "delta": m.delta or None, "device": m.device,
-        "token": m.token, "max_gaussians": m.max_gaussians,
+        "token": m.token, "max_gaussians": m.max_gaussians, "room": m.room,
+        "publish": False if m.room is not None and not m.publish else None,
+        "self": True if m.room is not None and m.self else None, "room_token": m.room_token,
     }))
 
 
@@ -150,29 +161,57 @@ def encode_bs(m: Blendshapes) -> bytes:
     return pack_map(d)
 
 
+def _avatar_info(a: AvatarInfo) -> dict[str, Any]:
+    return {"id": a.id, "count": a.count, "sh_degree": a.sh_degree, "expression": a.expression}
+
+
 def encode_welcome(m: Welcome) -> bytes:
-    d: dict[str, Any] = {
-        "type": "welcome", "protocol": m.protocol, "session": m.session,
-        "avatar": {"id": m.avatar.id, "count": m.avatar.count, "sh_degree": m.avatar.sh_degree,
-                   "expression": m.avatar.expression},
-        "layout": m.layout, "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse,
-    }
+    d: dict[str, Any] = {"type": "welcome", "protocol": m.protocol, "session": m.session}
+    if m.avatar is not None:
+        d["avatar"] = _avatar_info(m.avatar)
+    elif m.room is None:
+        raise ValueError("welcome needs an avatar outside a (watch-only) room session")
+    d |= {"layout": m.layout, "encoding": m.encoding, "coords": m.coords, "sparse": m.sparse}
     if m.delta:
         d["delta"] = True
     if m.quant is not None:
-        validate_quant(m.quant)
-        d["quant"] = {"pos_min": m.quant.pos_min.astype("<f4"), "pos_max": m.quant.pos_max.astype("<f4"),
-                      "log_scale": m.quant.log_scale.astype("<f4")}
+        d["quant"] = _quant_map(m.quant)
     if m.server is not None:
         d["server"] = m.server
+    if m.rig_bytes is not None:  # params sessions (PROTOCOL.md 13)
+        d["rig_bytes"] = m.rig_bytes
+    if m.room is not None:
+        if m.member is None:
+            raise ValueError("a room session's welcome needs its member id")
+        d["room"], d["member"] = m.room, m.member
     return pack_map(d)
 
+
+def _quant_map(q: Quant) -> dict[str, Any]:
+    validate_quant(q)
+    return {"pos_min": q.pos_min.astype("<f4"), "pos_max": q.pos_max.astype("<f4"),
+            "log_scale": q.log_scale.astype("<f4")}
+
+
+def encode_join(m: Join) -> bytes:
+    """`join` (rooms): a publishing member has `avatar` (and `quant` for a q13 viewer); a watch-only one neither."""
+    if m.publish != (m.avatar is not None):
+        raise ValueError("join: a publishing member has an avatar, a watch-only member none")
+    d: dict[str, Any] = {"type": "join", "member": m.member}
+    if m.avatar is not None:
+        d["avatar"] = _avatar_info(m.avatar)
+    if m.quant is not None:
+        d["quant"] = _quant_map(m.quant)
+    if not m.publish:
+        d["publish"] = False
+    return pack_map(d)
 
 def encode_avatar_chunk(m: AvatarChunk) -> bytes:
     """`avatar` message; arrays are converted to float32 little-endian (no copy if they already are)."""
     n, k = m.n, sh_coeffs(m.sh_degree)
+    member = {} if m.member is None else {"member": m.member}
     return pack_map({
-        "type": "avatar", "count": m.count, "sh_degree": m.sh_degree, "chunk": m.chunk,
+        "type": "avatar", **member, "count": m.count, "sh_degree": m.sh_degree, "chunk": m.chunk,
         "chunks": m.chunks, "offset": m.offset, "n": n,
         "opacity": _le(m.opacity, "<f4", (n,), "opacity"), "sh": _le(m.sh, "<f4", (n, k, 3), "sh"),
         "position": _le(m.position, "<f4", (n, 3), "position"),
@@ -191,6 +230,8 @@ def encode_frame(m: Frame, fmt: FrameFormat) -> bytes:
         raise ValueError(f"frame arrays must be (n, 3), (n, 4), (n, 3); got {m.position.shape}, "
                          f"{m.rotation.shape}, {m.scale.shape}")
     d: dict[str, Any] = {"type": "frame", "seq": m.seq, "t": m.t, "timing": m.timing, "n": n}
+    if m.member is not None:  # rooms: after `type` (the fast writer's header does the same)
+        d = {"type": "frame", "member": m.member, "seq": m.seq, "t": m.t, "timing": m.timing, "n": n}
     if fmt.delta:  # a key frame (delta frames come from delta.DeltaEncoder or encode_delta_frame)
         if m.key is False or m.index is not None:
             raise ValueError("a Frame of a delta session is a dense key frame")
@@ -252,6 +293,14 @@ def encode(m: Message, fmt: FrameFormat | None = None) -> bytes:
         return encode_avatar_chunk(m)
     if isinstance(m, ErrorMessage):
         return encode_error(m)
+    if isinstance(m, Join):
+        return encode_join(m)
+    if isinstance(m, Leave):
+        return pack_map({"type": "leave", "member": m.member, "reason": m.reason})
+    if isinstance(m, RigChunk):
+        return encode_rig_chunk(m)
+    if isinstance(m, ParamsFrame):
+        return encode_params_frame(m)
     raise TypeError(f"not a protocol message: {type(m).__name__}")
 
 
@@ -305,17 +354,36 @@ def _message_type(m: dict[str, Any], known: dict[str, type], direction: str) -> 
     return t
 
 
+_ROOM_NAME = re.compile(ROOM_NAME)
+
+
+def decode_room(m: dict[str, Any], where: str) -> str | None:
+    """`hello.room`: None if absent, else a name of 1-64 of [A-Za-z0-9._-] (bad_field otherwise)."""
+    room = F.get_str(m, "room", where, max_len=64, default=None)
+    if room is not None and not _ROOM_NAME.fullmatch(room):
+        raise ProtocolError(BAD_FIELD, f"{where}: field 'room' {room[:64]!r} may hold only letters, digits and . _ -")
+    return room
+
+
 def decode_hello(m: dict[str, Any]) -> Hello:
     w = "hello"
     protocol = F.get_int(m, "protocol", w)
     if protocol != PROTOCOL_VERSION:
         raise ProtocolError(UNSUPPORTED_PROTOCOL, f"protocol {protocol} is not supported; this server "
                             f"speaks protocol {PROTOCOL_VERSION}")
+    room = decode_room(m, w)
+    publish = F.get_bool(m, "publish", w, default=True)
+    if room is not None and publish and "avatar" not in m:
+        raise ProtocolError(BAD_FIELD, "hello: field 'avatar' is required to publish in a room (or send "
+                            "'publish': false to watch)")
+    watching = room is not None and not publish  # a watcher sends no bs: its layout is optional
     return Hello(
         protocol=protocol,
-        layout=F.get_choice(m, "layout", w, LAYOUTS, UNKNOWN_LAYOUT),
+        room=room, publish=publish, self=F.get_bool(m, "self", w, default=False),
+        room_token=F.get_str(m, "room_token", w, default=None),
+        layout=F.get_choice(m, "layout", w, LAYOUTS, UNKNOWN_LAYOUT, **({"default": "arkit52"} if watching else {})),
         avatar=F.get_str(m, "avatar", w, default="default"),
-        encoding=F.get_choice(m, "encoding", w, ENCODINGS, UNKNOWN_ENCODING, default="f32"),
+        encoding=F.get_choice(m, "encoding", w, HELLO_ENCODINGS, UNKNOWN_ENCODING, default="f32"),
         coords=F.get_choice(m, "coords", w, COORDS, BAD_FIELD, default="flame"),
         sparse=F.get_bool(m, "sparse", w, default=False),
         delta=F.get_bool(m, "delta", w, default=False),
@@ -383,13 +451,11 @@ def decode_welcome(m: dict[str, Any]) -> Welcome:
     if protocol != PROTOCOL_VERSION:
         raise ProtocolError(UNSUPPORTED_PROTOCOL, f"server speaks protocol {protocol}; this client "
                             f"speaks {PROTOCOL_VERSION}")
-    av = F.get_map(m, "avatar", w)
-    avatar = AvatarInfo(id=F.get_str(av, "id", "welcome.avatar"),
-                        count=F.get_int(av, "count", "welcome.avatar", lo=0, hi=UINT32_MAX),
-                        sh_degree=F.get_int(av, "sh_degree", "welcome.avatar", lo=0, hi=MAX_SH_DEGREE),
-                        expression=F.get_str(av, "expression", "welcome.avatar", default="flame68"))
-    encoding = F.get_choice(m, "encoding", w, ENCODINGS, UNKNOWN_ENCODING)
-    qm = F.get_map(m, "quant", w, required=encoding == "q13")
+    room = decode_room(m, w)
+    av = F.get_map(m, "avatar", w, required=room is None)  # a watch-only room session has none
+    avatar = None if av is None else decode_avatar_info(av, "welcome.avatar")
+    encoding = F.get_choice(m, "encoding", w, HELLO_ENCODINGS, UNKNOWN_ENCODING)
+    qm = F.get_map(m, "quant", w, required=encoding == "q13" and room is None)  # rooms: quant per join
     return Welcome(
         protocol=protocol, session=F.get_str(m, "session", w), avatar=avatar,
         layout=F.get_choice(m, "layout", w, LAYOUTS, UNKNOWN_LAYOUT), encoding=encoding,
@@ -398,7 +464,27 @@ def decode_welcome(m: dict[str, Any]) -> Welcome:
         quant=decode_quant(qm) if qm is not None and encoding == "q13" else None,
         server=F.get_str(m, "server", w, default=None),
         delta=F.get_bool(m, "delta", w, default=False),
+        room=room, member=None if room is None else F.get_str(m, "member", w),
+        rig_bytes=F.get_int(m, "rig_bytes", w, lo=0, hi=UINT32_MAX, default=None),
     )
+
+
+def decode_avatar_info(av: dict[str, Any], w: str) -> AvatarInfo:
+    return AvatarInfo(id=F.get_str(av, "id", w), count=F.get_int(av, "count", w, lo=0, hi=UINT32_MAX),
+                      sh_degree=F.get_int(av, "sh_degree", w, lo=0, hi=MAX_SH_DEGREE),
+                      expression=F.get_str(av, "expression", w, default="flame68"))
+
+
+def decode_join(m: dict[str, Any]) -> Join:
+    w = "join"
+    publish = F.get_bool(m, "publish", w, default=True)
+    av = F.get_map(m, "avatar", w, required=publish)
+    if av is not None and not publish:
+        raise ProtocolError(BAD_FIELD, "join: a watch-only member ('publish': false) has no 'avatar'")
+    qm = F.get_map(m, "quant", w, required=False)
+    return Join(member=F.get_str(m, "member", w), publish=publish,
+                avatar=None if av is None else decode_avatar_info(av, "join.avatar"),
+                quant=None if qm is None else decode_quant(qm))
 
 
 def decode_avatar_chunk(m: dict[str, Any]) -> AvatarChunk:
@@ -413,6 +499,7 @@ def decode_avatar_chunk(m: dict[str, Any]) -> AvatarChunk:
     if n and not ((opacity >= 0) & (opacity <= 1)).all():
         raise ProtocolError(BAD_FIELD, "avatar: field 'opacity' has values outside [0, 1]")
     return AvatarChunk(
+        member=F.get_str(m, "member", w, default=None),
         count=count, sh_degree=deg, chunk=chunk, chunks=chunks, offset=offset, opacity=opacity,
         sh=F.get_array(m, "sh", w, "<f4", (n, sh_coeffs(deg), 3)),
         position=F.get_array(m, "position", w, "<f4", (n, 3)),
@@ -524,23 +611,39 @@ def decode_frame(m: dict[str, Any], fmt: FrameFormat) -> Frame | DeltaFrame:
     if key:
         codes = tuple(np.frombuffer(b, dtype=dt) for b, dt in zip(bufs, _CODE_DTYPES[fmt.encoding], strict=True))
     return Frame(seq=seq, t=t, timing=timing, index=index, position=p, rotation=r, scale=s, key=key,
-                 codes=codes)  # type: ignore[arg-type]
+                 codes=codes, member=F.get_str(m, "member", "frame", default=None))  # type: ignore[arg-type]
 
 
 def decode_server_message(data: bytes | bytearray | memoryview, fmt: FrameFormat | None = None,
-                          max_size: int = MAX_SERVER_MESSAGE) -> ServerMessage:
+                          max_size: int = MAX_SERVER_MESSAGE, members: Mapping[str, FrameFormat] | None = None
+                          ) -> ServerMessage:
     """Decode a server -> client message. `fmt` (from `welcome`) is needed for frames; a frame
-    without it raises `not_ready`. Raises ProtocolError."""
+    without it raises `not_ready`. Room sessions: `members` maps each member (joined, avatar complete) to the
+    FrameFormat of its frames (`member_format`); a frame of another member raises a non-fatal `not_ready`.
+    Raises ProtocolError."""
     m = unpack_message(data, max_size)
     t = _message_type(m, SERVER_TYPES, "server")
     if t == "frame":
+        if members is not None and "member" in m:
+            member = F.get_str(m, "member", "frame")
+            fmt = members.get(member)
+            if fmt is None:
+                raise ProtocolError(NOT_READY, f"frame of member {member[:64]!r} before its join and avatar", False)
         if fmt is None:
             raise ProtocolError(NOT_READY, "frame before welcome: the session's format is unknown")
+        if isinstance(fmt, ParamsFormat):
+            return decode_params_frame(m, fmt)
         return decode_frame(m, fmt)
+    if t == "rig":
+        return decode_rig_chunk(m)
     if t == "avatar":
         return decode_avatar_chunk(m)
     if t == "welcome":
         return decode_welcome(m)
+    if t == "join":
+        return decode_join(m)
+    if t == "leave":
+        return Leave(member=F.get_str(m, "member", "leave"), reason=F.get_str(m, "reason", "leave"))
     if t == "error":
         w = "error"
         return ErrorMessage(code=F.get_str(m, "code", w), message=F.get_str(m, "message", w,
@@ -549,7 +652,72 @@ def decode_server_message(data: bytes | bytearray | memoryview, fmt: FrameFormat
     return Pong(t=F.get_int(m, "t", "pong"))
 
 
-def frame_format(welcome: Welcome) -> FrameFormat:
-    """The FrameFormat a `welcome` announces."""
+# ============================================================================= params sessions (PROTOCOL.md 13)
+
+
+def encode_rig_chunk(m: RigChunk) -> bytes:
+    """`rig`: bytes [offset, offset + len(data)) of a rig body (`ofera_protocol.rig`)."""
+    member = {} if m.member is None else {"member": m.member}
+    return pack_map({"type": "rig", **member, "chunk": m.chunk, "chunks": m.chunks, "size": m.size,
+                     "offset": m.offset, "data": bytes(m.data)})
+
+
+def decode_rig_chunk(m: dict[str, Any]) -> RigChunk:
+    w = "rig"
+    chunks = F.get_int(m, "chunks", w, lo=1, hi=UINT32_MAX)
+    size = F.get_int(m, "size", w, lo=0, hi=UINT32_MAX)
+    return RigChunk(member=F.get_str(m, "member", w, default=None), chunk=F.get_int(m, "chunk", w, lo=0, hi=chunks - 1),
+                    chunks=chunks, size=size, offset=F.get_int(m, "offset", w, lo=0, hi=size),
+                    data=F.get_bin(m, "data", w))
+
+
+def encode_params_frame(m: ParamsFrame) -> bytes:
+    """A params frame: `type`, [`member`], [`seq`, `t`, `timing` on a stamped frame], `params` (float32)."""
+    d: dict[str, Any] = {"type": "frame"}
+    if m.member is not None:
+        d["member"] = m.member
+    if (m.seq is None) != (m.t is None):
+        raise ValueError("a stamped params frame carries both seq and t, an unstamped one neither")
+    if m.seq is not None:
+        d["seq"], d["t"] = m.seq, m.t
+        if m.timing is not None:
+            d["timing"] = m.timing
+    d["params"] = np.ascontiguousarray(m.params, "<f4").reshape(-1)
+    return pack_map(d)
+
+
+def decode_params_frame(m: dict[str, Any], fmt: ParamsFormat) -> ParamsFrame:
+    """A params frame: `params` of fmt.length finite float32; `seq` and `t` together or neither; `timing` only
+    with them."""
+    w = "frame"
+    seq = F.get_int(m, "seq", w, lo=0, default=None)
+    t = F.get_int(m, "t", w, default=None)
+    if (seq is None) != (t is None):
+        raise ProtocolError(BAD_FIELD, "frame: a params frame carries 'seq' and 't' together or neither")
+    timing = None
+    if "timing" in m and m["timing"] is not None:
+        if seq is None:
+            raise ProtocolError(BAD_FIELD, "frame: 'timing' on a params frame without 'seq' and 't'")
+        timing = decode_timing(m)
+    params = F.get_array(m, "params", w, "<f4", (fmt.length,))
+    return ParamsFrame(params=params, seq=seq, t=t, timing=timing, member=F.get_str(m, "member", w, default=None))
+
+
+def member_format(welcome: Welcome, join: Join) -> FrameFormat | ParamsFormat:
+    """Rooms: the FrameFormat of a member's frames (the viewer's encoding and sparseness, the member's avatar
+    count and q13 parameters); a params session's ParamsFormat."""
+    if join.avatar is None:
+        raise ValueError(f"member {join.member!r} does not publish: it has no frames")
+    if welcome.encoding == PARAMS:
+        return ParamsFormat()
+    return FrameFormat(encoding=welcome.encoding, count=join.avatar.count, sparse=welcome.sparse, quant=join.quant)
+
+
+def frame_format(welcome: Welcome) -> FrameFormat | ParamsFormat:
+    """The FrameFormat a `welcome` announces (a params session: its ParamsFormat)."""
+    if welcome.avatar is None:
+        raise ValueError("a watch-only room session has no frames of its own (member_format: per member)")
+    if welcome.encoding == PARAMS:
+        return ParamsFormat()
     return FrameFormat(encoding=welcome.encoding, count=welcome.avatar.count, sparse=welcome.sparse,
                        quant=welcome.quant, delta=welcome.delta)

@@ -15,6 +15,10 @@ LAYOUTS: dict[str, int] = {name: len(names) for name, names in LAYOUT_NAMES.item
 
 ENCODINGS: tuple[str, ...] = ("f32", "f16", "q13")
 """Frame encodings, in order of decreasing size."""
+PARAMS = "params"
+"""`hello.encoding` of expression streaming (PROTOCOL.md 13): frames carry the expression values, the client deforms."""
+HELLO_ENCODINGS: tuple[str, ...] = (*ENCODINGS, PARAMS)
+"""Every `hello.encoding` / `welcome.encoding`: the frame encodings and `params`."""
 
 FIELD_BYTES: dict[str, tuple[int, int, int]] = {"f32": (12, 16, 12), "f16": (6, 8, 6), "q13": (6, 4, 3)}
 """Frame payload bytes per Gaussian of `position`, `rotation` and `scale` in each encoding (PROTOCOL.md section 6)."""
@@ -46,6 +50,8 @@ MAX_ID_LEN = 256
 """Longest id-like string (`avatar`, `device`, `session`, timing stage names), in characters."""
 MAX_TIMING_STAGES = 64
 """Most entries in a frame's `timing` map."""
+ROOM_NAME = r"[A-Za-z0-9._-]{1,64}"
+"""A room name (`hello.room`, PROTOCOL.md 12): 1-64 of these characters."""
 
 INT64_MIN = -(2**63)
 INT64_MAX = 2**63 - 1

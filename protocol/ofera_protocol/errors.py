@@ -26,6 +26,8 @@ RATE_LIMITED = "rate_limited"
 SERVER_FULL = "server_full"
 TEXT_FRAME = "text_frame"
 INTERNAL = "internal"
+ROOM_FULL = "room_full"
+TOO_MANY_ROOMS = "too_many_rooms"
 
 
 class Fatality(Enum):
@@ -69,6 +71,9 @@ ERRORS: dict[str, ErrorSpec] = {
         ErrorSpec(SERVER_FULL, Fatality.ALWAYS, 1013, "no capacity for another session (try again later)"),
         ErrorSpec(TEXT_FRAME, Fatality.ALWAYS, 1003, "a WebSocket text message (only binary is allowed)"),
         ErrorSpec(INTERNAL, Fatality.ALWAYS, 1011, "the server failed; not the client's fault"),
+        ErrorSpec(ROOM_FULL, Fatality.ALWAYS, 4014, "rooms: the room has its most members (try again later)"),
+        ErrorSpec(TOO_MANY_ROOMS, Fatality.ALWAYS, 4015, "rooms: the server holds its most rooms; a new room "
+                  "cannot open (try again later)"),
     )
 }
 """Every error code of protocol v1, in documentation order (PROTOCOL.md section 10 is generated from it)."""

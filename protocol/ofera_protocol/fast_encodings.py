@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 from typing import Protocol
 
 import msgpack
@@ -193,8 +194,10 @@ class FrameWriter:
     """
 
     def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
-                 index: np.ndarray | None = None, kernels: FrameKernels | None = None, pool: int = 4) -> None:
+                 index: np.ndarray | None = None, kernels: FrameKernels | None = None, pool: int = 4,
+                 stamp_encode: bool = False) -> None:
         self.format = fmt
+        self.stamp_encode = stamp_encode  # timing["encode"] = this call's own duration (us), see encode()
         self.coords = coords
         self.kernels = kernels if kernels is not None else NumpyKernels()
         self.gather = None if gather is None else np.ascontiguousarray(gather, np.int64)
@@ -222,24 +225,30 @@ class FrameWriter:
                              for name, size in zip(("position", "rotation", "scale"), self._sizes)]
         self.pool = BufferPool(pool)
 
-    def header(self, seq: int, t: int, timing: dict[str, int]) -> bytes:
-        keys = 9 if self.index is not None else 8
-        return b"".join((bytes([0x80 | keys]), _PACK.pack("type"), _PACK.pack("frame"), _PACK.pack("seq"),
+    def header(self, seq: int, t: int, timing: dict[str, int], member: str | None = None) -> bytes:
+        keys = (9 if self.index is not None else 8) + (member is not None)
+        who = b"" if member is None else _PACK.pack("member") + _PACK.pack(member)  # rooms: right after `type`
+        return b"".join((bytes([0x80 | keys]), _PACK.pack("type"), _PACK.pack("frame"), who, _PACK.pack("seq"),
                          _PACK.pack(seq), _PACK.pack("t"), _PACK.pack(t), _PACK.pack("timing"), _PACK.pack(timing),
                          _PACK.pack("n"), _PACK.pack(self.n)))
 
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
-               scale: np.ndarray) -> memoryview:
-        """The frame message for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3).
-        ValueError if f32/f16 values are non-finite or out of the half range (like encode_frame)."""
-        head = self.header(seq, t, timing)
-        total = len(head) + sum(len(h) for h in self._field_heads) + sum(self._sizes)
+               scale: np.ndarray, member: str | None = None) -> memoryview:
+        """The frame message for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3); `member`: a room's frame.
+        ValueError if f32/f16 values are non-finite or out of the half range (like encode_frame).
+        With `stamp_encode`, the header's timing also carries "encode": the microseconds this call took up to
+        writing the header (the bytes are those of encode_frame with that timing)."""
+        start_ns = time.perf_counter_ns()
+        head = self.header(seq, t, timing, member)
+        # Everything after `timing` has a fixed size: lay it out after room for the longest header, so that the
+        # header can be written last, ending where it must, once the encode time it may carry is known.
+        slack = len(head) + (_ENCODE_STAMP_BYTES if self.stamp_encode else 0)
+        total = slack + sum(len(h) for h in self._field_heads) + sum(self._sizes)
         if self.index is not None:
             total += len(self._index_prefix) + self.index.nbytes
         buf = self.pool.get(total)
         mv = memoryview(buf)
-        off = len(head)
-        mv[:off] = head
+        off = slack
         if self.index is not None:
             p = self._index_prefix
             mv[off:off + len(p)] = p
@@ -269,7 +278,17 @@ class FrameWriter:
                 if not fn(src, self.gather, sign, np.frombuffer(buf, dt, size // width, o)):
                     limit = F16_MAX if enc == "f16" else F32_MAX
                     raise ValueError(f"{name} has NaN, infinity or values beyond +-{limit:g} ({enc})")
-        return mv[:total]
+        if self.stamp_encode:
+            timing = {**timing, "encode": (time.perf_counter_ns() - start_ns) // 1000}
+            head = self.header(seq, t, timing, member)
+        begin = slack - len(head)
+        mv[begin:slack] = head
+        return mv[begin:total]
+
+
+_ENCODE_STAMP_BYTES = len(_PACK.pack("encode")) + 9 + 2
+"""Most bytes an "encode" timing entry adds to a header: its key, a msgpack integer (up to 9 bytes), and 2 if the
+timing map grows from 15 to 16 entries (fixmap -> map16)."""
 
 
 _FIELD_BYTES = {"f32": (12, 16, 12), "f16": (6, 8, 6), "q13": (6, 4, 3)}

@@ -54,6 +54,10 @@ class Hello:
     max_gaussians: int | None = None
     protocol: int = PROTOCOL_VERSION
     delta: bool = False
+    room: str | None = None  # rooms (PROTOCOL.md 12): join this room; None: a v1 session
+    publish: bool = True  # rooms: this client's bs drive its avatar; False: watch only
+    self: bool = False  # rooms: also receive one's own avatar stream
+    room_token: str | None = None  # rooms: hex HMAC-SHA256 of the room name, if the server asks for one
 
 
 @dataclass(eq=False)
@@ -123,7 +127,7 @@ class Welcome(_ArrayEq):
 
     TYPE: ClassVar[str] = "welcome"
     session: str
-    avatar: AvatarInfo
+    avatar: AvatarInfo | None  # None only in a watch-only room session
     layout: str
     encoding: str = DEFAULT_ENCODING
     coords: str = DEFAULT_COORDS
@@ -132,6 +136,9 @@ class Welcome(_ArrayEq):
     server: str | None = None
     protocol: int = PROTOCOL_VERSION
     delta: bool = False  # frames are key or delta frames (PROTOCOL.md 7.1)
+    room: str | None = None  # rooms (PROTOCOL.md 12): the room joined
+    member: str | None = None  # rooms: this client's member id, unique in the room
+    rig_bytes: int | None = None  # params sessions (PROTOCOL.md 13): size of the rig body the `rig` messages carry
 
 
 @dataclass(eq=False)
@@ -154,6 +161,7 @@ class AvatarChunk(_ArrayEq):
     position: np.ndarray
     rotation: np.ndarray
     scale: np.ndarray
+    member: str | None = None  # rooms: whose avatar this is (None in a v1 session)
 
     @property
     def n(self) -> int:
@@ -181,6 +189,7 @@ class Frame(_ArrayEq):
     key: bool | None = None  # delta sessions: True for a key frame, False for an applied delta frame
     codes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, compare=False, repr=False)
     """Key frames of a delta session: the wire codes (position, rotation, scale) the client holds from now."""
+    member: str | None = None  # rooms: whose avatar this frame moves (None in a v1 session)
 
     @property
     def n(self) -> int:
@@ -233,9 +242,66 @@ class Pong:
     t: int
 
 
+@dataclass(eq=False)
+class Join(_ArrayEq):
+    """`join` (rooms, PROTOCOL.md 12): `member` is in the room. A publishing member's `avatar` (in this viewer's
+    reduction) follows as `avatar` messages carrying `member`; `quant`: that avatar's q13 parameters (q13 viewers).
+    A watch-only member (`publish` False) has no avatar."""
+
+    TYPE: ClassVar[str] = "join"
+    member: str
+    avatar: AvatarInfo | None = None
+    quant: Quant | None = None
+    publish: bool = True
+
+
+@dataclass
+class Leave:
+    """`leave` (rooms): `member` left the room; `reason` (PROTOCOL.md 12.5) says why."""
+
+    TYPE: ClassVar[str] = "leave"
+    member: str
+    reason: str
+
+
+@dataclass(eq=False)
+class RigChunk(_ArrayEq):
+    """`rig` (params sessions, PROTOCOL.md 13): bytes [offset, offset + len(data)) of the rig body (`size` bytes
+    in all), chunk `chunk` of `chunks`; `member` in a room session (whose avatar the rig deforms)."""
+
+    TYPE: ClassVar[str] = "rig"
+    chunk: int
+    chunks: int
+    size: int
+    offset: int
+    data: bytes
+    member: str | None = None
+
+
+@dataclass(frozen=True)
+class ParamsFormat:
+    """What a receiver needs to decode a params session's frames: `length` float32 values (68 FLAME values)."""
+
+    length: int = 68
+
+
+@dataclass(eq=False)
+class ParamsFrame(_ArrayEq):
+    """`frame` of a params session (PROTOCOL.md 13): `params` (length,) float32 expression values (FLAME: 50
+    expression, jaw, left eye, right eye 6D). `seq`, `t` and `timing` only on stamped frames (None otherwise)."""
+
+    TYPE: ClassVar[str] = "frame"
+    params: np.ndarray
+    seq: int | None = None
+    t: int | None = None
+    timing: dict[str, int] | None = None
+    member: str | None = None
+
+
 ClientMessage = Hello | Blendshapes | Ping | Bye | Resync
-ServerMessage = Welcome | AvatarChunk | Frame | DeltaFrame | ErrorMessage | Pong
+ServerMessage = Welcome | AvatarChunk | Frame | DeltaFrame | ErrorMessage | Pong | Join | Leave | RigChunk | ParamsFrame
 Message = ClientMessage | ServerMessage
 
 CLIENT_TYPES: dict[str, type] = {c.TYPE: c for c in (Hello, Blendshapes, Ping, Bye, Resync)}
-SERVER_TYPES: dict[str, type] = {c.TYPE: c for c in (Welcome, AvatarChunk, Frame, ErrorMessage, Pong)}
+SERVER_TYPES: dict[str, type] = {c.TYPE: c for c in (Welcome, AvatarChunk, Frame, ErrorMessage, Pong, Join, Leave,
+                                                  RigChunk)}

@@ -27,17 +27,22 @@ still references it or any view of its arrays (CPython reference counts), so the
 hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
 nothing. States are read-only.
 
-Single-threaded kernels by default (``session(parallel=True)`` runs face frames and the triangle kernel
-with prange over numba's threads): on the 2-core target a second thread can only help a lone session,
-and several sessions already keep both cores busy (benchmarks/scaling.py measures both).
+Threads: ``session(parallel=None)`` (the default, "auto") runs the face frames and the triangle kernel with
+prange over numba's threads while its session is the only one of the process that computed a frame in the
+last :data:`ACTIVITY` window, and single-threaded as soon as another one does (several sessions already keep
+every core busy, and a parallel region would wait for a core another session holds). ``parallel=True`` /
+``False`` force either; the results are the same bits (every Gaussian and face is computed by the same
+code, whichever thread runs it). benchmarks/profile_frame.py and scaling.py measure both.
 """
 
 from __future__ import annotations
 
 import sys
 import threading
+import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from ..head.lbs import HeadSubject
@@ -132,6 +137,39 @@ class StatePool:
         return len(self._entries)
 
 
+class Activity:
+    """Which sessions of this process computed a frame in the last ``window_s`` seconds (thread-safe): the
+    load signal of the automatic thread choice (a session is "alone" when it is the only one)."""
+
+    def __init__(self, window_s: float = 0.5) -> None:
+        self.window_s = window_s
+        self._last: dict[int, float] = {}
+        self._lock = threading.Lock()
+
+    def note(self, key: int, now: float | None = None) -> int:
+        """Record that session ``key`` computes a frame now; returns how many sessions are active (>= 1)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._last[key] = now
+            if len(self._last) > 1:
+                for k in [k for k, t in self._last.items() if now - t > self.window_s]:
+                    del self._last[k]
+            return len(self._last)
+
+    def forget(self, key: int) -> None:
+        with self._lock:
+            self._last.pop(key, None)
+
+
+ACTIVITY = Activity()
+"""The process-wide activity record every automatic FastSession consults."""
+
+
+def use_threads(active_sessions: int, threads: int) -> bool:
+    """The thread choice: parallel kernels only for a session that is alone, when there is a second thread."""
+    return threads > 1 and active_sessions <= 1
+
+
 @dataclass(frozen=True, eq=False)
 class _Arrays:
     """Per-Gaussian precomputed attributes of the deformed set (read-only, shared by sessions).
@@ -199,20 +237,21 @@ class FastAvatar:
         """Gaussians deformed per frame."""
         return int(self.arrays.ids.size)
 
-    def session(self, pool_size: int = 8, parallel: bool = False) -> FastSession:
+    def session(self, pool_size: int = 8, parallel: bool | None = None) -> FastSession:
         """Per-stream buffers. ``parallel``: face frames and triangle deformation over numba's thread pool
-        (prange); measured in benchmarks/scaling.py, off by default (see the module docstring)."""
+        (prange): True, False, or None (automatic: while the session is alone, see the module docstring)."""
         return FastSession(self, pool_size, parallel)
 
     def warm_up(self) -> None:
         """Compile (or load from the on-disk cache) every kernel now, not on the first frame."""
         if not self._warm:
-            s = self.session(pool_size=1)
             y = np.zeros(68, np.float32)
             y[50:] = [1, 0, 0, 0, 1, 0] * 3
-            expr, rot = s.flame(y)
-            s.deform(s.head(expr[: self.lbs.n_expr], rot))
-            s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
+            for parallel in (False, True):
+                s = self.session(pool_size=1, parallel=parallel)
+                expr, rot = s.flame(y)
+                s.deform(s.head(expr[: self.lbs.n_expr], rot))
+                s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
             self._warm = True
 
 
@@ -222,9 +261,12 @@ _EYE2 = np.broadcast_to(np.eye(3), (2, 3, 3))
 class FastSession:
     """Per-stream buffers of a :class:`FastAvatar`. Not thread-safe: one frame at a time."""
 
-    def __init__(self, fast: FastAvatar, pool_size: int = 8, parallel: bool = False) -> None:
+    def __init__(self, fast: FastAvatar, pool_size: int = 8, parallel: bool | None = None,
+                 activity: Activity = ACTIVITY) -> None:
         self.fast = fast
-        self.parallel = parallel
+        self.parallel = parallel  # None: automatic (use_threads of the sessions active in `activity`)
+        self.activity = activity
+        self.threaded = False  # whether the last frame ran on numba's threads
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
         self.face = np.zeros((fast.used_faces.size, cols), np.float64)
@@ -251,6 +293,14 @@ class FastSession:
                              "(FLAME values: the client owns head pose); use the reference lbs otherwise")
         return self.lbs.forward(expr, rot.reshape(5, 3, 3))
 
+    def _threads(self) -> bool:
+        """This frame's thread choice (``parallel``, or automatic: see the module docstring)."""
+        par = self.parallel
+        if par is None:
+            par = use_threads(self.activity.note(id(self)), numba.get_num_threads())
+        self.threaded = par
+        return par
+
     def deform(self, verts: np.ndarray) -> GaussianState:
         """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""
         a = self.fast.arrays
@@ -259,12 +309,13 @@ class FastSession:
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
         state, pos, rot, scale = self.pool.acquire()
         bary = a.bary is not None
-        (K.face_frames_kernel_parallel if self.parallel else K.face_frames_kernel)(verts, a.face_vids, self.face, bary)
+        par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
+        (K.face_frames_kernel_parallel if par else K.face_frames_kernel)(verts, a.face_vids, self.face, bary)
         if bary:
             K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.bary,
                                  a.shift, a.lrot, a.lscale, a.inv_canonical, pos, rot, scale)
         else:
-            kernel = K.triangle_kernel_parallel if self.parallel else K.triangle_kernel
+            kernel = K.triangle_kernel_parallel if par else K.triangle_kernel
             kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.lpos, a.lrot, a.lscale, pos, rot, scale)
         return state
 

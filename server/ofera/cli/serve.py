@@ -51,6 +51,8 @@ def serve(
     delta_log_scale: Annotated[float | None, typer.Option(help="Delta sessions: scale tolerance, |ln ratio| (default "
                                                            "0.02) [env OFERA_DELTA_LOG_SCALE].")] = None,
     log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
+    redis: Annotated[str | None, typer.Option("--redis", help="redis://HOST:PORT/DB: rooms span every server "
+                                              "attached to this Redis [env OFERA_REDIS_URL].")] = None,
 ) -> None:
     """Stream Gaussian avatars over WebSocket: warms up the default avatar, prints where to connect."""
     from pydantic import ValidationError
@@ -66,12 +68,18 @@ def serve(
                                    compute_threads=compute_threads, confidence_threshold=confidence_threshold,
                                    key_interval=key_interval, delta_position_mm=delta_position_mm,
                                    delta_rotation_deg=delta_rotation_deg, delta_log_scale=delta_log_scale,
-                                   log_level=log_level).items() if v is not None}
+                                   log_level=log_level, redis_url=redis).items() if v is not None}
     try:
         settings = Settings(**given)
     except ValidationError as exc:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise CliError(f"bad settings: {problems}") from None
+    if settings.redis_url:  # refuse to start (one line naming the URL) before warming up
+        import asyncio
+
+        from ..streaming.redis_bus import check_redis
+
+        asyncio.run(check_redis(settings.redis_url))
     default = AvatarRegistry.default_id_for(settings)
     print(f"OFERA server: warming up avatar {default!r} on {settings.host}:{settings.port} ...",
           flush=True)

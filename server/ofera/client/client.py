@@ -19,6 +19,7 @@ from ofera_protocol import (
     MAX_SERVER_MESSAGE,
     Avatar,
     ClientConnection,
+    ClientState,
     ErrorMessage,
     Frame,
     Pong,
@@ -26,6 +27,7 @@ from ofera_protocol import (
     ServerMessage,
     Welcome,
 )
+from ofera_protocol.messages import ParamsFrame
 from websockets.asyncio.client import ClientConnection as WsConnection
 from websockets.asyncio.client import connect as ws_connect
 from websockets.exceptions import ConnectionClosed
@@ -73,6 +75,11 @@ class Client:
         self.pongs: list[int] = []  # ping round trips, microseconds
         self.seq = -1
         self.frames_received = 0
+        self.rig_deformer = None  # params sessions (PROTOCOL.md 13): params.RigDeformer of the rig, with track=True
+        if conn.rig is not None and conn.gaussians is not None:
+            from .params import RigDeformer
+
+            self.rig_deformer = RigDeformer(conn.rig)
 
     @property
     def session(self) -> str:
@@ -130,15 +137,22 @@ class Client:
         if isinstance(msg, Frame):
             self.frames_received += 1
             self.latency.add(now_us() - msg.t)
+        elif isinstance(msg, ParamsFrame):  # params sessions: stamped frames carry t; the client deforms
+            self.frames_received += 1
+            if msg.t is not None:
+                self.latency.add(now_us() - msg.t)
+            if self.rig_deformer is not None and msg.member is None:
+                self.rig_deformer.apply(msg.params, self.conn.gaussians, self.welcome.coords)
         elif isinstance(msg, Pong):
             self.pongs.append(now_us() - msg.t)
         return msg
 
-    async def recv_frame(self, timeout: float | None = None) -> Frame:
-        """The next frame. Non-fatal errors are kept in `errors`; a fatal one raises ServerError."""
+    async def recv_frame(self, timeout: float | None = None) -> Frame | ParamsFrame:
+        """The next frame (a params session's: a ParamsFrame). Non-fatal errors are kept in `errors`; a fatal one
+        raises ServerError."""
         while True:
             msg = await self.recv(timeout)
-            if isinstance(msg, Frame):
+            if isinstance(msg, (Frame, ParamsFrame)):
                 return msg
             if isinstance(msg, ErrorMessage):
                 if msg.fatal:
@@ -189,7 +203,8 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
 
     `delta`: ask for key/delta frames (f16, q13; PROTOCOL.md 7.1): delta frames are returned as sparse-like
     Frames of the changed Gaussians (absolute values). `track`: keep every Gaussian's latest value in
-    `client.gaussians` (the avatar as the client reconstructs it).
+    `client.gaussians` (the avatar as the client reconstructs it). `encoding="params"` (PROTOCOL.md 13): frames are
+    ParamsFrames; the rig is in `client.conn.rig`, and with `track` the client deforms every frame itself.
 
     `max_queue`: messages the websockets library may read ahead of the application. Kept small so that
     a client slower than the stream leaves frames to the server's newest-wins backpressure instead of
@@ -210,7 +225,7 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
 
 async def _handshake(ws: WsConnection, conn: ClientConnection) -> Welcome:
     welcome: Welcome | None = None
-    while conn.avatar is None:
+    while conn.avatar is None or conn.state is ClientState.RECEIVING_RIG:  # params: the rig follows the avatar
         try:
             data = await ws.recv()
         except ConnectionClosed as e:

@@ -25,14 +25,11 @@ from ..jit import NB as _NB
 from .lbs import HeadSubject, lbs
 
 
-@nb.njit(**_NB)
-def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, out):
-    """expr (n,) f32/f64, rot (K, 3, 3) -> out (S, 3) float64. v_id (3S,) flat; basis_t (C, 3S).
-    Scratch: coef (C,), joints (K, 3), a (K, 3, 4), acc (3S,)."""
+@nb.njit(inline="always", **_NB)
+def _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, n_expr):
+    """Blend coefficients coef (C,) and skinning transforms a (K, 3, 4) of one frame (see _subset_lbs)."""
     n = expr.shape[0]
     k_joints = rot.shape[0]
-    n_basis = basis_t.shape[0]
-    n_expr = n_basis - pose_rows.shape[0]
     # Blend coefficients: expressions (zero-padded), then the used entries of the pose feature (R_k - I).
     for j in range(n_expr):
         coef[j] = expr[j] if j < n else 0.0
@@ -71,16 +68,23 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
             joints_dot = a[k, i, 0] * joints[k, 0] + a[k, i, 1] * joints[k, 1] + a[k, i, 2] * joints[k, 2]
             coef_t = a[k, i, 3] - joints_dot
             a[k, i, 3] = coef_t
+
+
+@nb.njit(inline="always", **_NB)
+def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, out):
+    """Vertices lo..hi-1 of the subset: blend shapes, then skinning (see _subset_lbs)."""
+    k_joints = a.shape[0]
     # Blend shapes column by column (axpy: vectorises without reassociating any sum); zero terms skipped.
-    acc[:] = v_id
-    for j in range(n_basis):
+    for r in range(3 * lo, 3 * hi):
+        acc[r] = v_id[r]
+    for j in range(basis_t.shape[0]):
         cj = coef[j]
         if cj != 0.0:
             col = basis_t[j]
-            for r in range(acc.shape[0]):
+            for r in range(3 * lo, 3 * hi):
                 acc[r] += np.float64(col[r]) * cj
     # Skinning: v = (sum_k W_k A_k) v_po.
-    for s_ in range(out.shape[0]):
+    for s_ in range(lo, hi):
         p0 = acc[3 * s_]
         p1 = acc[3 * s_ + 1]
         p2 = acc[3 * s_ + 2]
@@ -96,6 +100,14 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
                 t2 += w * a[k, i, 2]
                 t3 += w * a[k, i, 3]
             out[s_, i] = t0 * p0 + t1 * p1 + t2 * p2 + t3
+
+
+@nb.njit(**_NB)
+def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, out):
+    """expr (n,) f32/f64, rot (K, 3, 3) -> out (S, 3) float64. v_id (3S,) flat; basis_t (C, 3S).
+    Scratch: coef (C,), joints (K, 3), a (K, 3, 4), acc (3S,)."""
+    _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
+    _blend_skin(0, out.shape[0], coef, v_id, basis_t, weights, a, acc, out)
 
 
 @nb.njit(**_NB)
@@ -193,7 +205,9 @@ class SubsetLBS:
         return int(self.vertex_ids.size)
 
     def forward(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-        """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3)."""
+        """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3).
+        Single-threaded: a prange over vertex blocks was slower at 5k vertices (the blend is bound by reading
+        the basis, 3 MB)."""
         expr = np.asarray(expr).reshape(-1)
         if expr.dtype not in (np.float32, np.float64):
             expr = expr.astype(np.float64)

@@ -1,4 +1,5 @@
-"""The FastAPI application: WebSocket `/v1/stream`, `GET /healthz`, `GET /metrics`, `GET /v1/avatars`."""
+"""The FastAPI application: WebSocket `/v1/stream`, `GET /healthz`, `GET /metrics`, `GET /v1/avatars`; the rooms'
+cross-server bus (Redis, `make_bus`) is started and closed with it."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from ofera_protocol import COORDS, ENCODINGS, ENDPOINT, LAYOUTS, PROTOCOL_VERSIO
 from starlette.websockets import WebSocketDisconnect
 
 from .. import __version__, web
+from .bus import RoomBus
 from .config import Settings, normalize_origin
 from .metrics import CONTENT_TYPE, Metrics
 from .registry import registry_for
@@ -78,6 +80,15 @@ def warm_up(hub: Hub) -> None:
     hub.warm = True
 
 
+def make_bus(settings: Settings, hub: Hub) -> RoomBus | None:
+    """The rooms' cross-server bus: None (rooms in-process) unless `settings.redis_url` is set."""
+    if not getattr(settings, "redis_url", None):
+        return None
+    from .redis_bus import RedisBus
+
+    return RedisBus(settings.redis_url, metrics=hub.metrics)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     registry = registry_for(settings)
@@ -88,8 +99,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.warmup:
             await asyncio.get_running_loop().run_in_executor(hub.executor, warm_up, hub)
-        yield
-        hub.executor.shutdown(wait=False, cancel_futures=True)
+        bus = make_bus(settings, hub)
+        if bus is not None:
+            assert hub.rooms is not None
+            await bus.start(hub.rooms)  # BusUnavailable (naming the URL) if Redis cannot be reached
+            hub.bus = hub.rooms.bus = bus
+        try:
+            yield
+        finally:
+            if bus is not None:
+                await bus.close()
+            hub.executor.shutdown(wait=False, cancel_futures=True)
 
     app = FastAPI(title="OFERA server", version=__version__, lifespan=lifespan)
     app.state.hub = hub
@@ -112,6 +132,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def healthz() -> JSONResponse:
         return JSONResponse({"status": "ok", "version": __version__, "protocol": PROTOCOL_VERSION,
                              "sessions": hub.active, "max_sessions": settings.max_sessions,
+                             "rooms": len(hub.rooms.rooms) if hub.rooms is not None else 0,
                              "tasks": len(asyncio.all_tasks())})
 
     @app.get("/metrics")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from ofera_protocol.constants import MAX_CLIENT_MESSAGE
 from pydantic import Field, field_validator, model_validator
@@ -54,11 +55,36 @@ class Settings(BaseSettings):
                                       "degrees from the held one.")
     delta_log_scale: float = Field(0.02, gt=0, description="Delta sessions: ... or a scale axis this far in ln.")
     log_level: str = Field("info", description="uvicorn log level.")
+    event_loop: Literal["asyncio", "uvloop", "auto"] = Field(
+        "asyncio", description="Event loop, chosen at start: asyncio, uvloop (the optional `uvloop` extra: pip "
+        "install 'ofera[uvloop]'), or auto (uvloop when installed).")
+    room_members: int = Field(16, ge=1, description="Rooms: most members per room (PROTOCOL.md 12.6; one more: "
+                              "room_full).")
+    max_rooms: int = Field(64, ge=1, description="Rooms: most rooms on this server (a new one beyond: "
+                           "too_many_rooms).")
+    room_send_bytes: int = Field(32 * 1024 * 1024, ge=1, description="Rooms: most bytes of frames in flight per "
+                                 "connection (frames of several members sent concurrently up to this; beyond it "
+                                 "they wait, newest wins).")
+    room_secret: str | None = Field(None, description="Rooms: if set, every room hello must carry room_token = hex "
+                                    "HMAC-SHA256(room_secret, room name) (PROTOCOL.md 12.1).")
+    redis_url: str | None = Field(
+        None, description="redis://HOST:PORT/DB (or rediss://, unix://): rooms span every server attached to this "
+        "Redis (streaming.redis_bus); unset: rooms are in-process.")
 
-    @field_validator("token", "avatars", "avatar_zip", "devices", "ssl_keyfile", "ssl_certfile", mode="before")
+    @field_validator("token", "room_secret", "avatars", "avatar_zip", "devices", "ssl_keyfile", "ssl_certfile",
+                     mode="before")
     @classmethod
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
+
+    @field_validator("redis_url", mode="before")
+    @classmethod
+    def _redis_scheme(cls, v: object) -> object:
+        if v is None or (isinstance(v, str) and not v.strip()):
+            return None
+        if isinstance(v, str) and not v.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(f"not a Redis URL (redis://HOST:PORT/DB, rediss:// or unix://): {v.split('@')[-1]!r}")
+        return v
 
     @field_validator("allowed_origins", mode="before")
     @classmethod

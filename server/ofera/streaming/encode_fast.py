@@ -79,9 +79,9 @@ def f32_kernel(src, gather, count, sign, dst):
 
 
 @nb.njit(**_NB)
-def f16_kernel(src, gather, count, sign, dst):
+def f16_kernel_reference(src, gather, count, sign, dst):
     """dst[m k + c] = half bits of src[row m, c] * sign[c]; False if any value is NaN, infinite or
-    beyond +-65504."""
+    beyond +-65504. The plain loop :func:`f16_kernel` is tested against (any k)."""
     k = src.shape[1]
     ok = True
     for m in range(count):
@@ -91,6 +91,65 @@ def f16_kernel(src, gather, count, sign, dst):
             ok &= abs(v) <= F16_MAX
             dst[m * k + c] = f32_to_f16_bits(v)
     return ok
+
+
+@nb.njit(**_NB)
+def _f16_rows3(src, gather, count, s0, s1, s2, dst):
+    """k = 3 of :func:`f16_kernel`: the components unrolled and the gather test hoisted (the loop vectorises)."""
+    ok = True
+    if gather.shape[0] == 0:
+        for m in range(count):
+            v0, v1, v2 = src[m, 0] * s0, src[m, 1] * s1, src[m, 2] * s2
+            ok &= (abs(v0) <= F16_MAX) & (abs(v1) <= F16_MAX) & (abs(v2) <= F16_MAX)
+            dst[3 * m] = f32_to_f16_bits(v0)
+            dst[3 * m + 1] = f32_to_f16_bits(v1)
+            dst[3 * m + 2] = f32_to_f16_bits(v2)
+    else:
+        for m in range(count):
+            r = gather[m]
+            v0, v1, v2 = src[r, 0] * s0, src[r, 1] * s1, src[r, 2] * s2
+            ok &= (abs(v0) <= F16_MAX) & (abs(v1) <= F16_MAX) & (abs(v2) <= F16_MAX)
+            dst[3 * m] = f32_to_f16_bits(v0)
+            dst[3 * m + 1] = f32_to_f16_bits(v1)
+            dst[3 * m + 2] = f32_to_f16_bits(v2)
+    return ok
+
+
+@nb.njit(**_NB)
+def _f16_rows4(src, gather, count, s0, s1, s2, s3, dst):
+    """k = 4 of :func:`f16_kernel` (see :func:`_f16_rows3`)."""
+    ok = True
+    if gather.shape[0] == 0:
+        for m in range(count):
+            v0, v1, v2, v3 = src[m, 0] * s0, src[m, 1] * s1, src[m, 2] * s2, src[m, 3] * s3
+            ok &= (abs(v0) <= F16_MAX) & (abs(v1) <= F16_MAX) & (abs(v2) <= F16_MAX) & (abs(v3) <= F16_MAX)
+            dst[4 * m] = f32_to_f16_bits(v0)
+            dst[4 * m + 1] = f32_to_f16_bits(v1)
+            dst[4 * m + 2] = f32_to_f16_bits(v2)
+            dst[4 * m + 3] = f32_to_f16_bits(v3)
+    else:
+        for m in range(count):
+            r = gather[m]
+            v0, v1, v2, v3 = src[r, 0] * s0, src[r, 1] * s1, src[r, 2] * s2, src[r, 3] * s3
+            ok &= (abs(v0) <= F16_MAX) & (abs(v1) <= F16_MAX) & (abs(v2) <= F16_MAX) & (abs(v3) <= F16_MAX)
+            dst[4 * m] = f32_to_f16_bits(v0)
+            dst[4 * m + 1] = f32_to_f16_bits(v1)
+            dst[4 * m + 2] = f32_to_f16_bits(v2)
+            dst[4 * m + 3] = f32_to_f16_bits(v3)
+    return ok
+
+
+@nb.njit(**_NB)
+def f16_kernel(src, gather, count, sign, dst):
+    """dst[m k + c] = half bits of src[row m, c] * sign[c]; False if any value is NaN, infinite or
+    beyond +-65504. Positions and rotations (k = 3, 4) take unrolled loops; same bits as
+    :func:`f16_kernel_reference`."""
+    k = src.shape[1]
+    if k == 3:
+        return _f16_rows3(src, gather, count, sign[0], sign[1], sign[2], dst)
+    if k == 4:
+        return _f16_rows4(src, gather, count, sign[0], sign[1], sign[2], sign[3], dst)
+    return f16_kernel_reference(src, gather, count, sign, dst)
 
 
 @nb.njit(**_NB)
@@ -105,8 +164,9 @@ def f16_flat_kernel(src, dst):
 
 
 @nb.njit(**_NB)
-def q13_position_kernel(src, gather, count, sign, lo, k, dst):
-    """uint16 q = clip(rint((float64(p) - lo) * k), 0, 65535) per axis (the reference's float64 steps)."""
+def q13_position_kernel_reference(src, gather, count, sign, lo, k, dst):
+    """uint16 q = clip(rint((float64(p) - lo) * k), 0, 65535) per axis (the reference's float64 steps): the
+    plain loop :func:`q13_position_kernel` is tested against."""
     for m in range(count):
         r = _row(gather, m)
         for c in range(3):
@@ -115,6 +175,36 @@ def q13_position_kernel(src, gather, count, sign, lo, k, dst):
                 q = _rint(q)
             q = min(max(q, 0.0), POS_LEVELS)  # NaN -> 0
             dst[m * 3 + c] = np.uint16(q)
+
+
+@nb.njit(inline="always", **_NB)
+def _pos_code(v, lo, k):
+    """clip(rint((float64(v) - lo) * k), 0, 65535), branch-free: clamping first (NaN -> 0) gives the same
+    integer (rint is monotonic and 0, 65535 are integers), and on [0, 65535] the magic-number rint is exact."""
+    q = (np.float64(v) - lo) * k
+    q = q if q > 0.0 else 0.0
+    q = q if q < POS_LEVELS else np.float64(POS_LEVELS)
+    return np.uint16(_rint(q))
+
+
+@nb.njit(**_NB)
+def q13_position_kernel(src, gather, count, sign, lo, k, dst):
+    """:func:`q13_position_kernel_reference` with the axes unrolled, the gather test hoisted and no branch in
+    the loop (it vectorises); the same codes."""
+    s0, s1, s2 = sign[0], sign[1], sign[2]
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    k0, k1, k2 = k[0], k[1], k[2]
+    if gather.shape[0] == 0:
+        for m in range(count):
+            dst[3 * m] = _pos_code(src[m, 0] * s0, l0, k0)
+            dst[3 * m + 1] = _pos_code(src[m, 1] * s1, l1, k1)
+            dst[3 * m + 2] = _pos_code(src[m, 2] * s2, l2, k2)
+    else:
+        for m in range(count):
+            r = gather[m]
+            dst[3 * m] = _pos_code(src[r, 0] * s0, l0, k0)
+            dst[3 * m + 1] = _pos_code(src[r, 1] * s1, l1, k1)
+            dst[3 * m + 2] = _pos_code(src[r, 2] * s2, l2, k2)
 
 
 _MAGIC = 6755399441055744.0  # 1.5 * 2**52: (x + M) - M rounds |x| < 2**51 to an integer, half to even
@@ -167,9 +257,15 @@ def pack_rotation(x, y, z, w):
 
 @nb.njit(**_NB)
 def q13_rotation_kernel(src, gather, count, sign, dst):
-    for m in range(count):
-        r = _row(gather, m)
-        dst[m] = pack_rotation(src[r, 0] * sign[0], src[r, 1] * sign[1], src[r, 2] * sign[2], src[r, 3] * sign[3])
+    """dst[m] = :func:`pack_rotation` of row m (the gather test hoisted out of the loop)."""
+    s0, s1, s2, s3 = sign[0], sign[1], sign[2], sign[3]
+    if gather.shape[0] == 0:
+        for m in range(count):
+            dst[m] = pack_rotation(src[m, 0] * s0, src[m, 1] * s1, src[m, 2] * s2, src[m, 3] * s3)
+    else:
+        for m in range(count):
+            r = gather[m]
+            dst[m] = pack_rotation(src[r, 0] * s0, src[r, 1] * s1, src[r, 2] * s2, src[r, 3] * s3)
 
 
 SCALE_BUCKET_SHIFT = 12
@@ -353,9 +449,9 @@ def warm_up() -> None:
 
 
 def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
-                 index: np.ndarray | None = None, pool: int = 4) -> FrameWriter:
-    """A FrameWriter using the numba kernels."""
-    return FrameWriter(fmt, coords, gather, index, kernels=numba_kernels(), pool=pool)
+                 index: np.ndarray | None = None, pool: int = 4, stamp_encode: bool = True) -> FrameWriter:
+    """A FrameWriter using the numba kernels; ``stamp_encode``: each frame's timing carries its own "encode" (us)."""
+    return FrameWriter(fmt, coords, gather, index, kernels=numba_kernels(), pool=pool, stamp_encode=stamp_encode)
 
 
 # ============================================================================= temporal deltas (PROTOCOL.md 7.1)

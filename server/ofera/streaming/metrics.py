@@ -35,6 +35,35 @@ class Metrics:
                                registry=r)
         self.conf_held = Counter("ofera_bs_conf_held", "Computed bs in which a face region was held (its bs.conf "
                                  "below the confidence threshold: streaming.confidence).", registry=r)
+        # Rooms (streaming.rooms).
+        self.rooms = Gauge("ofera_rooms", "Rooms with at least one member on this server.", registry=r)
+        self.room_members = Gauge("ofera_room_members", "Members of this server's rooms: 'local' (connected here) "
+                                  "or 'remote' (on another server, through the bus).", ["where"], registry=r)
+        self.room_unresolved = Counter("ofera_room_unresolved", "Remote members whose avatar id this server does not "
+                                       "have (invisible to its viewers: PROTOCOL.md 12.5).", registry=r)
+        self.room_events = Counter("ofera_room_events", "Room events: 'join', 'leave', 'refused' (room_full, "
+                                   "too_many_rooms), 'stale' (remote members dropped when the bus was lost).",
+                                   ["event"], registry=r)
+        for where in ("local", "remote"):
+            self.room_members.labels(where)
+        # Rooms across servers (streaming.redis_bus; they stay at zero without --redis).
+        self.bus_connected = Gauge("ofera_bus_connected", "1 while the rooms bus (Redis) is connected.", registry=r)
+        self.bus_published = Counter("ofera_bus_published", "Messages published to the rooms bus, by kind "
+                                     "('v': expression values, 'join', 'leave').", ["kind"], registry=r)
+        self.bus_received = Counter("ofera_bus_received", "Valid messages received from other servers, by kind.",
+                                    ["kind"], registry=r)
+        self.bus_dropped = Counter("ofera_bus_dropped", "Expression values not sent or not delivered: 'down' (bus "
+                                   "lost), 'superseded' (newest wins before sending), 'unknown_member' (from a "
+                                   "member not (yet) in the room).", ["reason"], registry=r)
+        self.bus_malformed = Counter("ofera_bus_malformed", "Bus messages or member entries that failed "
+                                     "validation (dropped).", registry=r)
+        self.bus_reconnects = Counter("ofera_bus_reconnects", "Times the rooms bus reconnected after losing Redis.",
+                                      registry=r)
+        self.bus_remote_members = Gauge("ofera_bus_remote_members", "Members of other servers in this server's "
+                                        "rooms.", registry=r)
+        self.bus_hop = Histogram("ofera_bus_hop_seconds", "Expression values: publish() on the sending server to "
+                                 "receipt here (wall clocks: meaningful when the servers' clocks agree).",
+                                 buckets=_STAGE_BUCKETS, registry=r)
         for role in ("source", "viewer"):
             self.sessions.labels(role)
         for stage in ("bs", "frame"):

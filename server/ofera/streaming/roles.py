@@ -10,7 +10,11 @@
   however many viewers share it. Sending awaits the socket draining (server.py), so a slow client only
   ever has its newest frame queued and never slows anyone else.
 
-In v1 each session is one Source with one Viewer subscribed, for its own avatar.
+In v1 each session is one Source with one Viewer subscribed, for its own avatar. In a room (rooms.py) a Source
+has a viewer per member watching it, and a connection watches every member through one RoomViewer.
+
+A source deforms only when some subscriber wants Gaussians (`needs_state`); a viewer whose writer declares
+`needs_state = False` (the params encoding) is handed the frame's expression values instead.
 """
 
 from __future__ import annotations
@@ -71,6 +75,10 @@ class PendingBs:
     received_ns: int
     decode_us: int
 
+    @property
+    def seq(self) -> int:
+        return self.bs.seq
+
 
 @dataclass
 class ComputedFrame:
@@ -78,10 +86,11 @@ class ComputedFrame:
 
     seq: int
     t: int
-    state: GaussianState  # in FLAME space
+    state: GaussianState | None  # in FLAME space; None when no subscriber needed Gaussians (values only)
     timing: dict[str, int]
     received_ns: int
     values: np.ndarray | None = None  # the avatar's expression values (68 FLAME values; arkit51: 51 weights)
+    member: str | None = None  # rooms: whose avatar (frame.member)
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -116,6 +125,11 @@ class Source:
         # (some viewer has no unsent frame), so that a client that stopped reading costs no computation: its
         # bs replace each other in the slot. Viewers call wake() when they take a frame.
         self.demand: Callable[[], bool] | None = None
+        # needs_state: None or True-returning: deform (map + deform_values); False: map only (no subscriber wants
+        # Gaussians now: params viewers, or only the bus, or every Gaussian viewer has an unsent frame).
+        self.needs_state: Callable[[], bool] | None = None
+        self.member: str | None = None  # rooms: stamped on every frame
+        self.on_values: Callable[[ComputedFrame], None] | None = None  # rooms: each frame's values, to the bus
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
@@ -133,7 +147,13 @@ class Source:
         conf = p.bs.conf  # optional face confidence: passed only when sent (pipeline stand-ins take w alone)
         hold = getattr(self.pipeline, "hold", None)  # streaming.confidence.RegionHold (not on stand-ins)
         held = hold.held if hold is not None else 0
-        state, stages = self.pipeline.run(p.bs.w) if conf is None else self.pipeline.run(p.bs.w, conf)
+        args = (p.bs.w,) if conf is None else (p.bs.w, conf)
+        state: GaussianState | None = None
+        if self.needs_state is None or self.needs_state():
+            state, stages = self.pipeline.run(*args)
+            values = getattr(self.pipeline, "values", None)
+        else:
+            values, stages = self.pipeline.map(*args)
         if hold is not None and hold.held != held:
             self.metrics.conf_held.inc()
         end = time.monotonic_ns()
@@ -142,7 +162,13 @@ class Source:
         if "layout" in stages and "bda" in stages:
             timing["map"] = stages["layout"] + stages["bda"]
         timing["total"] = (end - p.received_ns) // 1000
-        return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, getattr(self.pipeline, "values", None))
+        return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, values, self.member)
+
+    def _failed(self, pending: Any, exc: Exception) -> None:
+        """The pipeline raised on `pending`: end the session (a remote source logs and goes on instead)."""
+        log.exception("pipeline failed on bs %d", pending.seq)
+        raise SessionFatal(ProtocolError(E.INTERNAL, f"the server failed computing bs {pending.seq}: "
+                                         f"{type(exc).__name__}; please report it", True)) from exc
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -154,13 +180,14 @@ class Source:
             try:
                 frame = await loop.run_in_executor(self.executor, self._compute, pending)
             except Exception as exc:
-                log.exception("pipeline failed on bs %d", pending.bs.seq)
-                raise SessionFatal(ProtocolError(E.INTERNAL, f"the server failed computing bs {pending.bs.seq}: "
-                                                 f"{type(exc).__name__}; please report it", True)) from exc
+                self._failed(pending, exc)
+                continue
             self.computed += 1
             self.metrics.frames_computed.inc()
             self.metrics.observe_timings(frame.timing)
-            for deliver in self.subscribers:
+            if self.on_values is not None and frame.values is not None:
+                self.on_values(frame)
+            for deliver in list(self.subscribers):
                 deliver(frame)
 
 
@@ -173,6 +200,19 @@ class FrameEncoder(Protocol):
                scale: np.ndarray) -> bytes | memoryview: ...
 
 
+def encode_computed(writer: Any, frame: ComputedFrame) -> bytes | memoryview:
+    """`frame` through `writer`: its expression values for a writer with `needs_state = False` (params), else its
+    Gaussians (with `member` in a room: CodecWriter and the fast FrameWriter take it)."""
+    if not getattr(writer, "needs_state", True):
+        return writer.encode_values(frame.seq, frame.t, frame.timing, frame.values, frame.member)
+    s = frame.state
+    if s is None:
+        raise RuntimeError(f"frame {frame.seq} was not deformed but a viewer needs its Gaussians")
+    if frame.member is None:
+        return writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale)
+    return writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale, member=frame.member)
+
+
 class CodecWriter:
     """The reference frame encoder of one wire format: gather, `to_coords`, `codec.encode_frame`.
     Same interface as `ofera_protocol.fast_encodings.FrameWriter`, which produces identical bytes."""
@@ -182,12 +222,12 @@ class CodecWriter:
         self.format, self.coords, self.gather, self.index = fmt, coords, gather, index
 
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
-               scale: np.ndarray) -> bytes:
+               scale: np.ndarray, member: str | None = None) -> bytes:
         if self.gather is not None:
             position, rotation, scale = position[self.gather], rotation[self.gather], scale[self.gather]
         position, rotation = to_coords(position, rotation, self.coords)
         return encode_frame(Frame(seq=seq, t=t, position=position, rotation=rotation, scale=scale,
-                                  index=self.index, timing=timing), self.format)
+                                  index=self.index, timing=timing, member=member), self.format)
 
 
 class Viewer:
@@ -214,9 +254,8 @@ class Viewer:
             self.skipped += 1
             self.metrics.skipped.labels("frame").inc()
 
-    def _make(self, frame: ComputedFrame) -> bytes:
-        s = frame.state
-        return self.writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale)
+    def _make(self, frame: ComputedFrame) -> bytes | memoryview:
+        return encode_computed(self.writer, frame)
 
     def _encode(self, frame: ComputedFrame) -> bytes:
         t0 = time.perf_counter_ns()

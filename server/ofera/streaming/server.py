@@ -1,21 +1,30 @@
 """Running the app under uvicorn: per-message deflate off, TCP_NODELAY on every accepted WebSocket,
 `send` that waits for the socket to drain (so newest-wins backpressure works), clean Ctrl-C.
 
+Binary messages skip the websockets library's frame serialisation (which copies the payload twice: into a
+BytesIO, then out of it): the protocol writes the few bytes of the WebSocket frame header, then hands the
+payload itself (bytes or the frame writer's memoryview) to the transport, which copies into the kernel only
+what the socket takes (and, on asyncio's selector loop, keeps a copy of what it could not take yet). The
+time each write holds the event loop and the wait for the kernel to take the rest are observed as the
+`send` and `drain` stages of /metrics.
+
 `serve(settings)` blocks (the CLI); `ServerThread(settings)` runs a server in a background thread
 (tests, benchmarks) and tells its port.
 """
 
 from __future__ import annotations
 
-import asyncio
 import socket
+import struct
 import sys
 import threading
+import time
 from typing import Any
 
 import uvicorn
 from ofera_protocol import ENDPOINT
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.protocol import State
 
 from .config import Settings
 
@@ -28,6 +37,20 @@ def set_nodelay(transport: Any) -> None:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         except OSError:  # the peer may already be gone
             pass
+
+
+def ws_binary_header(length: int) -> bytes:
+    """RFC 6455 header of an unmasked, unfragmented binary frame (server to client) of `length` payload bytes."""
+    if length < 126:
+        return bytes((0x82, length))
+    if length < 1 << 16:
+        return struct.pack("!BBH", 0x82, 126, length)
+    return struct.pack("!BBQ", 0x82, 127, length)
+
+
+SMALL_MESSAGE = 16 * 1024
+"""Payloads up to this size are joined to their frame header (one write, one segment); larger ones are written
+after it without a copy."""
 
 
 class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
@@ -46,7 +69,50 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
         set_nodelay(transport)
         super().connection_made(transport)
 
+    def _metrics(self) -> Any:
+        """The app's Metrics (``app.state.hub.metrics``), or None (another app, or not started yet)."""
+        hub = getattr(getattr(getattr(self.config, "app", None), "state", None), "hub", None)
+        return getattr(hub, "metrics", None)
+
+    def _direct(self, message: Any) -> bool:
+        """Whether this message can skip the library's framing: a binary message on an open, uncompressed,
+        unfragmented connection with nothing else queued."""
+        conn = self.conn
+        return (message["type"] == "websocket.send" and message.get("bytes") is not None and self.handshake_complete
+                and not self.close_sent and self.initial_response is None and not self.disconnected
+                and conn.state is State.OPEN and not conn.extensions and not conn.expect_continuation_frame
+                and not conn.writes)
+
+    def write_binary(self, data: Any) -> float:
+        """Write one binary message (header, then the payload without a copy); returns the seconds the writes
+        held the event loop."""
+        t0 = time.perf_counter()
+        view = memoryview(data)
+        n = view.nbytes
+        head = ws_binary_header(n)
+        if n <= SMALL_MESSAGE:
+            self.transport.write(head + view.cast("B"))
+        else:
+            self.transport.write(head)
+            self.transport.write(view)
+        return time.perf_counter() - t0
+
     async def send(self, message: Any) -> None:
+        if message["type"] == "websocket.send" and message.get("bytes") is not None:
+            await self.writable.wait()
+            metrics = self._metrics()
+            if self._direct(message):
+                held = self.write_binary(message["bytes"])
+            else:
+                t0 = time.perf_counter()
+                await super().send(message)
+                held = time.perf_counter() - t0
+            t1 = time.perf_counter()
+            await self.writable.wait()  # set again by resume_writing() or connection_lost()
+            if metrics is not None:
+                metrics.stage.labels("send").observe(held)
+                metrics.stage.labels("drain").observe(time.perf_counter() - t1)
+            return
         await super().send(message)
         if message["type"] == "websocket.send":
             await self.writable.wait()  # set again by resume_writing() or connection_lost()
@@ -91,6 +157,7 @@ def uvicorn_config(settings: Settings, app: Any = None) -> uvicorn.Config:
         port=settings.port,
         ws=StreamingWebSocketProtocol,
         ws_per_message_deflate=False,
+        loop=settings.event_loop,
         # Larger than our own limit so that the codec answers `message_too_large` with a message;
         # beyond this uvicorn closes with 1009 on its own.
         ws_max_size=max(2 * settings.max_message_bytes, 1 << 20),
@@ -167,7 +234,7 @@ class ServerThread:
 
     def _run(self) -> None:
         try:
-            asyncio.run(self.server.serve())
+            self.server.run()  # the settings' event loop (no signal handlers off the main thread)
         except BaseException as exc:  # noqa: BLE001 - reported by start()
             self.error = exc
 

@@ -1,61 +1,46 @@
-"""One WebSocket session from hello to close: handshake (token, avatar, device profile, welcome, avatar
-chunks), then a Source and a Viewer (roles.py) for the client's own avatar, the receive loop (bs, ping,
-bye, errors), rate limiting, and fatal-error handling (error message, then close with its code)."""
+"""One WebSocket session from hello to close, driving the sans-I/O `core.SessionCore` over a Transport: it feeds
+the core what the socket receives and carries out the actions the core returns (send, close, compute, key frame).
+
+- A v1 session (no `hello.room`): the handshake loads the avatar (device profile, reduced size, wire format),
+  sends welcome and the avatar chunks, then runs a Source and a Viewer (roles.py) for the client's own avatar.
+- A room session (`hello.room`, PROTOCOL.md 12): the client becomes a member of a room (rooms.py): its Source
+  (if it publishes) is watched by the other members, its RoomViewer watches them.
+"""
 
 from __future__ import annotations
 
 import asyncio
-import hmac
 import logging
-import math
 import secrets
 import time
 from concurrent.futures import Executor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-from ofera_protocol import AvatarInfo, Blendshapes, Bye, FrameFormat, Hello, Ping, ProtocolError, ServerConnection
+from ofera_protocol import AvatarInfo, Hello, ProtocolError
 from ofera_protocol import errors as E
 from ofera_protocol.delta import DELTA_ENCODINGS
-from ofera_protocol.messages import Resync
 
 from .. import __version__
+from .bus import MemberInfo, RoomBus
 from .config import Settings
+from .core import Action, Close, Compute, Count, KeyFrame, SessionCore, Start
+from .core import Send as SendAction
 from .metrics import Metrics
-from .pipeline import AvatarAssets
+from .pipeline import AvatarAssets, Pipeline
 from .registry import AvatarRegistry
-from .roles import CodecWriter, FrameEncoder, PendingBs, SessionFatal, Source, Viewer
+from .roles import PendingBs, SessionFatal, Source, Viewer
+from .rooms import BYE, CLOSED, Member, Rooms, RoomViewer, new_member_id
+from .wire import PARAMS, make_delta_writer, make_writer, params_parts, reduced_size
+
+__all__ = ["ConnectionGone", "Hub", "Session", "Transport", "make_delta_writer", "make_writer", "reduced_size"]
 
 log = logging.getLogger("ofera.streaming")
-
-WEIGHT_LIMIT = 1000.0
-"""bs weights are limited to +-WEIGHT_LIMIT before the pipeline (PROTOCOL.md 4.2: the server clamps them).
-The layout adapter clamps the arkit weights it computes to [0, 1], but an arkit weight of an ovr layout is a
-sum of several ovr weights: finite inputs near float32's limit (+-3.4e38) overflow there to inf - inf = NaN."""
-
-
-class TokenBucket:
-    """`rate` events per second with bursts of up to `burst`."""
-
-    def __init__(self, rate: float, burst: float) -> None:
-        self.rate, self.burst = rate, burst
-        self.tokens = burst
-        self.stamp = time.monotonic()
-
-    def take(self) -> bool:
-        now = time.monotonic()
-        self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
-        self.stamp = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
 
 
 @dataclass
 class Hub:
-    """What every session of one server shares."""
+    """What every session of one server shares. `bus` is None without Redis (rooms are then in-process)."""
 
     settings: Settings
     registry: AvatarRegistry
@@ -64,6 +49,12 @@ class Hub:
     active: int = 0
     warm: bool = False
     sessions: dict[str, Session] = field(default_factory=dict)
+    rooms: Rooms | None = None
+    bus: RoomBus | None = None
+
+    def __post_init__(self) -> None:
+        if self.rooms is None:
+            self.rooms = Rooms(self.settings, self.registry, self.executor, self.metrics)
 
 
 class ConnectionGone(Exception):
@@ -84,45 +75,8 @@ class Transport:
         raise NotImplementedError
 
 
-def make_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, index: np.ndarray | None, fast: bool
-                ) -> FrameEncoder:
-    """The frame encoder of one wire format: numba kernels writing straight into the message buffer
-    (`encode_fast`, byte-identical to the codec) when `fast`, else the codec's reference encoder."""
-    if fast:
-        from .encode_fast import frame_writer
-
-        return frame_writer(fmt, coords, gather, index)
-    return CodecWriter(fmt, coords, gather, index)
-
-
-def make_delta_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, movable: tuple, settings: Settings
-                      ) -> FrameEncoder:
-    """The DeltaEncoder of one delta session (PROTOCOL.md 7.1): numba kernels when `settings.fast`, else the numpy
-    reference; candidates = the avatar's movable Gaussians (`movable` = (state rows, session ids))."""
-    from ofera_protocol.delta import DeltaEncoder, DeltaTolerance
-
-    rows, ids = movable
-    tol = DeltaTolerance(settings.delta_position_mm * 1e-3, settings.delta_rotation_deg, settings.delta_log_scale)
-    kernels = None
-    if settings.fast:
-        from .encode_fast import numba_kernels
-
-        kernels = numba_kernels()
-    return DeltaEncoder(fmt, coords, gather, np.asarray(ids, np.int64), np.asarray(rows, np.int64), kernels=kernels,
-                        tolerance=tol, key_interval=settings.key_interval)
-
-
-def reduced_size(asked: int | None, count: int) -> int | None:
-    """How many Gaussians to stream to a client that renders at most `asked` (hello.max_gaussians): None (the
-    whole avatar) when it fits, else the largest count x 2^(-k/4), k >= 1, not above `asked` (at most 16 %
-    fewer than asked). Avatars cache each reduction they serve, so arbitrary sizes chosen by clients would
-    grow the server's memory without bound; these sizes are at most 4 log2(count) + 1 per avatar."""
-    if asked is None or asked >= count:
-        return None
-    k = max(1, math.floor(-4 * math.log2(asked / count)))
-    while int(count * 2.0 ** (-k / 4)) > asked:
-        k += 1
-    return max(1, int(count * 2.0 ** (-k / 4)))
+def _refuse(code: str, message: str) -> SessionFatal:
+    return SessionFatal(ProtocolError(code, message, True))
 
 
 class Session:
@@ -133,21 +87,37 @@ class Session:
         self.hub = hub
         self.settings = hub.settings
         self.metrics = hub.metrics
-        self.conn = ServerConnection(max_message_size=hub.settings.max_message_bytes)
+        self.core = SessionCore(hub.settings, time.monotonic_ns())
+        self.conn = self.core.conn
         self.id = secrets.token_hex(8)
         self.source: Source | None = None
-        self.viewer: Viewer | None = None
-        self.bucket = TokenBucket(hub.settings.bs_rate, hub.settings.burst)
+        self.viewer: Viewer | RoomViewer | None = None
+        self.close_reason: str | None = None  # set by a Close action ("bye": the client said bye)
         self._movable: tuple | None = None
-        self._last_rate_error = 0.0
 
-    # ------------------------------------------------------------------ sending helpers
+    # ------------------------------------------------------------------ actions
 
-    async def _send_error(self, err: ProtocolError, seq: int | None = None) -> None:
-        self.metrics.errors.labels(err.code).inc()
-        await self.t.send(self.conn.error(err, seq=seq))
-        if err.fatal:
-            await self.t.close(err.close_code, err.code)
+    async def _do(self, actions: list[Action]) -> bool:
+        """Carry out the core's actions in order; True once the connection is closed."""
+        for a in actions:
+            if isinstance(a, SendAction):
+                if a.error is not None:
+                    self.metrics.errors.labels(a.error).inc()
+                await self.t.send(a.data)
+            elif isinstance(a, Close):
+                self.close_reason = a.reason
+                await self.t.close(a.code, a.reason)
+                return True
+            elif isinstance(a, Compute):
+                if self.source is not None:
+                    self.source.offer(PendingBs(a.bs, a.received_ns, (time.monotonic_ns() - a.received_ns) // 1000))
+            elif isinstance(a, Count):
+                getattr(self.metrics, a.metric).inc()
+            elif isinstance(a, KeyFrame):
+                request = getattr(getattr(self.viewer, "writer", None), "request_key", None)
+                if request is not None:
+                    request()
+        return False
 
     # ------------------------------------------------------------------ life cycle
 
@@ -159,14 +129,19 @@ class Session:
             hub.sessions[self.id] = self
         try:
             if full:
-                raise SessionFatal(ProtocolError(E.SERVER_FULL, f"the server is at its limit of "
-                                                 f"{self.settings.max_sessions} sessions; retry later", True))
-            hello = await self._handshake()
-            if hello is not None:
+                raise _refuse(E.SERVER_FULL, f"the server is at its limit of {self.settings.max_sessions} sessions; "
+                              "retry later")
+            hello = await self._receive_hello()
+            if hello is None:
+                pass
+            elif hello.room is None:
+                await self._handshake(hello)
                 await self._stream()
+            else:
+                await self._room(hello)
         except SessionFatal as f:
             try:
-                await self._send_error(f.err)
+                await self._do(self.core.fail(f.err))
             except ConnectionGone:
                 pass
             # Its traceback holds _stream's frame, whose tasks hold it: drop it, so that reference counting
@@ -181,47 +156,49 @@ class Session:
             self.source = self.viewer = None
 
     async def _receive_hello(self) -> Hello | None:
-        """Wait for hello (answering ping, honouring bye); None if the client left or took too long."""
-        deadline = time.monotonic() + self.settings.hello_timeout
+        """Feed the core until it accepts a hello (answering ping, honouring bye); None if the client left or
+        took too long."""
         while True:
+            wait = max(0.0, (self.core.hello_deadline_ns - time.monotonic_ns()) * 1e-9)
             try:
-                data = await asyncio.wait_for(self.t.receive(), max(0.0, deadline - time.monotonic()))
+                data = await asyncio.wait_for(self.t.receive(), wait)
             except asyncio.TimeoutError:
-                await self.t.close(1008, f"no hello within {self.settings.hello_timeout:g} s")
-                return None
+                if await self._do(self.core.tick(max(time.monotonic_ns(), self.core.hello_deadline_ns))):
+                    return None
+                continue
             if data is None:
                 return None
-            try:
-                if isinstance(data, str):
-                    self.conn.receive_text(data)
-                msg = self.conn.receive(data)
-            except ProtocolError as e:
-                raise SessionFatal(e.as_fatal()) from None
-            if isinstance(msg, Hello):
-                return msg
-            if isinstance(msg, Ping):
-                await self.t.send(self.conn.pong(msg.t))
-            elif isinstance(msg, Bye):
-                await self.t.close(E.CLOSE_NORMAL, "bye")
-                return None
+            for action in self.core.receive(data, time.monotonic_ns()):
+                if isinstance(action, Start):
+                    return action.hello
+                if await self._do([action]):
+                    return None
 
-    async def _handshake(self) -> Hello | None:
-        hello = await self._receive_hello()
-        if hello is None:
-            return None
-        s, reg = self.settings, self.hub.registry
+    async def _load(self, hello: Hello, prepare: Any) -> Any:
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self.hub.executor, prepare)
+        except SessionFatal:
+            raise
+        except Exception as exc:
+            log.exception("loading avatar %s failed", hello.avatar)
+            raise _refuse(E.INTERNAL, f"the server could not load avatar {hello.avatar!r}: {type(exc).__name__}: "
+                          f"{exc}") from exc
 
-        def refuse(code: str, message: str) -> SessionFatal:
-            return SessionFatal(ProtocolError(code, message, True))
-
-        if s.token is not None:
-            given = (hello.token or "").encode()
-            if not hmac.compare_digest(given, s.token.encode()):
-                raise refuse(E.UNAUTHORIZED, "missing or wrong token: send the server's token in hello.token")
+    def _resolve(self, hello: Hello) -> str:
+        reg = self.hub.registry
         aid = reg.resolve(hello.avatar)
         if aid is None:
-            raise refuse(E.UNKNOWN_AVATAR, f"no avatar {hello.avatar!r} on this server; available: "
-                         f"{', '.join(reg.sources)} (GET /v1/avatars lists them)")
+            raise _refuse(E.UNKNOWN_AVATAR, f"no avatar {hello.avatar!r} on this server; available: "
+                          f"{', '.join(reg.sources)} (GET /v1/avatars lists them)")
+        return aid
+
+    def _pipeline(self, hello: Hello, assets: AvatarAssets, device_bda: Any) -> Pipeline:
+        return assets.pipeline(hello.layout, device_bda, self.settings.confidence_threshold)
+
+    async def _handshake(self, hello: Hello) -> None:
+        s, reg = self.settings, self.hub.registry
+        aid = self._resolve(hello)
+        delta = hello.delta and hello.encoding in DELTA_ENCODINGS  # f32: welcome.delta false
 
         def prepare() -> tuple[AvatarAssets, Any, Any, tuple, Any, int | None]:
             # An unknown device falls back to the avatar's own BDA (PROTOCOL.md 4.1: no error).
@@ -234,29 +211,24 @@ class Session:
             self._movable = assets.selection(True, size) if delta else None  # (state rows, session ids)
             return assets, wire, quant, sel, device_bda, size
 
-        delta = hello.delta and hello.encoding in DELTA_ENCODINGS  # f32: welcome.delta false
-        try:
-            assets, wire, quant, (gather, index), device_bda, size = \
-                await asyncio.get_running_loop().run_in_executor(self.hub.executor, prepare)
-        except Exception as exc:
-            log.exception("loading avatar %s failed", aid)
-            raise refuse(E.INTERNAL, f"the server could not load avatar {aid!r}: {type(exc).__name__}: {exc}") from exc
-
+        assets, wire, quant, (gather, index), device_bda, size = await self._load(hello, prepare)
         info = AvatarInfo(id=aid, count=wire.count, sh_degree=wire.sh_degree, expression=assets.expression)
-        welcome = self.conn.accept(self.id, info,
-                                   quant=quant, server=f"ofera/{__version__}")
-        await self.t.send(welcome)
+        await self.t.send(self.conn.accept(self.id, info, quant=quant, server=f"ofera/{__version__}"))
         for chunk in self.conn.avatar(wire, s.avatar_chunk_bytes):
             await self.t.send(chunk)
             self.metrics.bytes_out.inc(len(chunk))
 
-        pipeline = assets.pipeline(hello.layout, device_bda, s.confidence_threshold)
-        self.source = Source(pipeline, self.hub.executor, self.metrics)
+        self.source = Source(self._pipeline(hello, assets, device_bda), self.hub.executor, self.metrics)
         assert self.conn.format is not None
         key: tuple = (hello.encoding, hello.coords, hello.sparse, size)
         if self.conn.format.delta:  # per client: deltas are against what this client's socket was handed
             writer = make_delta_writer(self.conn.format, hello.coords, gather, self._movable, s)
             key = (*key, "delta", self.id)
+        elif hello.encoding == PARAMS:
+            writer, rig = params_parts(self.conn, assets, hello, size, None, s.avatar_chunk_bytes)
+            for data in rig:
+                await self.t.send(data)
+            self.source.needs_state = lambda: False  # params frames carry values: the client deforms
         else:
             writer = make_writer(self.conn.format, hello.coords, gather, index, s.fast)
         self.viewer = Viewer(self.t.send, writer, key, self.hub.executor, self.metrics)
@@ -266,16 +238,26 @@ class Session:
         self.viewer.on_ready = self.source.wake
         log.info("session %s: avatar %s, layout %s, encoding %s, coords %s%s", self.id, aid, hello.layout,
                  hello.encoding, hello.coords, f", device {hello.device!r}" if hello.device else "")
-        return hello
 
     async def _stream(self) -> None:
-        assert self.source is not None and self.viewer is not None
+        assert self.source is not None and isinstance(self.viewer, Viewer)
         m = self.metrics
         m.sessions.labels("source").inc()
         m.sessions.labels("viewer").inc()
-        tasks = [asyncio.create_task(self.source.run(), name=f"source-{self.id}"),
-                 asyncio.create_task(self.viewer.run(), name=f"viewer-{self.id}"),
-                 asyncio.create_task(self._receive_loop(), name=f"receive-{self.id}")]
+        try:
+            await self._run_tasks([self.source.run(), self.viewer.run(), self._receive_loop()])
+        finally:
+            # The source and the viewer reference each other (offer, wake): break the cycle so that their
+            # buffers (MBs per session) are freed now, not at the next full garbage collection.
+            self.source.subscribers.clear()
+            self.source.demand = None
+            self.viewer.on_ready = None
+            m.sessions.labels("source").dec()
+            m.sessions.labels("viewer").dec()
+
+    async def _run_tasks(self, coros: list[Any]) -> None:
+        """Run the session's tasks until one ends; re-raise what it raised; cancel the others."""
+        tasks = [asyncio.create_task(c, name=f"{getattr(c, '__name__', 'task')}-{self.id}") for c in coros]
         try:
             done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for task in done:
@@ -286,65 +268,58 @@ class Session:
             for task in tasks:
                 task.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            # The source and the viewer reference each other (offer, wake): break the cycle so that their
-            # buffers (MBs per session) are freed now, not at the next full garbage collection.
-            self.source.subscribers.clear()
-            self.source.demand = None
-            self.viewer.on_ready = None
-            m.sessions.labels("source").dec()
-            m.sessions.labels("viewer").dec()
 
     async def _receive_loop(self) -> None:
-        assert self.source is not None
         while True:
             data = await self.t.receive()
             if data is None:
                 return
-            received = time.monotonic_ns()
-            if isinstance(data, str):
-                try:
-                    self.conn.receive_text(data)
-                except ProtocolError as e:
-                    raise SessionFatal(e) from None
-            try:
-                msg = self.conn.receive(data)
-            except ProtocolError as e:
-                if e.fatal:
-                    raise SessionFatal(e) from None
-                if await self._allow(None):  # a flood of bad messages shares the bs/ping budget
-                    await self._send_error(e)
-                continue
-            if isinstance(msg, Blendshapes):
-                self.metrics.bs_in.inc()
-                if msg.conf is not None:
-                    self.metrics.bs_conf.inc()
-                if not await self._allow(msg.seq):
-                    continue
-                if not (np.abs(msg.w) <= WEIGHT_LIMIT).all():  # finite but huge: see WEIGHT_LIMIT
-                    msg = replace(msg, w=np.clip(msg.w, -WEIGHT_LIMIT, WEIGHT_LIMIT))
-                decode_us = (time.monotonic_ns() - received) // 1000
-                self.source.offer(PendingBs(msg, received, decode_us))
-            elif isinstance(msg, Ping):
-                if await self._allow(None):
-                    await self.t.send(self.conn.pong(msg.t))
-            elif isinstance(msg, Resync):  # delta sessions: the next frame sent is a key frame
-                request = getattr(self.viewer.writer if self.viewer else None, "request_key", None)
-                if request is not None:
-                    request()
-            elif isinstance(msg, Bye):
-                await self.t.close(E.CLOSE_NORMAL, "bye")
+            if await self._do(self.core.receive(data, time.monotonic_ns())):
                 return
 
-    async def _allow(self, seq: int | None) -> bool:
-        """Rate limit: True if the message may be processed; otherwise drop it, with one non-fatal
-        `rate_limited` error per second at most."""
-        if self.bucket.take():
-            return True
-        now = time.monotonic()
-        if now - self._last_rate_error >= 1.0:
-            self._last_rate_error = now
-            await self._send_error(ProtocolError(
-                E.RATE_LIMITED, f"more than {self.settings.bs_rate:g} messages (bs, ping or invalid ones) per "
-                "second; the excess is dropped",
-                False), seq=seq)
-        return False
+    # ------------------------------------------------------------------ rooms
+
+    async def _room(self, hello: Hello) -> None:
+        """A room member from welcome to leave (PROTOCOL.md 12)."""
+        s, hub, reg = self.settings, self.hub, self.hub.registry
+        rooms = hub.rooms
+        assert rooms is not None and hello.room is not None
+        try:
+            rooms.admit(hello.room)
+        except ProtocolError as e:
+            raise SessionFatal(e) from None
+        member_id = new_member_id()
+        assets: AvatarAssets | None = None
+        info: AvatarInfo | None = None
+        if hello.publish:
+            aid = self._resolve(hello)
+
+            def prepare() -> tuple[AvatarAssets, Any]:
+                device_bda = reg.device_bda(hello.device) if hello.device is not None else None
+                return reg.get(aid), device_bda
+
+            assets, device_bda = await self._load(hello, prepare)
+            info = AvatarInfo(id=aid, count=assets.count, sh_degree=assets.sh_degree, expression=assets.expression)
+            self.source = Source(self._pipeline(hello, assets, device_bda), hub.executor, self.metrics)
+        await self.t.send(self.conn.accept(self.id, info, server=f"ofera/{__version__}", member=member_id))
+        viewer = self.viewer = RoomViewer(self.t.send, hub.executor, self.metrics, s.room_send_bytes)
+        server_id = hub.bus.server_id if hub.bus is not None else ""
+        member = Member(info=MemberInfo(member_id, info.id if info else "", server_id, hello.publish), local=True,
+                        assets=assets, source=self.source, viewer=viewer, hello=hello, conn=self.conn)
+        try:
+            rooms.join_local(hello.room, member)
+        except ProtocolError as e:
+            raise SessionFatal(e) from None
+        m = self.metrics
+        roles = (("source",) if self.source is not None else ()) + ("viewer",)
+        for role in roles:
+            m.sessions.labels(role).inc()
+        try:
+            coros = [viewer.run(), self._receive_loop()]
+            if self.source is not None:
+                coros.append(self.source.run())
+            await self._run_tasks(coros)
+        finally:
+            rooms.leave_local(hello.room, member_id, BYE if self.close_reason == "bye" else CLOSED)
+            for role in roles:
+                m.sessions.labels(role).dec()

@@ -5,7 +5,8 @@ using System.Collections.Generic;
 
 namespace Ofera.Client
 {
-    public enum ClientState { Idle, AwaitingWelcome, ReceivingAvatar, Streaming, Closed }
+    /// <summary>ReceivingRig: params sessions only (PROTOCOL.md 13.2), between the last avatar chunk and the complete rig.</summary>
+    public enum ClientState { Idle, AwaitingWelcome, ReceivingAvatar, ReceivingRig, Streaming, Closed }
 
     /// <summary>
     /// One session's protocol state. Not thread-safe: one receiving thread calls <see cref="Receive"/>;
@@ -16,12 +17,16 @@ namespace Ofera.Client
         readonly ServerMessageDecoder _decoder = new ServerMessageDecoder();
         int _nextChunk, _nextOffset, _totalChunks = -1;
         readonly Dictionary<string, MemberState> _members = new Dictionary<string, MemberState>();
+        readonly RigDecoder _rigDecoder = new RigDecoder();
+        RigAssembler _rig;
+        RigDeformer _deformer;
 
         /// <summary>Keep frames' wire arrays (FrameData.Payload) for the GPU upload path; with DecodeValues false, skip the float decode.</summary>
         public bool KeepPayload { get { return _decoder.KeepPayload; } set { _decoder.KeepPayload = value; } }
         public bool DecodeValues { get { return _decoder.DecodeValues; } set { _decoder.DecodeValues = value; } }
 
-        /// <summary>True when welcome named a room: join/leave and `member` on avatar chunks and frames are routed per member.</summary>
+        /// <summary>True when welcome named a room (PROTOCOL.md 12): the session streams from welcome on, and every avatar
+        /// (one's own too, with Self) comes with a join; its chunks and frames carry `member` and are routed per member.</summary>
         public bool InRoom { get { return Welcome != null && Welcome.Room != null; } }
         /// <summary>Set by the Receive call whose avatar chunk completed a member's avatar (else null).</summary>
         public MemberState CompletedMember { get; private set; }
@@ -55,13 +60,18 @@ namespace Ofera.Client
         public bool MirrorFlameToUnity;
         /// <summary>True when received data is being mirrored (welcome said flame and MirrorFlameToUnity is set).</summary>
         public bool Mirroring { get; private set; }
+        /// <summary>Params sessions: the rig (complete once State is Streaming; also Avatar.Rig), else null.</summary>
+        public RigData Rig { get; private set; }
+        /// <summary>Params sessions: what the client's own deformation is mirrored by (x): coords unity (PROTOCOL.md 13.4
+        /// step 8) or Mirroring; the GPU path applies the same.</summary>
+        public bool MirrorDeformed { get; private set; }
 
         /// <summary>Encodes `hello` into <paramref name="w"/> (cleared first) and moves to AwaitingWelcome.</summary>
         public void EncodeHello(Hello h, MsgPackWriter w)
         {
             if (State != ClientState.Idle) throw new InvalidOperationException("hello may be sent once, first");
             if (Protocol.LayoutLength(h.Layout) < 0) throw new ArgumentException("unknown layout '" + h.Layout + "'; expected one of " + string.Join(", ", Protocol.Layouts));
-            if (h.Encoding != null && !Protocol.Contains(Protocol.Encodings, h.Encoding)) throw new ArgumentException("unknown encoding '" + h.Encoding + "'; expected one of " + string.Join(", ", Protocol.Encodings));
+            if (h.Encoding != null && !Protocol.Contains(ParamsProtocol.HelloEncodings, h.Encoding)) throw new ArgumentException("unknown encoding '" + h.Encoding + "'; expected one of " + string.Join(", ", ParamsProtocol.HelloEncodings));
             if (h.Coords != null && !Protocol.Contains(Protocol.CoordsNames, h.Coords)) throw new ArgumentException("unknown coords '" + h.Coords + "'; expected one of flame, unity");
             w.Clear();
             ClientMessageEncoder.Hello(w, h);
@@ -116,7 +126,8 @@ namespace Ofera.Client
             catch (ProtocolException e)
             {
                 // in a room, membered traffic may run while the own avatar is still arriving (or never comes: watch-only)
-                bool tolerant = State == ClientState.Streaming || (InRoom && State == ClientState.ReceivingAvatar && !e.Fatal);
+                bool tolerant = State == ClientState.Streaming
+                                || (InRoom && (State == ClientState.ReceivingAvatar || State == ClientState.ReceivingRig) && !e.Fatal);
                 ProtocolException err = tolerant ? e : e.AsFatal();
                 if (err.Fatal) State = ClientState.Closed;
                 throw err;
@@ -147,9 +158,14 @@ namespace Ofera.Client
                         _members.Clear();
                         _decoder.MemberFormats = w.Room != null ? this : null;
                         Mirroring = MirrorFlameToUnity && w.Coords == "flame";
-                        Avatar = new AvatarData(w.Count, w.ShDegree);
+                        MirrorDeformed = w.Coords == "unity" || Mirroring;
+                        Rig = null; _deformer = null;
+                        _rig = Format.Params ? new RigAssembler() : null;
+                        if (Format.Params && !w.RigBytes.HasValue)
+                            throw new ProtocolException(ErrorCodes.BadField, "welcome of a params session without 'rig_bytes'", true);
+                        Avatar = new AvatarData(w.Count, w.ShDegree); // a room's: never assembled (it comes with a join)
                         _nextChunk = 0; _nextOffset = 0; _totalChunks = -1;
-                        State = ClientState.ReceivingAvatar;
+                        State = w.Room != null ? ClientState.Streaming : ClientState.ReceivingAvatar;
                         break;
                     }
                 case ServerMessageKind.Join:
@@ -159,13 +175,18 @@ namespace Ofera.Client
                         MemberState ms = new MemberState();
                         ms.Id = j.Member;
                         ms.Join = j;
-                        ms.Avatar = new AvatarData(j.Count, j.ShDegree);
-                        Quant q = j.Quant ?? Welcome.Quant;
-                        FrameEncoding enc = Format.Encoding;
-                        if (enc == FrameEncoding.Q13 && q == null)
-                            throw new ProtocolException(ErrorCodes.BadField, "join: q13 session without quant parameters for member '" + j.Member + "'");
-                        ms.Format = new FrameFormat(enc, j.Count, Format.Sparse, enc == FrameEncoding.Q13 ? q : null);
-                        _members[j.Member] = ms; // a repeated join replaces the member (new avatar follows)
+                        _members.Remove(j.Member); // a repeated join replaces the member (new avatar follows)
+                        if (j.Publish) // a watch-only member has no avatar and no frames
+                        {
+                            ms.Avatar = new AvatarData(j.Count, j.ShDegree);
+                            Quant q = j.Quant ?? Welcome.Quant;
+                            FrameEncoding enc = Format.Encoding;
+                            if (enc == FrameEncoding.Q13 && q == null)
+                                throw new ProtocolException(ErrorCodes.BadField, "join: q13 session without quant parameters for member '" + j.Member + "'");
+                            ms.Format = new FrameFormat(enc, j.Count, Format.Sparse, enc == FrameEncoding.Q13 ? q : null) { Params = Format.Params };
+                            if (Format.Params) ms.RigParts = new RigAssembler();
+                        }
+                        _members[j.Member] = ms;
                         break;
                     }
                 case ServerMessageKind.Leave:
@@ -180,8 +201,9 @@ namespace Ofera.Client
                     }
                 case ServerMessageKind.Avatar:
                     {
-                        if (m.Avatar.Member != null && InRoom)
+                        if (InRoom)
                         {
+                            if (m.Avatar.Member == null) throw new ProtocolException(ErrorCodes.BadField, "an avatar chunk without 'member' in a room session");
                             MemberChunk(buf, m.Avatar);
                             break;
                         }
@@ -205,13 +227,37 @@ namespace Ofera.Client
                         if (last)
                         {
                             if (Mirroring) Coords.MirrorX(Avatar);
-                            State = ClientState.Streaming;
+                            State = Format.Params ? ClientState.ReceivingRig : ClientState.Streaming;
                         }
                         break;
                     }
+                case ServerMessageKind.Rig:
+                    if (m.Rig.Member != null && InRoom) { MemberRig(buf, m.Rig); break; }
+                    if (State != ClientState.ReceivingRig)
+                        throw new ProtocolException(ErrorCodes.NotReady, "unexpected rig chunk in state " + State, true);
+                    if (m.Rig.Size != Welcome.RigBytes)
+                        throw new ProtocolException(ErrorCodes.BadField, "rig: size " + m.Rig.Size + " != welcome's rig_bytes " + Welcome.RigBytes, true);
+                    try
+                    {
+                        if (!_rig.Add(m.Rig, buf)) break;
+                        Rig = DecodeRig(_rig, Avatar.Count, "the avatar");
+                    }
+                    catch (ProtocolException e) { throw e.AsFatal(); } // the handshake is not over
+                    Avatar.Rig = Rig;
+                    _deformer = new RigDeformer(Rig);
+                    _rig = null;
+                    State = ClientState.Streaming;
+                    break;
                 case ServerMessageKind.Frame:
                     if (State != ClientState.Streaming && !(InRoom && m.Frame.Member != null))
                         throw new ProtocolException(ErrorCodes.NotReady, "frame before the avatar was complete (state " + State + ")");
+                    if (m.Frame.HasParams)
+                    {
+                        RigDeformer d = _deformer;
+                        if (m.Frame.Member != null && InRoom) { MemberState fm = Member(m.Frame.Member); d = fm != null ? fm.Deformer : null; }
+                        if (DecodeValues && d != null) RigFrames.Deform(d, m.Frame, MirrorDeformed);
+                        break;
+                    }
                     if (Mirroring && m.Frame.HasValues) Coords.MirrorX(m.Frame);
                     break;
                 case ServerMessageKind.Error:
@@ -224,6 +270,7 @@ namespace Ofera.Client
         {
             MemberState ms = Member(h.Member);
             if (ms == null) throw new ProtocolException(ErrorCodes.NotReady, "avatar chunk for member '" + h.Member + "' before its join");
+            if (ms.Avatar == null) throw new ProtocolException(ErrorCodes.BadField, "avatar chunk for member '" + h.Member + "', who watches only (no avatar)");
             string problems = "";
             if (ms.Complete) problems += "; the member's avatar is already complete";
             if (h.Count != ms.Avatar.Count) problems += "; count " + h.Count + " != join's " + ms.Avatar.Count;
@@ -245,9 +292,45 @@ namespace Ofera.Client
             if (last)
             {
                 if (Mirroring) Coords.MirrorX(ms.Avatar);
+                if (ms.RigParts != null) return; // params: complete with its rig (MemberRig)
                 ms.Complete = true;
                 CompletedMember = ms;
             }
+        }
+
+        /// <summary>Decodes an assembled rig body and checks it against its avatar (fatal bad_field otherwise).</summary>
+        RigData DecodeRig(RigAssembler parts, int count, string whose)
+        {
+            byte[] body = parts.Body;
+            RigData rig = _rigDecoder.Decode(body, 0, body.Length);
+            if (rig.Count != count) throw new ProtocolException(ErrorCodes.BadField, "rig: count " + rig.Count + " != " + count + " Gaussians of " + whose, true);
+            return rig;
+        }
+
+        /// <summary>Rooms, params sessions (PROTOCOL.md 13.6): a member's rig chunk; its rig completes the member.</summary>
+        void MemberRig(byte[] buf, RigChunkHeader h)
+        {
+            MemberState ms = Member(h.Member);
+            if (ms == null || ms.RigParts == null || ms.NextChunk != ms.TotalChunks)
+            {
+                if (ms != null) _members.Remove(h.Member); // its stream cannot be shown; a new join starts over
+                throw new ProtocolException(ErrorCodes.NotReady, "rig chunk for member '" + h.Member + "' before its join and avatar");
+            }
+            try
+            {
+                if (!ms.RigParts.Add(h, buf)) return;
+                ms.Rig = DecodeRig(ms.RigParts, ms.Avatar.Count, "member '" + h.Member + "'s avatar");
+            }
+            catch (ProtocolException e)
+            {
+                _members.Remove(h.Member);
+                throw new ProtocolException(e.Code, e.Detail + " (member '" + h.Member + "')", false); // one member's stream, not the session
+            }
+            ms.Avatar.Rig = ms.Rig;
+            ms.Deformer = new RigDeformer(ms.Rig);
+            ms.RigParts = null;
+            ms.Complete = true;
+            CompletedMember = ms;
         }
     }
 
@@ -261,5 +344,9 @@ namespace Ofera.Client
         /// <summary>Every avatar chunk arrived: frames for this member are accepted.</summary>
         public bool Complete;
         internal int NextChunk, NextOffset, TotalChunks = -1;
+        /// <summary>Params sessions: the member's rig (once complete) and its deformer.</summary>
+        public RigData Rig;
+        internal RigAssembler RigParts;
+        internal RigDeformer Deformer;
     }
 }

@@ -15,8 +15,15 @@ namespace Ofera.Client
             Sh = 23, Position = 24, Rotation = 25, Scale = 26, Timing = 27, Index = 28, Code = 29, Message = 30,
             Fatal = 31, Id = 32, PosMin = 33, PosMax = 34, LogScale = 35, Room = 36, Member = 37, Reason = 38,
             Delta = 39, Key = 40, Changed = 41, Wide = 42, PositionDelta = 43, MovedPosition = 44, MovedRotation = 45,
-            MovedScale = 46;
-        public const int KeyCount = 47;
+            MovedScale = 46,
+            // params sessions (PROTOCOL.md 13): `rig` chunks, the rig body (Rig.cs), params frames, welcome.rig_bytes
+            Size = 47, Data = 48, Params = 49, RigBytes = 50, Binding = 51, Vertices = 52, Faces = 53, Gaussians = 54,
+            ExprDims = 55, JointsKey = 56, JointsExpr = 57, Template = 58, ExprBasis = 59, PoseRows = 60, PoseBasis = 61,
+            Weights = 62, Face = 63, GaussianFace = 64, LocalPosition = 65, Bary = 66, NormalOffset = 67,
+            LocalRotation = 68, LocalScale = 69,
+            // rooms (PROTOCOL.md 12): hello.publish, hello.self, hello.room_token
+            Publish = 70, Self = 71, RoomToken = 72;
+        public const int KeyCount = 73;
 
         public static readonly string[] Names =
         {
@@ -25,6 +32,10 @@ namespace Ofera.Client
             "chunks", "offset", "n", "opacity", "sh", "position", "rotation", "scale", "timing", "index",
             "code", "message", "fatal", "id", "pos_min", "pos_max", "log_scale", "room", "member", "reason",
             "delta", "key", "changed", "wide", "position_delta", "moved_position", "moved_rotation", "moved_scale",
+            "size", "data", "params", "rig_bytes", "binding", "vertices", "faces", "gaussians", "expr_dims", "joints",
+            "joints_expr", "template", "expr_basis", "pose_rows", "pose_basis", "weights", "face", "gaussian_face",
+            "local_position", "bary", "normal_offset", "local_rotation", "local_scale",
+            "publish", "self", "room_token",
         };
 
         public static readonly byte[][] Utf8 = MakeUtf8();
@@ -240,8 +251,8 @@ namespace Ofera.Client
 
     public sealed partial class ServerMessageDecoder : MessageDecoderBase
     {
-        /// <summary>v1 types plus the rooms messages `join` and `leave` (DESIGN.md "Rooms"; the reference server does not send them yet).</summary>
-        public static readonly string[] Types = { "welcome", "avatar", "frame", "error", "pong", "join", "leave" };
+        /// <summary>v1 types plus the rooms messages `join` and `leave` (PROTOCOL.md 12.3, 12.4).</summary>
+        public static readonly string[] Types = { "welcome", "avatar", "frame", "error", "pong", "join", "leave", "rig" };
 
         /// <summary>Keep each frame's arrays as they arrived in <see cref="FrameData.Payload"/> (GPU upload).</summary>
         public bool KeepPayload;
@@ -250,7 +261,7 @@ namespace Ofera.Client
         /// <summary>Rooms: formats of members' streams; frames carrying `member` are decoded with these. Null: v1 (member ignored).</summary>
         public IFrameFormatSource MemberFormats;
 
-        // member ids seen so far (UTF-8 or int -> string), so frames allocate no strings
+        // member ids seen so far (UTF-8 -> string), so frames allocate no strings
         readonly byte[][] _memberKeys = new byte[256][];
         readonly string[] _memberNames = new string[256];
         int _memberCount;
@@ -282,15 +293,18 @@ namespace Ofera.Client
                     {
                         string member = GetMember(Top, "frame", false);
                         FrameFormat f = format;
-                        if (member != null && MemberFormats != null)
+                        if (MemberFormats != null) // a room session: every frame is some member's
                         {
+                            if (member == null) throw Err(ErrorCodes.BadField, "a frame without 'member' in a room session");
                             f = MemberFormats.FormatFor(member);
                             if (f == null) throw Err(ErrorCodes.NotReady, "frame for member '" + member + "' before its join and complete avatar");
                         }
                         if (f == null) throw Err(ErrorCodes.NotReady, "frame before welcome: the session's format is unknown");
                         if (result.Frame == null) result.Frame = new FrameData();
-                        if (f.Delta != null) DecodeDeltaSessionFrame(f, result.Frame); // Delta.cs (PROTOCOL.md 7.1)
+                        if (f.Params) DecodeParamsFrame(result.Frame); // Rig.cs (PROTOCOL.md 13.5)
+                        else if (f.Delta != null) DecodeDeltaSessionFrame(f, result.Frame); // Delta.cs (PROTOCOL.md 7.1)
                         else DecodeFrame(f, result.Frame);
+                        if (!f.Params) { result.Frame.HasParams = false; result.Frame.Stamped = true; } // pooled frames
                         result.Frame.Member = member;
                         result.Kind = ServerMessageKind.Frame;
                         break;
@@ -299,13 +313,18 @@ namespace Ofera.Client
                     {
                         const string w = "join";
                         JoinMessage j = new JoinMessage();
-                        j.Member = GetMember(Top, w, true);
-                        int av = GetMap(Top, Keys.Avatar, w, true);
+                        j.Publish = GetOptBool(Top, Keys.Publish, w) ?? true;
+                        int av = GetMap(Top, Keys.Avatar, w, j.Publish); // a watch-only member has none
+                        if (av >= 0 && !j.Publish) throw Err(ErrorCodes.BadField, "join: a watch-only member ('publish': false) has no 'avatar'");
                         int qm = GetMap(Top, Keys.Quant_, w, false);
-                        Scan(av, Sub);
-                        j.AvatarId = GetStr(Sub, Keys.Id, "join.avatar", true);
-                        j.Count = (int)Math.Min(int.MaxValue, GetInt(Sub, Keys.Count, "join.avatar", 0, Protocol.UInt32Max));
-                        j.ShDegree = (int)GetInt(Sub, Keys.ShDegree, "join.avatar", 0, Protocol.MaxShDegree);
+                        j.Member = GetMember(Top, w, true);
+                        if (av >= 0)
+                        {
+                            Scan(av, Sub);
+                            j.AvatarId = GetStr(Sub, Keys.Id, "join.avatar", true);
+                            j.Count = (int)Math.Min(int.MaxValue, GetInt(Sub, Keys.Count, "join.avatar", 0, Protocol.UInt32Max));
+                            j.ShDegree = (int)GetInt(Sub, Keys.ShDegree, "join.avatar", 0, Protocol.MaxShDegree);
+                        }
                         if (qm >= 0) j.Quant = DecodeQuant(qm);
                         result.Join = j;
                         result.Kind = ServerMessageKind.Join;
@@ -320,6 +339,10 @@ namespace Ofera.Client
                         result.Kind = ServerMessageKind.Leave;
                         break;
                     }
+                case "rig": // Rig.cs (PROTOCOL.md 13.2)
+                    result.Rig = DecodeRigChunk();
+                    result.Kind = ServerMessageKind.Rig;
+                    break;
                 case "avatar":
                     result.Avatar = DecodeAvatarChunk();
                     _lastBuffer = buf;
@@ -357,13 +380,17 @@ namespace Ofera.Client
             if (protocol != Protocol.Version)
                 throw Err(ErrorCodes.UnsupportedProtocol, "server speaks protocol " + protocol + "; this client speaks " + Protocol.Version);
             m.Protocol = (int)protocol;
-            int av = GetMap(Top, Keys.Avatar, w, true);
-            Scan(av, Sub);
-            m.AvatarId = GetStr(Sub, Keys.Id, "welcome.avatar", true);
-            m.Count = (int)Math.Min(int.MaxValue, GetInt(Sub, Keys.Count, "welcome.avatar", 0, Protocol.UInt32Max));
-            m.ShDegree = (int)GetInt(Sub, Keys.ShDegree, "welcome.avatar", 0, Protocol.MaxShDegree);
-            m.Encoding = GetChoice(Top, Keys.Encoding_, w, Protocol.Encodings, ErrorCodes.UnknownEncoding, null);
-            int qm = GetMap(Top, Keys.Quant_, w, m.Encoding == "q13");
+            m.Room = GetStr(Top, Keys.Room, w, false, Protocol.MaxRoomLength); // rooms (PROTOCOL.md 12.2)
+            int av = GetMap(Top, Keys.Avatar, w, m.Room == null); // a watch-only room session has none
+            if (av >= 0)
+            {
+                Scan(av, Sub);
+                m.AvatarId = GetStr(Sub, Keys.Id, "welcome.avatar", true);
+                m.Count = (int)Math.Min(int.MaxValue, GetInt(Sub, Keys.Count, "welcome.avatar", 0, Protocol.UInt32Max));
+                m.ShDegree = (int)GetInt(Sub, Keys.ShDegree, "welcome.avatar", 0, Protocol.MaxShDegree);
+            }
+            m.Encoding = GetChoice(Top, Keys.Encoding_, w, ParamsProtocol.HelloEncodings, ErrorCodes.UnknownEncoding, null);
+            int qm = GetMap(Top, Keys.Quant_, w, m.Encoding == "q13" && m.Room == null); // rooms: each join has its own
             m.Session = GetStr(Top, Keys.Session, w, true);
             m.Layout = GetChoice(Top, Keys.Layout, w, Protocol.Layouts, ErrorCodes.UnknownLayout, null);
             m.Coords = GetChoice(Top, Keys.Coords, w, Protocol.CoordsNames, ErrorCodes.BadField, null);
@@ -371,14 +398,13 @@ namespace Ofera.Client
             m.Delta = GetOptBool(Top, Keys.Delta, w) ?? false;
             if (qm >= 0 && m.Encoding == "q13") m.Quant = DecodeQuant(qm);
             m.Server = GetStr(Top, Keys.Server, w, false);
-            m.Room = GetStr(Top, Keys.Room, w, false);
-            m.Member = GetMember(Top, w, false);
+            m.RigBytes = GetOptInt(Top, Keys.RigBytes, w, 0, Protocol.UInt32Max);
+            m.Member = GetMember(Top, w, m.Room != null);
             return m;
         }
 
         /// <summary>
-        /// A `member` id: a string (1..256 characters) or a non-negative int (DESIGN.md does not fix the
-        /// type; an int becomes its decimal string). Interned: a known id allocates nothing.
+        /// A `member` id: a string of 1..256 characters (PROTOCOL.md 12.2). Interned: a known id allocates nothing.
         /// </summary>
         internal string GetMember(int[] s, string where, bool required)
         {
@@ -389,20 +415,7 @@ namespace Ofera.Client
             }
             R.Position = s[Keys.Member];
             MsgType t = R.PeekType();
-            if (t == MsgType.Int)
-            {
-                long v = GetInt(s, Keys.Member, where, 0, long.MaxValue);
-                for (int i = 0; i < _memberCount; i++)
-                {
-                    byte[] k = _memberKeys[i];
-                    if (k.Length == 9 && k[0] == 0xff && BitConverter.ToInt64(k, 1) == v) return _memberNames[i];
-                }
-                byte[] key = new byte[9];
-                key[0] = 0xff; // never the first byte of a UTF-8 id
-                Buffer.BlockCopy(BitConverter.GetBytes(v), 0, key, 1, 8);
-                return Intern(key, v.ToString(System.Globalization.CultureInfo.InvariantCulture));
-            }
-            if (t != MsgType.Str) throw Err(ErrorCodes.BadField, where + ": field 'member' must be a str or an int, got " + R.PeekTypeName());
+            if (t != MsgType.Str) throw Err(ErrorCodes.BadField, where + ": field 'member' must be a str, got " + R.PeekTypeName());
             int off, len;
             R.ReadStringSegment(out off, out len);
             int cp = CodePoints(R.Buffer, off, len);
@@ -701,9 +714,22 @@ namespace Ofera.Client
                 throw Err(ErrorCodes.UnsupportedProtocol, "protocol " + protocol + " is not supported; this server speaks protocol " + Protocol.Version);
             Hello h = new Hello();
             h.Protocol = (int)protocol;
-            h.Layout = GetChoice(Top, Keys.Layout, w, Protocol.Layouts, ErrorCodes.UnknownLayout, null);
+            h.Room = GetStr(Top, Keys.Room, w, false, Protocol.MaxRoomLength); // rooms (PROTOCOL.md 12)
+            if (h.Room != null && !Protocol.IsRoomName(h.Room))
+                throw Err(ErrorCodes.BadField, "hello: field 'room' '" + h.Room + "' may hold only letters, digits and . _ -");
+            bool publish = GetOptBool(Top, Keys.Publish, w) ?? true;
+            if (h.Room != null && publish && Top[Keys.Avatar] < 0)
+                throw Err(ErrorCodes.BadField, "hello: field 'avatar' is required to publish in a room (or send 'publish': false to watch)");
+            if (h.Room != null)
+            {
+                h.Publish = publish;
+                h.Self = GetOptBool(Top, Keys.Self, w) ?? false;
+                h.RoomToken = GetStr(Top, Keys.RoomToken, w, false);
+            }
+            bool watching = h.Room != null && !publish; // a watcher sends no bs: its layout is optional
+            h.Layout = GetChoice(Top, Keys.Layout, w, Protocol.Layouts, ErrorCodes.UnknownLayout, watching ? "arkit52" : null);
             h.Avatar = GetStr(Top, Keys.Avatar, w, false) ?? "default";
-            h.Encoding = GetChoice(Top, Keys.Encoding_, w, Protocol.Encodings, ErrorCodes.UnknownEncoding, "f32");
+            h.Encoding = GetChoice(Top, Keys.Encoding_, w, ParamsProtocol.HelloEncodings, ErrorCodes.UnknownEncoding, "f32");
             h.Coords = GetChoice(Top, Keys.Coords, w, Protocol.CoordsNames, ErrorCodes.BadField, "flame");
             bool? sparse = GetOptBool(Top, Keys.Sparse, w);
             h.Sparse = sparse ?? false;
@@ -748,9 +774,12 @@ namespace Ofera.Client
             if (h.Device != null) n++;
             if (h.Token != null) n++;
             if (h.MaxGaussians.HasValue) n++;
-            if (h.Room != null) n++;
-            if (h.Publish.HasValue) n++;
-            if (h.Self.HasValue) n++;
+            // rooms: publish is written only when false, self only when true, as the reference does
+            bool room = h.Room != null, watch = room && h.Publish == false, self = room && h.Self == true;
+            if (room) n++;
+            if (watch) n++;
+            if (self) n++;
+            if (room && h.RoomToken != null) n++;
             w.WriteMapHeader(n);
             w.WriteString("type"); w.WriteString("hello");
             w.WriteString("protocol"); w.WriteInt(h.Protocol);
@@ -763,9 +792,10 @@ namespace Ofera.Client
             if (h.Device != null) { w.WriteString("device"); w.WriteString(h.Device); }
             if (h.Token != null) { w.WriteString("token"); w.WriteString(h.Token); }
             if (h.MaxGaussians.HasValue) { w.WriteString("max_gaussians"); w.WriteInt(h.MaxGaussians.Value); }
-            if (h.Room != null) { w.WriteString("room"); w.WriteString(h.Room); }
-            if (h.Publish.HasValue) { w.WriteString("publish"); w.WriteBool(h.Publish.Value); }
-            if (h.Self.HasValue) { w.WriteString("self"); w.WriteBool(h.Self.Value); }
+            if (room) { w.WriteString("room"); w.WriteString(h.Room); }
+            if (watch) { w.WriteString("publish"); w.WriteBool(false); }
+            if (self) { w.WriteString("self"); w.WriteBool(true); }
+            if (room && h.RoomToken != null) { w.WriteString("room_token"); w.WriteString(h.RoomToken); }
         }
 
         static readonly byte[] BsPrefix = { 0x84, 0xa4, (byte)'t', (byte)'y', (byte)'p', (byte)'e', 0xa2, (byte)'b', (byte)'s', 0xa3, (byte)'s', (byte)'e', (byte)'q' };

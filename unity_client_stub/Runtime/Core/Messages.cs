@@ -4,7 +4,7 @@ using System;
 
 namespace Ofera.Client
 {
-    public enum ServerMessageKind { None, Welcome, Avatar, Frame, Error, Pong, Join, Leave }
+    public enum ServerMessageKind { None, Welcome, Avatar, Frame, Error, Pong, Join, Leave, Rig }
     public enum ClientMessageKind { None, Hello, Blendshapes, Ping, Bye, Resync }
 
     /// <summary>Client -> server `hello`. Null fields are omitted on the wire (the server's defaults apply).</summary>
@@ -21,10 +21,13 @@ namespace Ofera.Client
         public string Device;
         public string Token;
         public long? MaxGaussians;
-        /// <summary>Rooms (DESIGN.md; not in PROTOCOL.md v1, a v1 server ignores them): room to join, publish (default true), self (default false).</summary>
+        /// <summary>Rooms (PROTOCOL.md 12; a server without rooms ignores them): room to join (1-64 of A-Z a-z 0-9 . _ -),
+        /// publish (default true; false: watch only), self (default false: also receive one's own avatar), room_token
+        /// (hex HMAC-SHA256 of the room name, if the server has a room secret). Written only with a room.</summary>
         public string Room;
         public bool? Publish;
         public bool? Self;
+        public string RoomToken;
     }
 
     /// <summary>Client -> server `bs` (as decoded by a server; a client encodes from its own arrays).</summary>
@@ -45,6 +48,8 @@ namespace Ofera.Client
         public Quant Quant; // only for q13
         /// <summary>A delta session's held codes (PROTOCOL.md 7.1, Delta.cs); null: frames are self-contained.</summary>
         public DeltaState Delta;
+        /// <summary>A params session (PROTOCOL.md 13): frames carry 68 values, the client deforms (Rig.cs).</summary>
+        public bool Params;
 
         public FrameFormat() { }
         public FrameFormat(FrameEncoding encoding, int count, bool sparse, Quant quant)
@@ -68,7 +73,11 @@ namespace Ofera.Client
         public bool Delta;
         public Quant Quant;     // null unless encoding q13
         public string Server;   // optional
-        /// <summary>Rooms (DESIGN.md "Rooms"; not yet in PROTOCOL.md): the room joined and this client's member id; null without a room.</summary>
+        /// <summary>Params sessions (PROTOCOL.md 13): the rig body's size in bytes; null otherwise.</summary>
+        public long? RigBytes;
+        /// <summary>Rooms (PROTOCOL.md 12.2): the room joined and this client's member id; null without a room. A room
+        /// session's welcome has no quant (each join carries its own), and no avatar for a watch-only member
+        /// (AvatarId null, Count 0).</summary>
         public string Room;
         public string Member;
 
@@ -85,6 +94,7 @@ namespace Ofera.Client
 
         public FrameFormat ToFormat()
         {
+            if (Encoding == ParamsProtocol.Encoding) return new FrameFormat(FrameEncoding.F32, Count, false, null) { Params = true };
             FrameEncoding e;
             Ofera.Client.Protocol.TryParseEncoding(Encoding, out e);
             FrameFormat f = new FrameFormat(e, Count, Sparse, e == FrameEncoding.Q13 ? Quant : null);
@@ -113,6 +123,8 @@ namespace Ofera.Client
         public readonly float[] Position;  // N x 3
         public readonly float[] Rotation;  // N x 4 (x, y, z, w)
         public readonly float[] Scale;     // N x 3
+        /// <summary>Params sessions: the rig that deforms this avatar (complete before the avatar is handed over); else null.</summary>
+        public RigData Rig;
 
         public AvatarData(int count, int shDegree)
         {
@@ -151,6 +163,12 @@ namespace Ofera.Client
         public float[] Position = new float[0]; // N x 3
         public float[] Rotation = new float[0]; // N x 4
         public float[] Scale = new float[0];    // N x 3
+        /// <summary>Params sessions: the frame's 68 values (HasParams); Position/Rotation/Scale then hold the client's
+        /// own deformation of the rig's Gaussians (Index = the rig's index) when HasValues.</summary>
+        public readonly float[] Params = new float[ParamsProtocol.Length];
+        public bool HasParams;
+        /// <summary>False for an unstamped params frame (no seq, t, timing: Seq and T are then 0).</summary>
+        public bool Stamped = true;
 
         public int TimingCount;
         public readonly string[] TimingNames = new string[Ofera.Client.Protocol.MaxTimingStages];
@@ -182,6 +200,8 @@ namespace Ofera.Client
         public void CopyFrom(FrameData o)
         {
             Seq = o.Seq; T = o.T; N = o.N; HasIndex = o.HasIndex; IsKey = o.IsKey; Member = o.Member; HasValues = o.HasValues;
+            HasParams = o.HasParams; Stamped = o.Stamped;
+            if (o.HasParams) Array.Copy(o.Params, Params, ParamsProtocol.Length);
             EnsureCapacity(o.N);
             if (o.HasIndex) Array.Copy(o.Index, Index, o.N);
             if (o.HasValues)
@@ -212,10 +232,12 @@ namespace Ofera.Client
         }
     }
 
-    /// <summary>Rooms: `join` {member, avatar {id, count, sh_degree}}; that member's `avatar` chunks follow.</summary>
+    /// <summary>Rooms: `join` {member, avatar {id, count, sh_degree}, quant?, publish?}; a publishing member's `avatar`
+    /// chunks follow. A watch-only member (Publish false) has no avatar (AvatarId null) and sends no frames.</summary>
     public sealed class JoinMessage
     {
         public string Member;
+        public bool Publish = true;
         public string AvatarId;
         public int Count;
         public int ShDegree;
@@ -241,6 +263,8 @@ namespace Ofera.Client
         public long PongT;
         public JoinMessage Join;
         public LeaveMessage Leave;
+        /// <summary>Params sessions: the `rig` chunk's header (its data stays in the input buffer).</summary>
+        public RigChunkHeader Rig;
     }
 
     /// <summary>Holder of a decoded client message (used by tests and by any C# server).</summary>

@@ -17,7 +17,8 @@ namespace Ofera.Client
         public string Url = "ws://127.0.0.1:8000/v1/stream";
         public string Layout = "ovr63";
         public string Avatar = "default";
-        /// <summary>f32, f16 or q13.</summary>
+        /// <summary>f32, f16, q13, or params (PROTOCOL.md 13: frames carry 68 values and the client deforms the avatar
+        /// from its rig, AvatarData.Rig; with DecodeValues on the receive thread, RigDeformer, else on the GPU).</summary>
         public string Encoding = "f32";
         /// <summary>unity (default: the server mirrors x for Unity) or flame.</summary>
         public string Coords = "unity";
@@ -145,7 +146,7 @@ namespace Ofera.Client
             _opt = options;
             _layoutLength = Protocol.LayoutLength(options.Layout);
             if (_layoutLength < 0) throw new ArgumentException("unknown layout '" + options.Layout + "'; expected one of " + string.Join(", ", Protocol.Layouts));
-            if (!Protocol.Contains(Protocol.Encodings, options.Encoding)) throw new ArgumentException("unknown encoding '" + options.Encoding + "'; expected f32, f16 or q13");
+            if (!Protocol.Contains(ParamsProtocol.HelloEncodings, options.Encoding)) throw new ArgumentException("unknown encoding '" + options.Encoding + "'; expected f32, f16, q13 or params");
             if (!Protocol.Contains(Protocol.CoordsNames, options.Coords)) throw new ArgumentException("unknown coords '" + options.Coords + "'; expected unity or flame");
             _uri = MakeUri(options.Url);
             _bsLatest = new float[_layoutLength];
@@ -419,11 +420,20 @@ namespace Ofera.Client
                     {
                         case ServerMessageKind.Welcome:
                             end.GotWelcome = true;
-                            SetStatus(ClientStatus.ReceivingAvatar, "welcome: session " + msg.Welcome.Session + ", " + msg.Welcome.Count + " Gaussians, " + msg.Welcome.Encoding + (msg.Welcome.Sparse ? " sparse" : " dense") + ", coords " + msg.Welcome.Coords);
+                            if (conn.InRoom) // a room session streams from welcome on; every avatar comes with a join
+                            {
+                                handshakeDone = true;
+                                rxToken = sessionCts.Token;
+                                handshakeCts.Dispose();
+                                SetStatus(ClientStatus.Streaming, "room " + msg.Welcome.Room + ": member " + msg.Welcome.Member + (msg.Welcome.AvatarId != null ? ", publishing " + msg.Welcome.AvatarId : ", watching") + ", " + msg.Welcome.Encoding + (msg.Welcome.Sparse ? " sparse" : " dense") + ", coords " + msg.Welcome.Coords);
+                            }
+                            else SetStatus(ClientStatus.ReceivingAvatar, "welcome: session " + msg.Welcome.Session + ", " + msg.Welcome.Count + " Gaussians, " + msg.Welcome.Encoding + (msg.Welcome.Sparse ? " sparse" : " dense") + ", coords " + msg.Welcome.Coords);
                             sender = Task.Run(() => SendLoopAsync(ws, conn, sessionCts.Token));
                             break;
                         case ServerMessageKind.Join:
-                            Emit(ClientEventKind.Info, "room: member " + msg.Join.Member + " joined (" + msg.Join.Count + " Gaussians); its avatar follows");
+                            Emit(ClientEventKind.Info, "room: member " + msg.Join.Member + " joined" + (msg.Join.Publish ? " (" + msg.Join.Count + " Gaussians); its avatar follows" : " (watching)"));
+                            _frames.Drop(msg.Join.Member); // a repeated join (the room healed): the old avatar's frames are void
+                            if (!msg.Join.Publish) _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Joined, Member = msg.Join.Member, Join = msg.Join, Session = session });
                             break;
                         case ServerMessageKind.Leave:
                             if (conn.LeftMember != null)
@@ -433,20 +443,13 @@ namespace Ofera.Client
                             }
                             break;
                         case ServerMessageKind.Avatar:
+                        case ServerMessageKind.Rig: // params sessions (PROTOCOL.md 13): the rig completes an avatar
                             if (conn.CompletedMember != null)
                             {
                                 MemberState ms = conn.CompletedMember;
                                 _roomEvents.Enqueue(new RoomEvent { Kind = RoomEventKind.Joined, Member = ms.Id, Avatar = ms.Avatar, Join = ms.Join, Welcome = conn.Welcome.ForMember(ms.Join), Session = session });
-                                if (conn.State == ClientState.ReceivingAvatar && !handshakeDone)
-                                {
-                                    // a watch-only room may never send an own avatar: the members' streams end the handshake
-                                    handshakeDone = true;
-                                    rxToken = sessionCts.Token;
-                                    handshakeCts.Dispose();
-                                    SetStatus(ClientStatus.Streaming, "streaming (room members)");
-                                }
                             }
-                            else if (conn.State == ClientState.Streaming && (msg.Avatar.Member == null || !conn.InRoom))
+                            else if (conn.State == ClientState.Streaming && ((kind == ServerMessageKind.Rig ? msg.Rig.Member : msg.Avatar.Member) == null || !conn.InRoom))
                             {
                                 lock (_avatarLock)
                                 {
@@ -469,12 +472,16 @@ namespace Ofera.Client
                                 Interlocked.Increment(ref Stats.FramesReceived);
                                 if (f.Member == null)
                                 {
-                                    // t and seq are this client's own only for its own stream
-                                    Stats.RoundTrip.Add(now - f.T);
-                                    long total = f.Timing("total");
-                                    if (total >= 0) Stats.ServerTotal.Add(total);
-                                    if (lastSeq >= 0 && f.Seq > lastSeq + 1) Interlocked.Add(ref Stats.FramesSkippedByServer, f.Seq - lastSeq - 1);
-                                    lastSeq = f.Seq;
+                                    // t and seq are this client's own only for its own stream; params frames carry them
+                                    // only when stamped (about once a second: PROTOCOL.md 13.5), so no seq gaps there
+                                    if (f.Stamped)
+                                    {
+                                        Stats.RoundTrip.Add(now - f.T);
+                                        long total = f.Timing("total");
+                                        if (total >= 0) Stats.ServerTotal.Add(total);
+                                    }
+                                    if (!f.HasParams && lastSeq >= 0 && f.Seq > lastSeq + 1) Interlocked.Add(ref Stats.FramesSkippedByServer, f.Seq - lastSeq - 1);
+                                    if (f.Stamped) lastSeq = f.Seq;
                                 }
                                 DeltaState ds = f.Member == null && conn.Format != null ? conn.Format.Delta : null;
                                 if (ds != null) // delta session: a frame replacing an untaken one must carry everything

@@ -21,6 +21,8 @@ namespace Ofera.Client
         public const int MaxTimingStages = 64;
         public const int MaxShDegree = 3;
         public const long UInt32Max = 4294967295L;
+        /// <summary>Longest room name (PROTOCOL.md 12.1).</summary>
+        public const int MaxRoomLength = 64;
 
         public static readonly string[] Layouts = { "arkit52", "arkit51", "mediapipe52", "ovr63", "ovr70", "livelink61" };
         public static readonly string[] Encodings = { "f32", "f16", "q13" };
@@ -76,6 +78,15 @@ namespace Ofera.Client
         /// <summary>Number of SH coefficients per colour channel: (degree + 1)^2.</summary>
         public static int ShCoefficients(int shDegree) { return (shDegree + 1) * (shDegree + 1); }
 
+        /// <summary>A room name: 1 to 64 of A-Z a-z 0-9 . _ - (PROTOCOL.md 12.1).</summary>
+        public static bool IsRoomName(string room)
+        {
+            if (string.IsNullOrEmpty(room) || room.Length > MaxRoomLength) return false;
+            foreach (char c in room)
+                if (!((c >= 'A' && c <= 'Z') || (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '.' || c == '_' || c == '-')) return false;
+            return true;
+        }
+
         internal static bool Contains(string[] set, string v)
         {
             for (int i = 0; i < set.Length; i++) if (set[i] == v) return true;
@@ -105,6 +116,9 @@ namespace Ofera.Client
         public const string ServerFull = "server_full";
         public const string TextFrame = "text_frame";
         public const string Internal = "internal";
+        /// <summary>Rooms (PROTOCOL.md 12.6): the room has its most members / the server its most rooms (try again later).</summary>
+        public const string RoomFull = "room_full";
+        public const string TooManyRooms = "too_many_rooms";
 
         /// <summary>True for codes that are fatal whenever they occur.</summary>
         public static bool AlwaysFatal(string code)
@@ -113,6 +127,7 @@ namespace Ofera.Client
             {
                 case UnsupportedProtocol: case UnknownLayout: case UnknownAvatar: case UnknownEncoding:
                 case Unauthorized: case MessageTooLarge: case ServerFull: case TextFrame: case Internal:
+                case RoomFull: case TooManyRooms:
                     return true;
                 default:
                     return false;
@@ -139,6 +154,8 @@ namespace Ofera.Client
                 case ServerFull: return 1013;
                 case TextFrame: return 1003;
                 case Internal: return 1011;
+                case RoomFull: return 4014;
+                case TooManyRooms: return 4015;
                 default: return 4000;
             }
         }

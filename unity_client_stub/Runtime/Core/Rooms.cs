@@ -1,23 +1,24 @@
-// Several avatars in one session (rooms, DESIGN.md "Rooms and scale-out"; the reference server does not
-// implement them yet): the newest-frame handoff per member between the receive thread and the main
-// thread, and the room events the main thread spawns and removes renderers from. UnityEngine-free, C# 7.2.
+// Several avatars in one session (rooms, PROTOCOL.md 12): the newest-frame handoff per member between the receive
+// thread and the main thread, and the room events the main thread spawns and removes renderers from.
+// UnityEngine-free, C# 7.2.
 using System.Collections.Generic;
 
 namespace Ofera.Client
 {
     public enum RoomEventKind { Joined, Left }
 
-    /// <summary>A member whose avatar is complete (Joined: spawn a renderer) or who left (Left: remove it).</summary>
+    /// <summary>A member whose avatar is complete (Joined: spawn a renderer), a watch-only member who joined (Joined with
+    /// Avatar null: nothing to show), or a member who left (Left: remove it).</summary>
     public sealed class RoomEvent
     {
         public RoomEventKind Kind;
         public string Member;
-        /// <summary>Joined: the member's static avatar (session coordinates); Left: null.</summary>
+        /// <summary>Joined: the member's static avatar (session coordinates), null for a watch-only member; Left: null.</summary>
         public AvatarData Avatar;
         public JoinMessage Join;
-        /// <summary>Joined: the session's welcome with this member's avatar (what a sink's SetAvatar needs).</summary>
+        /// <summary>Joined (publishing): the session's welcome with this member's avatar (what a sink's SetAvatar needs).</summary>
         public Welcome Welcome;
-        /// <summary>Left: the server's reason (may be null).</summary>
+        /// <summary>Left: the server's reason: bye, closed, server_gone or stale (PROTOCOL.md 12.4).</summary>
         public string Reason;
         /// <summary>Session number (OferaClient.SessionNumber) the event belongs to; members of older sessions are gone.</summary>
         public int Session;

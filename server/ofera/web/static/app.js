@@ -3,13 +3,16 @@
 // reduction), ?auto=0 (never reduce), ?enc=f32|f16|q13 (default f16), ?sparse=0, ?delta=1 (temporal deltas, f16 or
 // q13: PROTOCOL.md 7.1), ?res=PIXELS (largest
 // canvas side, default 480), ?minfps=15, ?fill=0 (no splat enlargement of a reduced stream),
-// ?avatar=ID, ?device=NAME, ?token=T, ?ws=URL.
+// ?avatar=ID, ?device=NAME, ?token=T, ?ws=URL. Rooms (PROTOCOL.md 12; the Room field does the same): ?room=NAME
+// joins a room (every member side by side, rooms.js), ?watch=1 watches only, ?self=1 shows one's own avatar too,
+// ?roomtoken=T.
 import { looksLikeJson, parseBsData } from "./bsdata.js";
 import { parseFaceLog } from "./facelog.js";
 import { decode } from "./msgpack.js";
 import { bsMessage, byeMessage, CLOSE_CODES, CLOSE_UNKNOWN_FATAL, decodeServerMessage, ENDPOINT, helloMessage, nowUs, ProtocolError,
   resyncMessage } from "./protocol.js";
 import { lookAt, perspective, SplatRenderer } from "./renderer.js";
+import { RoomView } from "./rooms.js";
 
 const params = new URLSearchParams(location.search);
 const intParam = (name) => {
@@ -27,6 +30,10 @@ const opts = {
   avatar: params.get("avatar") || "default",
   device: params.get("device") || undefined,
   token: params.get("token") || undefined,
+  room: params.get("room") || null,
+  publish: params.get("watch") !== "1",
+  self: params.get("self") === "1",
+  roomToken: params.get("roomtoken") || undefined,
   url: params.get("ws") || `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${ENDPOINT}`,
 };
 opts.auto = params.get("auto") !== "0" && opts.forcedMax === null;
@@ -35,6 +42,8 @@ const MIN_GAUSSIANS = 10000; // never ask for fewer when reducing automatically
 const SLOW_WINDOW_MS = 3000; // fps below minFps for this long -> reduced stream
 const MEASURE_MS = 4000; // keep updating this long after an avatar arrives, to measure fps
 const ACTIVE_MS = 1500; // keep updating this long after any change
+const ROOM_SEND_MS = 1000 / 72; // in a room no frame answers a bs: send the newest at most this often
+const ROOM_NAME = /^[A-Za-z0-9._-]{1,64}$/;
 
 const PRESETS = {
   neutral: {},
@@ -58,6 +67,7 @@ const sliders = [];
 let weightsDirty = true;
 
 let renderer = null;
+let room = null; // RoomView (rooms.js): the tiles of a room session
 const worker = new Worker(new URL("./splat-worker.js", import.meta.url), { type: "module" });
 let conn = null; // { ws, gen, state, welcome, count, maxGaussians, seq, lastSeq, lastSendMs, closing }
 let connGen = 0;
@@ -106,6 +116,10 @@ const debug = {
       && drawnView === viewVersion && !prepBusy && !needsDraw;
   },
   get playing() { return playback !== null && playback.timer !== null; },
+  /** Rooms: {room, member, members: [{member, avatar, count, self, state, framesReceived, fps, latencyMs, ...}],
+   * left: [{member, reason}], settled} (rooms.js); null outside a room session. */
+  get room() { return conn?.welcome?.room ? room.snapshot() : null; },
+  joinRoom,
   setWeight(name, value) { setWeights({ ...currentWeights(), [name]: value }); },
   setWeights,
   preset: applyPreset,
@@ -199,6 +213,10 @@ function buildControls() {
   $("stop").addEventListener("click", () => stopPlayback());
   $("full").addEventListener("click", () => { opts.forcedMax = null; connect(null); });
   $("reconnect").addEventListener("click", () => connect(conn?.maxGaussians ?? opts.forcedMax));
+  syncRoomControls();
+  $("join").addEventListener("click", () => joinRoom($("room").value.trim()));
+  $("room").addEventListener("keydown", (ev) => { if (ev.key === "Enter") joinRoom($("room").value.trim()); });
+  $("leave").addEventListener("click", () => joinRoom(null));
   document.addEventListener("dragover", (ev) => { ev.preventDefault(); document.body.classList.add("dragging"); });
   document.addEventListener("dragleave", (ev) => { if (!ev.relatedTarget) document.body.classList.remove("dragging"); });
   document.addEventListener("drop", async (ev) => {
@@ -207,6 +225,29 @@ function buildControls() {
     const f = ev.dataTransfer?.files?.[0];
     if (f) loadRecording(await f.text(), f.name);
   });
+}
+
+// ----- rooms -------------------------------------------------------------------------------------------------
+
+/** Join room `name` (reconnecting; null: leave the room for a v1 session). Returns an error text, or null. */
+function joinRoom(name, { publish = $("publish").checked, self = $("self").checked } = {}) {
+  if (name !== null && !ROOM_NAME.test(name)) {
+    const why = `room name '${name}': 1 to 64 letters, digits, '.', '_' or '-'`;
+    reportError(why);
+    return why;
+  }
+  Object.assign(opts, { room: name, publish, self });
+  syncRoomControls();
+  connect(opts.forcedMax);
+  return null;
+}
+
+function syncRoomControls() {
+  $("room").value = opts.room ?? "";
+  $("publish").checked = opts.publish;
+  $("self").checked = opts.self;
+  $("leave").disabled = opts.room === null;
+  document.body.classList.toggle("in-room", opts.room !== null);
 }
 
 function syncSliders() {
@@ -312,13 +353,16 @@ function connect(maxGaussians) {
   const gen = ++connGen;
   const ws = new WebSocket(opts.url);
   ws.binaryType = "arraybuffer";
-  conn = { ws, gen, state: "connecting", welcome: null, count: 0, maxGaussians, seq: 0, lastSeq: -1, lastSendMs: 0 };
+  conn = { ws, gen, state: "connecting", welcome: null, count: 0, maxGaussians, seq: 0, lastSeq: -1, lastSendMs: 0,
+    room: opts.room, publish: opts.room === null || opts.publish };
   const c = conn;
   prepBusy = false;
+  room.clear();
   setStatus(`connecting to ${opts.url}${maxGaussians ? ` (at most ${maxGaussians} Gaussians)` : ""} …`);
   ws.onopen = () => {
     ws.send(helloMessage({ layout: "arkit52", avatar: opts.avatar, encoding: opts.encoding, sparse: opts.sparse,
-      delta: opts.delta, device: opts.device, token: opts.token, maxGaussians: maxGaussians ?? undefined }));
+      delta: opts.delta && c.room === null, device: opts.device, token: opts.token, maxGaussians: maxGaussians ?? undefined,
+      room: c.room ?? undefined, publish: c.publish, self: opts.self, roomToken: opts.roomToken }));
   };
   ws.onmessage = (ev) => {
     if (c !== conn) return;
@@ -334,6 +378,7 @@ function connect(maxGaussians) {
     if (c !== conn) return;
     const was = c.state;
     c.state = "closed";
+    room.clear();
     if (c.closing) return;
     const why = c.refused ?? `disconnected (${ev.reason ? `${ev.code} ${ev.reason}` : ev.code})`;
     setStatus(`${why}; retrying in ${(retryMs / 1000).toFixed(0)} s`, true);
@@ -372,6 +417,10 @@ function onMessage(c, buffer) {
     return;
   }
   if (type === "pong") return;
+  if (c.room !== null) {
+    onRoomMessage(c, type, msg, buffer);
+    return;
+  }
   if (c.state === "connecting") {
     if (type !== "welcome") throw new ProtocolError("not_ready", `expected welcome, got ${type}`);
     c.welcome = msg;
@@ -402,6 +451,35 @@ function onMessage(c, buffer) {
   latencies.push((nowUs() - t) / 1000);
   if (latencies.length > 30) latencies.shift();
   prepWanted = true;
+  wake();
+}
+
+// A room session (PROTOCOL.md 12): streaming from welcome on; every avatar, one's own too (self), comes with a join,
+// its chunks and frames carry `member` (checked and applied in that member's worker, rooms.js).
+function onRoomMessage(c, type, msg, buffer) {
+  if (c.state === "connecting") {
+    if (type !== "welcome") throw new ProtocolError("not_ready", `expected welcome, got ${type}`);
+    if (msg.room === null) {
+      throw new ProtocolError("bad_field", `asked to join room '${c.room}', the server answered with a v1 welcome (no rooms there?)`);
+    }
+    c.welcome = msg;
+    c.state = "streaming";
+    retryMs = 1000;
+    room.start(msg);
+    setStatus(`room ${msg.room} · you are ${msg.member}, ${c.publish ? `publishing ${msg.avatar.id}` : "watching"} · ${msg.encoding}${msg.sparse ? " sparse" : ""} · session ${msg.session}`);
+    weightsDirty = c.publish; // the sliders' expression is the first bs
+    wake();
+    return;
+  }
+  if (type === "join") room.join(msg);
+  else if (type === "leave") room.leave(msg);
+  else if (type === "avatar" || type === "frame") {
+    if (typeof msg.member !== "string") throw new ProtocolError("bad_field", `${type} without 'member' in a room session`);
+    if (type === "avatar") room.chunk(msg.member, buffer);
+    else room.frame(msg.member, { seq: intField(msg, "seq"), t: intField(msg, "t"), timing: msg.timing }, buffer);
+  } else {
+    throw new ProtocolError("bad_field", `unexpected ${type} in a room session`);
+  }
   wake();
 }
 
@@ -438,8 +516,12 @@ worker.onmessage = ({ data }) => {
 function maybeSend(now) {
   const c = conn;
   if (!c || c.state !== "streaming" || !weightsDirty || c.ws.readyState !== WebSocket.OPEN) return;
-  const outstanding = c.seq - 1 - c.lastSeq; // sent, not answered (the server may skip some)
-  if (outstanding >= 2 && now - c.lastSendMs < 1000) return;
+  if (c.room !== null) { // no frame answers a bs (one's own come only with self): pace by time and the socket
+    if (!c.publish || c.ws.bufferedAmount > 0 || now - c.lastSendMs < ROOM_SEND_MS) return;
+  } else {
+    const outstanding = c.seq - 1 - c.lastSeq; // sent, not answered (the server may skip some)
+    if (outstanding >= 2 && now - c.lastSendMs < 1000) return;
+  }
   c.ws.send(bsMessage(c.seq, nowUs(), weights, playbackConf));
   c.seq += 1;
   c.lastSendMs = now;
@@ -549,9 +631,10 @@ function tick(now) {
   maybeSend(now);
   if (playback?.slidersStale) { playback.slidersStale = false; syncSliders(); }
   const c = conn;
-  const streaming = c?.state === "streaming";
+  const streaming = c?.state === "streaming" && c.room === null; // a room session draws in its tiles (rooms.js)
   const active = now < activeUntil;
   if (streaming && (prepWanted || active) && !prepBusy) requestPrep();
+  const roomBusy = room.tick(now);
   if (needsDraw) {
     renderer.draw();
     needsDraw = false;
@@ -560,7 +643,7 @@ function tick(now) {
   }
   measure(now, active && streaming);
   updateHud(now);
-  if (active || needsDraw || weightsDirty || prepBusy || prepWanted) {
+  if (active || needsDraw || (weightsDirty && c?.publish !== false) || prepBusy || prepWanted || roomBusy) {
     rafPending = true;
     requestAnimationFrame(tick);
   } else {
@@ -614,6 +697,8 @@ async function main() {
     setStatus(`WebGL2 is not available: ${e.message}`, true);
     return;
   }
+  room = new RoomView({ grid: $("tiles"), list: $("members"), res: opts.res, onError: reportError });
+  room.onViewChange = () => wake();
   table = await (await fetch(new URL("./layouts.json", import.meta.url))).json();
   names = table.arkit52;
   buildControls();

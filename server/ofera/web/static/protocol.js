@@ -29,11 +29,16 @@ export function nowUs() {
 
 // ----- client -> server ------------------------------------------------------------------------------
 
-/** `hello` (keys in the order of section 4.1; options left undefined are omitted). */
-export function helloMessage({ layout = "arkit52", avatar, encoding, coords, sparse, delta, device, token, maxGaussians } = {}) {
+/** `hello` (keys in the order of section 4.1; options left undefined are omitted). Rooms (section 12): `room`;
+ * `publish` false (watch only) and `self` true are written only with a room, as is `roomToken`. */
+export function helloMessage({ layout = "arkit52", avatar, encoding, coords, sparse, delta, device, token, maxGaussians,
+  room, publish, self, roomToken } = {}) {
+  const inRoom = room !== undefined && room !== null;
   return encode({
     type: "hello", protocol: PROTOCOL, layout, avatar, encoding, coords, sparse, delta: delta || undefined, device,
-    token, max_gaussians: maxGaussians,
+    token, max_gaussians: maxGaussians, room: inRoom ? room : undefined,
+    publish: inRoom && publish === false ? false : undefined, self: inRoom && self ? true : undefined,
+    room_token: inRoom ? roomToken : undefined,
   });
 }
 
@@ -126,32 +131,39 @@ export function decodeServerMessage(bytes) {
     case "welcome": {
       field(msg, "protocol", "int");
       field(msg, "session", "string");
-      const av = field(msg, "avatar", "map");
-      const avatar = { id: field(av, "id", "string"), count: field(av, "count", "int"), sh_degree: field(av, "sh_degree", "int"),
-        expression: field(av, "expression", "string", true) ?? "flame68" };
+      const room = field(msg, "room", "string", true); // rooms (section 12)
+      const av = field(msg, "avatar", "map", room !== undefined); // a watch-only room session has none
+      const avatar = av === undefined ? null : avatarInfo(av);
       const out = {
         type, protocol: msg.protocol, session: msg.session, avatar, layout: field(msg, "layout", "string"),
         encoding: field(msg, "encoding", "string"), coords: field(msg, "coords", "string"),
         sparse: field(msg, "sparse", "boolean", true) ?? false, server: field(msg, "server", "string", true),
         delta: field(msg, "delta", "boolean", true) ?? false,
+        room: room ?? null, member: room === undefined ? null : field(msg, "member", "string"),
       };
       if (!ENCODINGS.includes(out.encoding)) throw new ProtocolError("bad_field", `welcome: unknown encoding ${out.encoding}`);
       if (out.encoding === "q13") {
-        const q = field(msg, "quant", "map");
-        out.quant = {
-          pos_min: f32view(binLength(q, "pos_min", 12)).slice(),
-          pos_max: f32view(binLength(q, "pos_max", 12)).slice(),
-          log_scale: f32view(binLength(q, "log_scale", 8)).slice(),
-        };
+        const q = field(msg, "quant", "map", room !== undefined); // rooms: each join carries its avatar's
+        if (q !== undefined) out.quant = quantOf(q);
       }
       return out;
     }
+    case "join": { // rooms: a publishing member has an avatar (and quant for a q13 viewer), a watching one neither
+      const publish = field(msg, "publish", "boolean", true) ?? true;
+      const av = field(msg, "avatar", "map", !publish);
+      if (av !== undefined && !publish) throw new ProtocolError("bad_field", "join: a watch-only member ('publish': false) has no 'avatar'");
+      const q = field(msg, "quant", "map", true);
+      return { type, member: field(msg, "member", "string"), publish, avatar: av === undefined ? null : avatarInfo(av),
+        quant: q === undefined ? undefined : quantOf(q) };
+    }
+    case "leave":
+      return { type, member: field(msg, "member", "string"), reason: field(msg, "reason", "string") };
     case "avatar": {
       const n = field(msg, "n", "int");
       const shDegree = field(msg, "sh_degree", "int");
       const k = (shDegree + 1) * (shDegree + 1);
       return {
-        type, count: field(msg, "count", "int"), sh_degree: shDegree, chunk: field(msg, "chunk", "int"),
+        type, member: field(msg, "member", "string", true), count: field(msg, "count", "int"), sh_degree: shDegree, chunk: field(msg, "chunk", "int"),
         chunks: field(msg, "chunks", "int"), offset: field(msg, "offset", "int"), n,
         opacity: f32view(binLength(msg, "opacity", n * 4)), sh: f32view(binLength(msg, "sh", n * k * 12)),
         position: f32view(binLength(msg, "position", n * 12)), rotation: f32view(binLength(msg, "rotation", n * 16)),
@@ -160,7 +172,8 @@ export function decodeServerMessage(bytes) {
     }
     case "frame":
       return {
-        type, seq: field(msg, "seq", "int"), t: field(msg, "t", "int"), timing: field(msg, "timing", "map", true) ?? {},
+        type, member: field(msg, "member", "string", true), seq: field(msg, "seq", "int"), t: field(msg, "t", "int"),
+        timing: field(msg, "timing", "map", true) ?? {},
         key: field(msg, "key", "boolean", true), n: field(msg, "n", "int"), index: field(msg, "index", "bin", true),
         changed: field(msg, "changed", "bin", true), moved_position: field(msg, "moved_position", "bin", true),
         moved_rotation: field(msg, "moved_rotation", "bin", true), moved_scale: field(msg, "moved_scale", "bin", true),
@@ -178,6 +191,16 @@ export function decodeServerMessage(bytes) {
     default:
       throw new ProtocolError("unknown_type", `unknown message type '${type}'`);
   }
+}
+
+function avatarInfo(av) {
+  return { id: field(av, "id", "string"), count: field(av, "count", "int"), sh_degree: field(av, "sh_degree", "int"),
+    expression: field(av, "expression", "string", true) ?? "flame68" };
+}
+
+function quantOf(q) {
+  return { pos_min: f32view(binLength(q, "pos_min", 12)).slice(), pos_max: f32view(binLength(q, "pos_max", 12)).slice(),
+    log_scale: f32view(binLength(q, "log_scale", 8)).slice() };
 }
 
 // ----- frame encodings -------------------------------------------------------------------------------

@@ -1,0 +1,513 @@
+"""Rooms (PROTOCOL.md 12): members who meet, each publishing member's frames watched by every other one.
+
+- `RoomViewer`: one connection's view of a room: one slot per member it watches (newest wins per member), a
+  queue of control messages (`join`, avatar chunks, `leave`), and one sender that encodes a member's frame only
+  when it is about to be sent (through the frame's shared cache: once per wire format) and keeps at most
+  `room_send_bytes` of frames in flight on the socket.
+- `Room`: the members of one room (local ones, connected here, and remote ones, on other servers through the
+  bus), with subscribe / unsubscribe between their Sources and the local members' RoomViewers. Each member's
+  avatar is prepared once per wire format (`wire.MemberWire`) for all viewers of that format.
+- `Rooms`: this server's rooms, their limits, and the `BusListener` a cross-server bus reports to. A remote
+  member is a `RemoteSource` fed with its mapped expression values and deformed once per frame for all local
+  viewers, only while some local viewer wants a frame.
+
+Everything runs on the event loop; avatar preparation, deformation and encoding run in the hub's executor.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Any
+
+from ofera_protocol import Hello, ProtocolError, ServerConnection, encode
+from ofera_protocol import errors as E
+from ofera_protocol.messages import Join, Leave
+
+from .bus import BusListener, ExpressionValues, MemberInfo, RoomBus
+from .config import Settings
+from .metrics import Metrics
+from .pipeline import AvatarAssets
+from .registry import AvatarRegistry
+from .roles import ComputedFrame, SendBytes, Source, encode_computed
+from .wire import MemberWire, prepare_member_wire, reduced_size, wire_key
+
+log = logging.getLogger("ofera.streaming.rooms")
+
+BYE, CLOSED, STALE = "bye", "closed", "stale"
+"""`leave.reason`s of this server: the member sent bye; its connection closed; the bus was lost (12.5)."""
+
+
+def new_member_id() -> str:
+    """A member id unique across servers with overwhelming probability (48 random bits)."""
+    return "m-" + secrets.token_hex(6)
+
+
+class ViewerGone(Exception):
+    """Sending to the viewer's connection failed: the session ends."""
+
+
+class MemberSlot:
+    """One member as one viewer sees it: at most one unsent frame (newest wins)."""
+
+    def __init__(self, viewer: RoomViewer, wire: MemberWire, wake: Callable[[], None]) -> None:
+        self.viewer, self.wire, self.wake = viewer, wire, wake
+        self.frame: ComputedFrame | None = None
+        self.busy = False  # a frame of this member is on its way to the socket
+        self.size = 0  # bytes of its last frame (the next one's estimate)
+
+    @property
+    def full(self) -> bool:
+        return self.frame is not None
+
+    def offer(self, frame: ComputedFrame) -> None:
+        if self.frame is not None:
+            self.viewer.skipped += 1
+            self.viewer.metrics.skipped.labels("frame").inc()
+        self.frame = frame
+        self.viewer.ready()
+
+    def take(self) -> ComputedFrame:
+        frame, self.frame = self.frame, None
+        assert frame is not None
+        self.wake()  # its source may compute again
+        return frame
+
+
+class RoomViewer:
+    """Frames and control messages of one connection in a room. `run` sends until the connection fails."""
+
+    def __init__(self, send: SendBytes, executor: Executor, metrics: Metrics, limit_bytes: int) -> None:
+        self.send = send
+        self.executor = executor
+        self.metrics = metrics
+        self.limit = limit_bytes
+        self.slots: dict[str, MemberSlot] = {}
+        self.joined: set[str] = set()  # members whose join this viewer was sent (or queued)
+        self.control: deque[bytes] = deque()
+        self.inflight = 0
+        self.sent = 0
+        self.skipped = 0
+        self._event = asyncio.Event()
+        self._sending: set[asyncio.Task] = set()
+        self._error: BaseException | None = None
+        self._turn = 0
+
+    def ready(self) -> None:
+        self._event.set()
+
+    # ------------------------------------------------------------------ membership
+
+    def announce(self, member: str, messages: list[bytes]) -> None:
+        """Queue `member`'s join (and avatar messages): sent before any of its frames."""
+        self.joined.add(member)
+        self.control.extend(messages)
+        self.ready()
+
+    def add(self, wire: MemberWire, wake: Callable[[], None]) -> MemberSlot:
+        """Watch `wire.member`: its join and avatar go out first, then its frames (`slot.offer`)."""
+        self.announce(wire.member, wire.messages)
+        slot = self.slots[wire.member] = MemberSlot(self, wire, wake)
+        return slot
+
+    def remove(self, member: str, reason: str) -> MemberSlot | None:
+        """Stop watching `member` (its unsent frame is dropped); a `leave` follows if its join was sent."""
+        slot = self.slots.pop(member, None)
+        if member in self.joined:
+            self.joined.discard(member)
+            self.control.append(encode(Leave(member=member, reason=reason)))
+            self.ready()
+        return slot
+
+    # ------------------------------------------------------------------ sending
+
+    def _next(self) -> MemberSlot | None:
+        """The next member (round robin) with a frame to send and none on its way."""
+        slots = list(self.slots.values())
+        for i in range(len(slots)):
+            slot = slots[(self._turn + i) % len(slots)]
+            if slot.full and not slot.busy:
+                self._turn = (self._turn + i + 1) % len(slots)
+                return slot
+        return None
+
+    def _encode(self, wire: MemberWire, frame: ComputedFrame) -> Any:
+        t0 = time.perf_counter_ns()
+        data, made = frame.encoded(wire.key, lambda f: encode_computed(wire.writer, f))
+        if made:
+            self.metrics.stage.labels("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
+        return data
+
+    async def _send_frame(self, slot: MemberSlot, data: Any, frame: ComputedFrame) -> None:
+        n = len(data)
+        try:
+            await self.send(data)
+            self.sent += 1
+            self.metrics.frames_out.inc()
+            self.metrics.bytes_out.inc(n)
+            self.metrics.server_latency.observe((time.monotonic_ns() - frame.received_ns) * 1e-9)
+        except BaseException as exc:  # noqa: BLE001 - handed to run(), which ends the session
+            self._error = exc
+        finally:
+            self.inflight -= n
+            slot.busy = False
+            self.ready()
+
+    async def _drain(self) -> None:
+        """Wait until no frame is on its way (control messages keep their order with every member's frames)."""
+        while self._sending:
+            await asyncio.wait(set(self._sending))
+        if self._error is not None:
+            raise self._error
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            while True:
+                if self._error is not None:
+                    raise self._error
+                if self.control:
+                    await self._drain()
+                    while self.control:
+                        data = self.control.popleft()
+                        await self.send(data)
+                        self.metrics.bytes_out.inc(len(data))
+                    continue
+                slot = self._next()
+                if slot is None or (self.inflight and self.inflight + slot.size > self.limit):
+                    self._event.clear()
+                    await self._event.wait()
+                    continue
+                frame = slot.take()
+                slot.busy = True
+                try:
+                    data = await loop.run_in_executor(self.executor, self._encode, slot.wire, frame)
+                except Exception as exc:
+                    log.exception("encoding frame %d of member %s failed", frame.seq, slot.wire.member)
+                    raise ViewerGone(f"encoding failed: {type(exc).__name__}") from exc
+                finally:
+                    slot.busy = False
+                if self.slots.get(slot.wire.member) is not slot:
+                    continue  # it left (its leave is queued) while the frame was encoded
+                slot.busy = True
+                slot.size = len(data)
+                self.inflight += slot.size
+                task = asyncio.create_task(self._send_frame(slot, data, frame))
+                self._sending.add(task)
+                task.add_done_callback(self._sending.discard)
+        finally:
+            for task in list(self._sending):
+                task.cancel()
+
+
+@dataclass
+class Member:
+    """One member of a room. Local: connected here (`viewer`, `hello`, `conn`); remote: on another server."""
+
+    info: MemberInfo
+    local: bool
+    assets: AvatarAssets | None = None  # None: watch-only, or (remote) an avatar this server does not have
+    source: Source | None = None
+    viewer: RoomViewer | None = None
+    hello: Hello | None = None
+    conn: ServerConnection | None = None
+    slots: list[MemberSlot] = field(default_factory=list)  # the viewers' slots of this member
+    task: asyncio.Task | None = None  # remote: its source's task
+    visible: bool = True  # False: a remote member whose avatar this server cannot resolve (no join is sent)
+
+    @property
+    def id(self) -> str:
+        return self.info.member
+
+    @property
+    def wants(self) -> bool:
+        """Some viewer of this member has room for a frame."""
+        return any(not s.full for s in self.slots)
+
+    @property
+    def wants_state(self) -> bool:
+        """Some viewer with room for a frame needs Gaussians (not only expression values)."""
+        return any(not s.full and s.wire.needs_state for s in self.slots)
+
+
+class Room:
+    """The members of one room and who watches whom (subscribe / unsubscribe)."""
+
+    def __init__(self, name: str, rooms: Rooms) -> None:
+        self.name = name
+        self.rooms = rooms
+        self.members: dict[str, Member] = {}
+        self._wires: dict[tuple, asyncio.Future[MemberWire]] = {}
+        self._tasks: set[asyncio.Task] = set()
+
+    @property
+    def local_count(self) -> int:
+        return sum(m.local for m in self.members.values())
+
+    def add(self, member: Member) -> None:
+        """`member` is in the room: every local viewer learns of it; a local member watches everyone present."""
+        self.members[member.id] = member
+        for other in list(self.members.values()):
+            if other.viewer is not None and (other is not member or (member.hello is not None and member.hello.self)):
+                self.subscribe(other, member)
+            if member.viewer is not None and other is not member:
+                self.subscribe(member, other)
+
+    def remove(self, member_id: str, reason: str) -> Member | None:
+        """`member_id` left: its viewers get a `leave`; its own viewer and source stop."""
+        member = self.members.pop(member_id, None)
+        if member is None:
+            return None
+        for other in self.members.values():
+            if other.viewer is not None:
+                slot = other.viewer.remove(member_id, reason)
+                if slot is not None and slot in member.slots:
+                    member.slots.remove(slot)
+            for slot in [s for s in other.slots if s.viewer is member.viewer]:
+                other.slots.remove(slot)
+                if other.source is not None:
+                    other.source.subscribers.remove(slot.offer)
+        if member.viewer is not None:
+            member.viewer.slots.clear()
+        member.slots.clear()
+        if member.source is not None:
+            member.source.subscribers.clear()
+            member.source.demand = member.source.needs_state = member.source.on_values = None
+        if member.task is not None:
+            member.task.cancel()
+        for key in [k for k in self._wires if k[0] == member_id]:
+            del self._wires[key]
+        return member
+
+    def subscribe(self, viewer: Member, target: Member) -> None:
+        """`viewer` (local) watches `target`: a watcher's join at once; a publisher's once its wire is ready."""
+        assert viewer.viewer is not None
+        if not target.visible or target.id in viewer.viewer.joined:
+            return
+        if not target.info.publish:
+            viewer.viewer.announce(target.id, [encode(Join(member=target.id, publish=False))])
+            return
+        if target.assets is None or target.source is None:
+            return  # a remote publisher still loading: add() runs again when it is ready
+        task = asyncio.create_task(self._subscribe(viewer, target))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def _subscribe(self, viewer: Member, target: Member) -> None:
+        try:
+            wire = await self._wire(target, viewer)
+        except Exception:
+            log.exception("room %s: preparing member %s for member %s failed", self.name, target.id, viewer.id)
+            return
+        if self.members.get(target.id) is not target or self.members.get(viewer.id) is not viewer:
+            return  # one of them left meanwhile
+        assert viewer.viewer is not None and target.source is not None
+        if target.id in viewer.viewer.joined:
+            return
+        slot = viewer.viewer.add(wire, target.source.wake)
+        target.slots.append(slot)
+        target.source.subscribers.append(slot.offer)
+        target.source.wake()
+
+    def _wire(self, target: Member, viewer: Member) -> asyncio.Future[MemberWire]:
+        """`target`'s avatar in `viewer`'s wire format, prepared once per format (in the executor)."""
+        assert viewer.hello is not None and viewer.conn is not None and target.assets is not None
+        hello = viewer.hello
+        key = (target.id, *wire_key(hello, reduced_size(hello.max_gaussians, target.assets.count)))
+        fut = self._wires.get(key)
+        if fut is None or (fut.done() and fut.exception() is not None):
+            loop = asyncio.get_running_loop()
+            fut = self._wires[key] = loop.run_in_executor(self.rooms.executor, prepare_member_wire, viewer.conn,
+                                                          target.assets, target.id, hello, self.rooms.settings)
+        return fut
+
+
+class RemoteSource(Source):
+    """A member on another server: its expression values (from the bus) are deformed here, once per frame for all
+    local viewers, and only while one of them has room for a frame (`demand`)."""
+
+    def _compute(self, p: PendingValues) -> ComputedFrame:  # type: ignore[override]
+        start = time.monotonic_ns()
+        msg = p.msg
+        state = None
+        stages: dict[str, int] = {}
+        if self.needs_state is None or self.needs_state():
+            state, stages = self.pipeline.deform_values(msg.values)
+        end = time.monotonic_ns()
+        timing = {"queue": (start - p.received_ns) // 1000, **stages, "total": (end - p.received_ns) // 1000}
+        return ComputedFrame(msg.seq, msg.t, state, timing, p.received_ns, msg.values, self.member)
+
+    def _failed(self, pending: Any, exc: Exception) -> None:
+        log.error("deforming frame %d of remote member %s failed: %s: %s", pending.seq, self.member,
+                  type(exc).__name__, exc)
+
+
+@dataclass
+class PendingValues:
+    """A remote member's frame waiting to be deformed."""
+
+    msg: ExpressionValues
+    received_ns: int
+
+    @property
+    def seq(self) -> int:
+        return self.msg.seq
+
+
+class Rooms(BusListener):
+    """This server's rooms: limits, local members joining and leaving, and what the bus reports."""
+
+    def __init__(self, settings: Settings, registry: AvatarRegistry, executor: Executor, metrics: Metrics) -> None:
+        self.settings = settings
+        self.registry = registry
+        self.executor = executor
+        self.metrics = metrics
+        self.rooms: dict[str, Room] = {}
+        self.bus: RoomBus | None = None
+        self.connected = True  # the bus (when there is one) is reachable
+        self._tasks: set[asyncio.Task] = set()
+
+    # ------------------------------------------------------------------ local members
+
+    def admit(self, room: str) -> None:
+        """Raise the fatal ProtocolError of a full room or a server at its room limit (PROTOCOL.md 12.6)."""
+        r = self.rooms.get(room)
+        if r is None and len(self.rooms) >= self.settings.max_rooms:
+            self.metrics.room_events.labels("refused").inc()
+            raise ProtocolError(E.TOO_MANY_ROOMS, f"this server holds its limit of {self.settings.max_rooms} rooms; "
+                                "join an existing room or retry later", True)
+        if r is not None and len(r.members) >= self.settings.room_members:
+            self.metrics.room_events.labels("refused").inc()
+            raise ProtocolError(E.ROOM_FULL, f"room {room!r} has its limit of {self.settings.room_members} members; "
+                                "retry later", True)
+
+    def join_local(self, room: str, member: Member) -> Room:
+        """A local member enters `room` (limits checked again: avatars load between admit and join)."""
+        self.admit(room)
+        r = self.rooms.get(room)
+        if r is None:
+            r = self.rooms[room] = Room(room, self)
+            self.metrics.rooms.set(len(self.rooms))
+        src = member.source
+        if src is not None:
+            src.member = member.id
+            src.demand = lambda: self.bus is not None or member.wants
+            src.needs_state = lambda: member.wants_state
+            if self.bus is not None:
+                src.on_values = lambda f: self._publish(room, f)
+        r.add(member)
+        self.metrics.room_members.labels("local").inc()
+        self.metrics.room_events.labels("join").inc()
+        if self.bus is not None:
+            self._spawn(self.bus.join(room, member.info), f"bus join {member.id}")
+        log.info("room %s: member %s joined (%s, %d members)", room, member.id,
+                 f"avatar {member.info.avatar}" if member.info.publish else "watching", len(r.members))
+        return r
+
+    def leave_local(self, room: str, member_id: str, reason: str) -> None:
+        r = self.rooms.get(room)
+        if r is None or r.remove(member_id, reason) is None:
+            return
+        self.metrics.room_members.labels("local").dec()
+        self.metrics.room_events.labels("leave").inc()
+        if self.bus is not None:
+            self._spawn(self.bus.leave(room, member_id, reason), f"bus leave {member_id}")
+        log.info("room %s: member %s left (%s)", room, member_id, reason)
+        self._close_if_empty(r)
+
+    def _close_if_empty(self, r: Room) -> None:
+        if r.local_count == 0:  # remote members only: this server no longer takes part
+            for m in list(r.members.values()):
+                self._drop_remote(r, m.id, CLOSED)
+            self.rooms.pop(r.name, None)
+            self.metrics.rooms.set(len(self.rooms))
+
+    def _publish(self, room: str, frame: ComputedFrame) -> None:
+        assert self.bus is not None and frame.member is not None and frame.values is not None
+        self.bus.publish(ExpressionValues(room, frame.member, frame.seq, frame.t, frame.values))
+
+    def _spawn(self, coro: Awaitable[None], what: str) -> None:
+        async def guarded() -> None:
+            try:
+                await coro
+            except Exception as exc:  # noqa: BLE001 - the bus reports its own state; this server goes on
+                log.warning("%s failed: %s: %s", what, type(exc).__name__, exc)
+
+        task = asyncio.create_task(guarded())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # ------------------------------------------------------------------ BusListener
+
+    def remote_joined(self, room: str, info: MemberInfo) -> None:
+        r = self.rooms.get(room)
+        if r is None:
+            return
+        known = r.members.get(info.member)
+        if known is not None:
+            if known.local or known.info == info:
+                return
+            self._drop_remote(r, info.member, CLOSED)
+        member = Member(info=info, local=False)
+        self.metrics.room_members.labels("remote").inc()
+        if not info.publish:
+            r.add(member)
+            return
+        aid = self.registry.resolve(info.avatar)
+        if aid is None:
+            log.warning("room %s: remote member %s publishes avatar %r, which this server does not have: its viewers "
+                        "here see nothing of it", room, info.member, info.avatar)
+            self.metrics.room_unresolved.inc()
+            member.visible = False
+            r.members[member.id] = member
+            return
+        r.members[member.id] = member  # counted now; visible once its avatar is loaded
+        self._spawn(self._load_remote(r, member, aid), f"loading avatar {aid} of remote member {info.member}")
+
+    async def _load_remote(self, r: Room, member: Member, aid: str) -> None:
+        assets = await asyncio.get_running_loop().run_in_executor(self.executor, self.registry.get, aid)
+        if r.members.get(member.id) is not member or self.rooms.get(r.name) is not r:
+            return
+        src = RemoteSource(assets.pipeline("arkit52"), self.executor, self.metrics)
+        src.member = member.id
+        src.demand = lambda: member.wants
+        src.needs_state = lambda: member.wants_state
+        member.assets, member.source = assets, src
+        member.task = asyncio.create_task(src.run(), name=f"remote-{member.id}")
+        r.add(member)
+
+    def remote_left(self, room: str, member: str, reason: str) -> None:
+        r = self.rooms.get(room)
+        if r is not None:
+            self._drop_remote(r, member, reason)
+
+    def _drop_remote(self, r: Room, member: str, reason: str) -> None:
+        m = r.members.get(member)
+        if m is None or m.local:
+            return
+        r.remove(member, reason)
+        self.metrics.room_members.labels("remote").dec()
+
+    def remote_values(self, msg: ExpressionValues) -> None:
+        r = self.rooms.get(msg.room)
+        m = r.members.get(msg.member) if r is not None else None
+        if m is not None and not m.local and m.source is not None:
+            m.source.offer(PendingValues(msg, time.monotonic_ns()))
+
+    def bus_state(self, connected: bool) -> None:
+        """Lost: every remote member leaves with reason `stale`; back: the bus replays them (`remote_joined`)."""
+        self.connected = connected
+        if connected:
+            log.info("rooms: the bus is back; remote members rejoin")
+            return
+        log.warning("rooms: the bus is lost; remote members are stale")
+        for r in list(self.rooms.values()):
+            for m in [m for m in r.members.values() if not m.local]:
+                self._drop_remote(r, m.id, STALE)
+                self.metrics.room_events.labels("stale").inc()
