@@ -327,6 +327,25 @@ def pct(samples, qs=(50, 90, 99, 99.9)) -> dict[str, float | None]:
     return out
 
 
+SPIN_US = 1500.0
+"""The last this-many microseconds before a scheduled send are waited out with zero-length sleeps (the loop
+keeps reading): asyncio's timers wake up to a millisecond late (epoll's timeout is in whole ms, rounded up),
+which would otherwise be counted as latency."""
+
+
+async def sleep_until(due_us: float, spin_us: float = SPIN_US) -> None:
+    """Wait until ``due_us`` (ofera.client.now_us clock) within a few microseconds: sleep, then spin the loop."""
+    import asyncio
+
+    from ofera.client import now_us
+
+    delay = (due_us - now_us() - spin_us) / 1e6
+    if delay > 0:
+        await asyncio.sleep(delay)
+    while now_us() < due_us:
+        await asyncio.sleep(0)
+
+
 async def paced_session(client, weights: np.ndarray, start_us: float, period_us: float, total: int,
                         on_message, tail_s: float) -> float:
     """Send ``total`` bs without coordinated omission (bs k is due at ``start_us + k * period_us`` and carries
@@ -340,9 +359,7 @@ async def paced_session(client, weights: np.ndarray, start_us: float, period_us:
     async def sender() -> None:
         for k in range(total):
             due = start_us + k * period_us
-            delay = (due - now_us()) / 1e6
-            if delay > 0:
-                await asyncio.sleep(delay)
+            await sleep_until(due)
             await client.send_bs(weights[k % len(weights)], seq=k, t=int(due))
 
     async def receiver() -> None:

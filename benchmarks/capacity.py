@@ -2,7 +2,8 @@
 
     python benchmarks/capacity.py --gaussians 100000 --rate 72 --seconds 3 --encoding f16 --json out.json
 
-One server (subprocess, fast path) and K clients in one asyncio process, each sending the capture's
+One server (subprocess, fast path) and K clients in one asyncio process (``--client-procs P``: spread over P
+processes, so one client event loop is not the bottleneck measured), each sending the capture's
 blendshapes on its own fixed schedule (offset so the K streams interleave) and stamping the scheduled
 time (no coordinated omission). Latency = frame received - scheduled send time; a bs that no frame answered
 (newest-wins dropped it) counts too, with the latency of the first later frame (its arrival - the dropped
@@ -19,7 +20,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import json
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -30,9 +34,10 @@ from latency import _frame_header  # noqa: E402
 
 
 async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: float, decode: bool,
-                seq0: int) -> dict:
+                seq0: int, indices: list[int] | None = None, start: float | None = None) -> dict:
     """Clients[:k] stream for warmup + seconds; returns latencies (ms) after warm-up, answered and dropped bs
-    alike, and counts."""
+    alike, and counts. ``indices``: the session numbers (of k) of ``clients`` when they are a worker's share
+    (default 0..k-1); ``start``: the common start time (us, wall clock) of every worker."""
     from ofera.client import now_us
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
@@ -41,7 +46,8 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
     total = int((warmup + seconds) * rate)
     first = seq0 + int(warmup * rate)
     last = seq0 + total - 1
-    start = now_us() + 200_000
+    start = now_us() + 200_000 if start is None else start
+    indices = list(range(k)) if indices is None else indices
     lat: list[float] = []
     dropped: list[float] = []
     received = np.zeros(k, np.int64)
@@ -88,31 +94,97 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
         scheduled = {seq0 + j: start + offset + j * period for j in range(first - seq0, total)}
         dropped.extend(C.drop_latencies(scheduled, arrivals, now_us()).values())
 
-    await asyncio.gather(*(one(i, c) for i, c in enumerate(clients[:k])))
-    sent = k * (total - int(warmup * rate))
+    await asyncio.gather(*(one(i, c) for i, c in zip(indices, clients)))
+    sent = len(indices) * (total - int(warmup * rate))
     return {"lat": lat + dropped, "sent": sent, "received": int(received.sum()), "dropped": len(dropped),
             "next_seq": seq0 + total}
 
 
-async def sweep(url: str, ks: list[int], weights, layout: str, args) -> dict:
+def hello(args) -> dict:
+    return {"encoding": args.encoding, "sparse": args.sparse, "delta": args.delta}
+
+
+async def worker_main(spec: dict) -> None:
+    """A client process (--client-procs > 1): connect this share of the sessions, print "ready", read the common
+    start time from stdin, stream, print the result (JSON) with the CPU this process used."""
+    from ofera.client import connect
+
+    weights, layout, _, _ = C.capture()
+    clients = [await connect(spec["url"], layout=layout, **spec["hello"]) for _ in spec["indices"]]
+    print("ready", flush=True)
+    start = float(await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline))
+    cpu0 = C.cpu_seconds()
+    r = await run_k(clients, spec["k"], weights, spec["rate"], spec["seconds"], spec["warmup"], spec["decode"],
+                    spec["seq0"], spec["indices"], start)
+    r["cpu_s"] = C.cpu_seconds() - cpu0
+    for c in clients:
+        await c.close()
+    print(json.dumps(r), flush=True)
+
+
+def run_k_processes(url: str, k: int, procs: int, args, seq0: int) -> dict:
+    """run_k with the k sessions spread over `procs` client processes (each its own interpreter and GIL)."""
+    from ofera.client import now_us
+
+    shares = [list(range(k))[i::procs] for i in range(min(procs, k))]
+    workers = []
+    for share in shares:
+        spec = {"url": url, "hello": hello(args), "indices": share, "k": k, "rate": args.rate,
+                "seconds": args.seconds, "warmup": args.warmup, "decode": args.decode == "full", "seq0": seq0}
+        workers.append(subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True))
+    try:
+        for w in workers:
+            line = w.stdout.readline()
+            if line.strip() != "ready":
+                raise RuntimeError(f"a client process failed to connect: {line!r}")
+        start = now_us() + 300_000
+        t0 = time.monotonic()
+        for w in workers:
+            w.stdin.write(f"{start}\n")
+            w.stdin.flush()
+        results = [json.loads(w.stdout.readline()) for w in workers]
+        wall = time.monotonic() - t0
+    finally:
+        for w in workers:
+            if w.poll() is None:
+                w.kill()
+            w.wait()
+    return {"lat": [x for r in results for x in r["lat"]], "sent": sum(r["sent"] for r in results),
+            "received": sum(r["received"] for r in results), "dropped": sum(r["dropped"] for r in results),
+            "next_seq": results[0]["next_seq"], "client_cores": round(sum(r["cpu_s"] for r in results) / wall, 3)}
+
+
+async def sweep(url: str, ks: list[int], weights, layout: str, args, server_pid: int | None = None) -> dict:
     from ofera.client import connect
 
     clients = []
-    for _ in range(max(ks)):
-        clients.append(await connect(url, layout=layout, encoding=args.encoding, sparse=args.sparse))
+    if args.client_procs <= 1:
+        for _ in range(max(ks)):
+            clients.append(await connect(url, layout=layout, **hello(args)))
     out = {}
     seq = 0
     try:
         for k in ks:
-            r = await run_k(clients, k, weights, args.rate, args.seconds, args.warmup, args.decode == "full", seq)
+            with C.CpuMeter(server_pid) as cpu:
+                if args.client_procs > 1:
+                    r = await asyncio.get_running_loop().run_in_executor(None, run_k_processes, url, k,
+                                                                         args.client_procs, args, seq)
+                else:
+                    r = await run_k(clients[:k], k, weights, args.rate, args.seconds, args.warmup,
+                                    args.decode == "full", seq)
             seq = r["next_seq"]
+            usage = cpu.report()
+            if "client_cores" in r:  # client processes: their own CPU time (this process only waited)
+                usage["client_cores"] = r["client_cores"]
             p = C.pct(r["lat"])
             out[k] = {"p50_ms": p["p50"], "p99_ms": p["p99"], "max_ms": p["max"], "sent": r["sent"],
                       "frames": r["received"], "skipped": r["dropped"],
-                      "drop_fraction": round(r["dropped"] / r["sent"], 4), "_lat": r["lat"]}
+                      "drop_fraction": round(r["dropped"] / r["sent"], 4), "cpu": usage, "_lat": r["lat"]}
             out[k]["passes"] = passes(out[k], args.budget_ms, args.max_drop)
             print(f"  K={k:2d}: p50 {p['p50']} ms, p99 {p['p99']} ms, skipped {r['dropped']} of {r['sent']} "
-                  f"({100 * out[k]['drop_fraction']:.1f}%)", flush=True)
+                  f"({100 * out[k]['drop_fraction']:.1f}%), cores: clients {usage['client_cores']}, server "
+                  f"{usage['server_cores']}", flush=True)
             await asyncio.sleep(0.3)
     finally:
         for c in clients:
@@ -170,9 +242,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--reference-sessions", default="1,2", help="K values for the reference server ('' = none)")
     ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13"])
     ap.add_argument("--sparse", action="store_true")
+    ap.add_argument("--delta", action="store_true", help="delta sessions (hello.delta): the compact stream")
     ap.add_argument("--decode", default="header", choices=["header", "full"])
+    ap.add_argument("--client-procs", type=int, default=1, help="spread the K clients over this many processes "
+                    "(1: all in this process's event loop)")
     ap.add_argument("--budget-ms", type=float, default=13.9, help="p99 bound of a passing K")
     ap.add_argument("--max-drop", type=float, default=0.01, help="largest fraction of bs dropped in a passing K")
+    ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"], help="the server's event loop")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=C.RESULTS / "capacity.json")
     args = ap.parse_args(argv)
@@ -188,8 +264,9 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         print(f"[capacity] {impl}: K = {ks}, {args.encoding}{' sparse' if args.sparse else ''}, {args.rate:g} Hz, "
               f"{args.seconds:g} s each", flush=True)
-        with C.ServerProcess(avatars, impl=impl, threads=args.threads) as server:
-            runs[impl] = asyncio.run(sweep(server.url, ks, weights, layout, args))
+        with C.ServerProcess(avatars, impl=impl, threads=args.threads,
+                         extra={"event_loop": args.event_loop}) as server:
+            runs[impl] = asyncio.run(sweep(server.url, ks, weights, layout, args, server.proc.pid))
     fast = runs["fast"]
     report = {
         "benchmark": "capacity",
@@ -198,6 +275,8 @@ def main(argv: list[str] | None = None) -> dict:
         "encoding": args.encoding,
         "sparse": args.sparse,
         "client_decode": args.decode,
+        "delta": args.delta,
+        "client_procs": args.client_procs,
         "budget_ms": args.budget_ms,
         "max_drop": args.max_drop,
         "per_k": {str(k): {kk: v for kk, v in r.items() if not kk.startswith("_")} for k, r in fast.items()},
@@ -206,7 +285,8 @@ def main(argv: list[str] | None = None) -> dict:
         "definitions": {"latency": "frame received (header read) - scheduled send time of its bs, loopback; a "
                                    "dropped bs counts with the arrival of the first later frame",
                         "skipped": "bs sent after warm-up that no frame answered (newest-wins dropped them)",
-                        "passes": "drop_fraction <= max_drop and p99_ms < budget_ms"},
+                        "passes": "drop_fraction <= max_drop and p99_ms < budget_ms",
+                        "cpu": "cores used on average per K: the client processes and the server"},
         "machine": C.machine(),
         "notes": notes,
     }
@@ -221,9 +301,11 @@ def main(argv: list[str] | None = None) -> dict:
         for k in sorted(res):
             r = res[k]
             rows.append([impl, k, r["frames"], r["skipped"], f"{100 * r['drop_fraction']:.1f}", r["p50_ms"],
-                         r["p99_ms"], r["max_ms"], "yes" if r["passes"] else "no"])
-    print(C.table(rows, ["impl", "K", "frames", "skipped", "drop %", "p50 ms", "p99 ms", "max ms",
-                         f"pass (drop<={100 * args.max_drop:g}%, p99<{args.budget_ms:g})"]))
+                         r["p99_ms"], r["max_ms"], r["cpu"]["client_cores"], r["cpu"]["server_cores"],
+                         "yes" if r["passes"] else "no"])
+    print(C.table(rows, ["impl", "K", "frames", "skipped", "drop %", "p50 ms", "p99 ms", "max ms", "client cores",
+                         "server cores", f"pass (drop<={100 * args.max_drop:g}%, p99<{args.budget_ms:g})"]))
+    print("load average:", C.machine()["loadavg_at_start"])
     print(f"largest K passing: fast {report['max_sessions_within_budget']}"
           + (f", reference {report['reference']['max_sessions_within_budget']}" if "reference" in report else ""))
     for n in notes:
@@ -236,5 +318,7 @@ def main(argv: list[str] | None = None) -> dict:
     return report
 
 
-if __name__ == "__main__":
+if __name__ == "__main__" and len(sys.argv) == 3 and sys.argv[1] == "--worker":
+    asyncio.run(worker_main(json.loads(sys.argv[2])))
+elif __name__ == "__main__":
     main()

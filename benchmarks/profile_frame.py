@@ -5,7 +5,8 @@
 A server in a subprocess (``_common.ServerProcess``: its own interpreter and GIL), one client here, a bs every
 1/--rate s carrying its scheduled time. Every stage is measured where it happens, per frame where it can be:
 
-  client   bs_send      scheduled time -> bs written to the client's socket (loop lateness + bs encoding)
+  client   bs_send      scheduled time -> bs written to the client's socket (loop lateness + bs encoding;
+                        the sender spins the last 1.5 ms: _common.sleep_until)
   server   decode       bs bytes received -> decoded and validated          (frame.timing, per frame)
            queue        decoded -> computation starts (thread pool hand-off) (frame.timing)
            layout, bda, epm, head, deform                                    (frame.timing)
@@ -60,9 +61,7 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
     async def sender() -> None:
         for k in range(total):
             due = start + k * period
-            delay = (due - now_us()) / 1e6
-            if delay > 0:
-                await asyncio.sleep(delay)
+            await C.sleep_until(due)
             await client.send_bs(weights[k % len(weights)], seq=k, t=int(due))
             sent_at[k] = now_us()
 
@@ -97,7 +96,8 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
 
 
 def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
-    with C.ServerProcess(avatars, impl=impl, threads=args.threads) as server:
+    with C.ServerProcess(avatars, impl=impl, threads=args.threads,
+                         extra={"event_loop": args.event_loop}) as server:
         http = f"http://127.0.0.1:{server.port}"
         before = C.stage_histograms(C.metrics_text(http))
         with C.CpuMeter(server.proc.pid) as cpu:
@@ -161,6 +161,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sparse", action="store_true")
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta; f16 or q13)")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
+    ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"], help="the server's event loop")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--client-decode", default="fast", choices=["fast", "reference"])
     ap.add_argument("--no-floor", action="store_true")

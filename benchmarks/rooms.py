@@ -43,7 +43,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
-HEADER_KEYS = frozenset({"type", "member", "seq", "t", "timing", "code", "message", "reason", "publish"})
+HEADER_KEYS = frozenset({"type", "member", "seq", "t", "timing", "code", "message", "reason", "publish", "count",
+                         "sh_degree", "chunk", "chunks", "offset", "n"})
 """Keys a header read unpacks; it stops at the first other key (a frame's arrays, an avatar's attributes)."""
 
 
@@ -104,8 +105,10 @@ class Member:
     ws: object
     member: str = ""
     joined: set[str] = field(default_factory=set)
+    avatars: set[str] = field(default_factory=set)  # members whose avatar (every chunk) arrived
     arrivals: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # member -> (seq, arrival us)
     timings: list[dict] = field(default_factory=list)
+    frame_bytes: int = 0  # bytes of the frames received in the measured window
     errors: list[str] = field(default_factory=list)
 
     async def receive(self, first: int, last: int, members: int, done: asyncio.Event) -> None:
@@ -121,6 +124,7 @@ class Member:
                 seq = h["seq"]
                 if seq >= first:
                     self.arrivals.setdefault(h["member"], []).append((seq, now_us()))
+                    self.frame_bytes += len(data)
                     if seq >= last:
                         finished.add(h["member"])
                         if len(finished) == members - 1:
@@ -129,8 +133,18 @@ class Member:
                         self.timings.append(h["timing"])
             elif kind == "join":
                 self.joined.add(h["member"])
+            elif kind == "avatar" and h.get("chunk") == h.get("chunks", 0) - 1:
+                self.avatars.add(h["member"])
             elif kind == "error":
                 self.errors.append(f"{h.get('code')}: {h.get('message')}")
+
+
+def parse_encoding(spec: str) -> tuple[str, bool]:
+    """'q13' -> ('q13', dense); 'q13:sparse' -> ('q13', sparse: only the Gaussians that move are sent)."""
+    name, _, mode = spec.partition(":")
+    if mode not in ("", "sparse"):
+        raise SystemExit(f"--encodings: {spec!r}: the only suffix is ':sparse'")
+    return name, mode == "sparse"
 
 
 async def open_member(url: str, index: int, server: int, room: str, layout: str, encoding: str) -> Member:
@@ -138,8 +152,9 @@ async def open_member(url: str, index: int, server: int, room: str, layout: str,
     from ofera_protocol.codec import encode_hello
     from websockets.asyncio.client import connect
 
+    name, sparse = parse_encoding(encoding)
     ws = await connect(url, compression=None, max_size=2**28, ping_interval=None)
-    await ws.send(encode_hello(Hello(layout=layout, avatar=C.AVATAR_ID, encoding=encoding, room=room)))
+    await ws.send(encode_hello(Hello(layout=layout, avatar=C.AVATAR_ID, encoding=name, sparse=sparse, room=room)))
     welcome = msgpack.unpackb(await ws.recv(), raw=False)
     if welcome.get("type") != "welcome":
         await ws.close()
@@ -161,11 +176,12 @@ async def run_k(urls: list[str], k: int, weights: np.ndarray, layout: str, encod
     done = [asyncio.Event() for _ in members]
     receivers = [asyncio.create_task(m.receive(first, last, k, d)) for m, d in zip(members, done)]
     deadline = time.monotonic() + 30
-    while any(len(m.joined - {m.member}) < k - 1 for m in members):  # everybody sees everybody before timing
+    while any(len(m.avatars - {m.member}) < k - 1 for m in members):  # everybody has everybody's avatar first
         if time.monotonic() > deadline:
-            raise RuntimeError(f"K={k}: members did not all see each other: {[len(m.joined) for m in members]}")
+            raise RuntimeError(f"K={k}: members did not all see each other: joins {[len(m.joined) for m in members]}"
+                               f", avatars {[len(m.avatars) for m in members]}")
         await asyncio.sleep(0.05)
-    await asyncio.sleep(0.5)  # the avatars' static attributes are on their way
+    await asyncio.sleep(0.3)
     start = now_us() + 200_000
     offsets = {m.member: m.index * period / k for m in members}
 
@@ -226,6 +242,8 @@ async def run_k(urls: list[str], k: int, weights: np.ndarray, layout: str, encod
            "drop_fraction": round(sum(dropped.values()) / n_sent, 4) if n_sent else 0.0,
            "server_cores_busy": [round(c / wall, 2) for c in server_cpu],
            "client_cores_busy": round(client_cpu / wall, 2), "stage_median_ms": stage_ms,
+           "frame_bytes_mean": round(sum(m.frame_bytes for m in members) / max(1, sum(frames.values()))),
+           "delivered_mb_per_s": round(sum(m.frame_bytes for m in members) / wall / 1e6, 1),
            "errors": sorted({e for m in members for e in m.errors})}
     if len(urls) > 1:
         for where in ("local", "remote"):
@@ -269,7 +287,7 @@ def sweep(avatars: Path, servers: int, encodings: list[str], ks: list[int], weig
         args.server_pids = [p.proc.pid for p in procs]
         offered = offered_encodings(procs[0].url.replace("ws://", "http://").removesuffix("/v1/stream"))
         for enc in encodings:
-            if enc not in offered:
+            if parse_encoding(enc)[0] not in offered:
                 print(f"  {enc}: not offered by this server ({offered}): skipped", flush=True)
                 continue
             out[enc] = {}
@@ -285,7 +303,8 @@ def sweep(avatars: Path, servers: int, encodings: list[str], ks: list[int], weig
                 if "remote" in r:
                     extra_s = f" (same server p50 {r['local']['p50_ms']}, across Redis p50 {r['remote']['p50_ms']})"
                 print(f"  {servers} server(s) {enc} K={k}: p50 {r['p50_ms']} ms, p99 {r['p99_ms']} ms, dropped "
-                      f"{r['dropped']}/{r['sent']} ({100 * r['drop_fraction']:.1f}%), servers busy "
+                      f"{r['dropped']}/{r['sent']} ({100 * r['drop_fraction']:.1f}%), {r['delivered_mb_per_s']} MB/s "
+                      f"of frames, servers busy "
                       f"{r['server_cores_busy']} cores, clients {r['client_cores_busy']}{extra_s}", flush=True)
                 time.sleep(0.3)
         if redis:
@@ -337,13 +356,15 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--seconds", type=float, default=4.0, help="measured seconds per K")
     ap.add_argument("--warmup", type=float, default=1.0)
     ap.add_argument("--ks", default="2,3,4,5,6", help="room sizes K >= 2, comma-separated")
-    ap.add_argument("--encodings", default="f16,q13,params", help="comma-separated; those the server does not "
-                    "offer are skipped")
+    ap.add_argument("--encodings", default="f16,q13,q13:sparse,params", help="comma-separated, ':sparse' for "
+                    "sparse frames (hello.sparse); those the server does not offer are skipped")
     ap.add_argument("--servers", default="1,2", help="'1': one server, '2': two servers through Redis, '1,2': both")
     ap.add_argument("--budget-ms", type=float, default=13.9)
     ap.add_argument("--max-drop", type=float, default=0.01)
     ap.add_argument("--threads", type=int, default=2, help="compute threads per server")
     ap.add_argument("--json", type=Path, default=C.RESULTS / "rooms.json")
+    ap.add_argument("--floor-seconds", type=float, default=2.0, help="seconds of the loopback transport floor "
+                    "per encoding's frame size (0: skip)")
     ap.add_argument("--no-plot", action="store_true")
     args = ap.parse_args(argv)
 
@@ -365,6 +386,16 @@ def main(argv: list[str] | None = None) -> dict:
             runs[(mode, enc)] = by_k
     shutil.rmtree(avatars, ignore_errors=True)
 
+    limits = {}  # what one frame costs to move at all: loopback WebSocket, no compute (`_common.transport_floor`)
+    if args.floor_seconds > 0:
+        for enc in dict.fromkeys(enc for _, enc in runs):
+            sizes = [r["frame_bytes_mean"] for (_, e), res in runs.items() if e == enc for r in res.values()
+                     if r["frame_bytes_mean"]]
+            if sizes:
+                floor = C.transport_floor(int(np.median(sizes)), rate=args.rate, seconds=args.floor_seconds)
+                limits[enc] = {"frame_bytes": floor["bytes"], "loopback_message_ms_p50": floor["p50"],
+                               "streams_per_core_by_transport_alone": round(1000 / (args.rate * floor["p50"]), 1)
+                               if floor["p50"] else None}
     summary = {}
     for (mode, enc), res in runs.items():
         summary[f"{enc}, {mode}"] = {"largest_passing_k": largest_ok(res)}
@@ -378,7 +409,7 @@ def main(argv: list[str] | None = None) -> dict:
         "benchmark": "rooms", "gaussians": args.gaussians, "rate_hz": args.rate, "seconds": args.seconds,
         "warmup_s": args.warmup, "budget_ms": args.budget_ms, "max_drop": args.max_drop,
         "threads_per_server": args.threads, "client_read": "header only (type, member, seq, t, timing)",
-        "summary": summary, "redis_adds": redis_adds, "bus_hop_mean_ms": hop,
+        "summary": summary, "redis_adds": redis_adds, "bus_hop_mean_ms": hop, "transport_limits": limits,
         "runs": {f"{enc}, {mode}": {str(k): v for k, v in res.items()} for (mode, enc), res in runs.items()},
         "machine": C.machine(), "notes": notes + [
             "latency: viewer receipt - the source client's scheduled send time; a bs a viewer never got a frame of "
@@ -392,6 +423,10 @@ def main(argv: list[str] | None = None) -> dict:
         plot(C.png_path(path), runs, args.budget_ms, args.max_drop,
              f"Rooms: K publishers x (K-1) viewers, {args.gaussians} Gaussians, {args.rate:g} Hz")
     print(C.table([[name, s["largest_passing_k"]] for name, s in summary.items()], ["run", "largest passing K"]))
+    for enc, lim in limits.items():
+        print(f"{enc}: a {lim['frame_bytes']} B frame takes {lim['loopback_message_ms_p50']} ms over loopback "
+              f"WebSocket alone: at most {lim['streams_per_core_by_transport_alone']} streams at {args.rate:g} Hz "
+              "per core pair, before any compute")
     if hop is not None:
         print(f"Redis hop (servers' publish() to receipt, mean): {hop} ms; p50 differences: {redis_adds}")
     print(f"wrote {path}")

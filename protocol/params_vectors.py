@@ -48,7 +48,7 @@ def tiny_rig() -> Rig:
                          [-0.03, 0.035, 0.06]], np.float32),
         joints_expr=((a(45, dtype=np.float64).reshape(5, 3, 3) - 22) / 10000).astype(np.float32),
         template=template,
-        expr_basis=((a(45, dtype=np.float64).reshape(5, 3, 3) - 20) / 8192).astype(np.float16),
+        expr_basis=((a(45, dtype=np.float64).reshape(5, 3, 3) - 20) / 8192).astype(np.float32),
         pose_rows=np.array([13, 20], np.uint8),
         pose_basis=((a(30, dtype=np.float64).reshape(5, 2, 3) - 14) / 4096).astype(np.float16),
         weights=weights, face=np.array([[0, 1, 2], [0, 2, 3], [1, 4, 2]], np.uint32),

@@ -1,14 +1,15 @@
 """The preview page in a room (PROTOCOL.md 12; server/ofera/web/static/rooms.js, member-tile.js): headless Chromium
-against a real `ofera serve`, meeting a Python client that publishes (a plain codec client on `websockets`, in a
-thread) and another page that only watches. Every member shows up side by side in its own tile with its fps and
-latency, the sliders drive one's own avatar (the Python client receives its frames with the page's member id),
-and a member who leaves disappears from every page within 3 s.
+against a real `ofera serve`, meeting a Python client that publishes (`ofera.client`, in a thread) and another page
+that only watches. Every member shows up side by side in its own tile with its fps and latency, the sliders drive
+one's own avatar (the Python client receives its frames with the page's member id), and a member who leaves
+disappears from every page within 3 s.
 
 Needs /usr/bin/chromium and the `playwright` Python package, as test_browser_preview.py.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import threading
 import time
@@ -18,8 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from browser_support import canvas_pixels, foreground, ofera_serve, open_page, page_errors, wait
-from ofera_protocol import Blendshapes, Bye, Frame, Hello, Join, Leave, ProtocolError, Welcome
-from ofera_protocol.codec import decode_server_message, encode, member_format
 
 ROOT = Path(__file__).resolve().parents[1]
 VECTORS = ROOT / "protocol" / "vectors"
@@ -36,85 +35,78 @@ def server(browser) -> Iterator[str]:
 
 
 class RoomPeer:
-    """A Python room member on the reference codec: hello, welcome, then a thread reading joins, leaves and frames
-    (per member); `send_bs` publishes. Decodes every frame with its member's format (`member_format`)."""
+    """A Python room member (`ofera.client.connect(room=...)`) in a thread of its own: it publishes jawOpen swinging
+    at about 30 Hz (if `publish`) and records every member's frames; `bye` ends it."""
 
     def __init__(self, url: str, room: str, *, publish: bool = True, max_gaussians: int = 5000) -> None:
-        from websockets.sync.client import connect
-
-        self.ws = connect(url.replace("http://", "ws://") + "/v1/stream", max_size=None)
-        self.ws.send(encode(Hello(layout="arkit52", avatar="default", encoding="f32", room=room, publish=publish,
-                                  max_gaussians=max_gaussians)))
-        welcome = decode_server_message(self.ws.recv(timeout=60))
-        assert isinstance(welcome, Welcome) and welcome.room == room, welcome
-        self.welcome = welcome
-        self.member = welcome.member
+        self.url, self.room, self.publish, self.max_gaussians = url, room, publish, max_gaussians
         self.lock = threading.Lock()
-        self.joins: dict[str, Join] = {}
-        self.leaves: list[Leave] = []
         self.frames: dict[str, list[int]] = {}  # member -> seqs received
-        self.problems: list[str] = []
-        self.formats: dict = {}
-        self.seq = -1
-        self.reader = threading.Thread(target=self._read, daemon=True)
-        self.reader.start()
+        self.joins: dict[str, object] = {}  # member -> its Join
+        self.leaves: list[object] = []
+        self.member: str | None = None
+        self.error: BaseException | None = None
+        self.ready, self.stop = threading.Event(), threading.Event()
+        self.thread = threading.Thread(target=lambda: asyncio.run(self._main()), daemon=True)
+        self.thread.start()
+        if not self.ready.wait(120) or self.error is not None:
+            raise AssertionError(f"the Python room client did not join: {self.error!r}")
 
-    def _read(self) -> None:
-        from websockets.exceptions import ConnectionClosed
+    async def _main(self) -> None:
+        from ofera.client import connect
 
-        while True:
-            try:
-                data = self.ws.recv()
-            except (ConnectionClosed, EOFError, OSError):
-                return
-            try:
-                m = decode_server_message(data, members=self.formats)
-            except ProtocolError as e:
+        try:
+            client = await connect(self.url, room=self.room, publish=self.publish, avatar="default",
+                                   max_gaussians=self.max_gaussians)
+        except BaseException as e:  # reported by __init__
+            self.error = e
+            self.ready.set()
+            return
+        self.member = client.member
+        self.ready.set()
+
+        async def publish() -> None:
+            w, k = np.zeros(52, np.float32), 0
+            while self.publish and not self.stop.is_set():
+                w[JAW] = 0.5 + 0.5 * np.sin(k / 5)
+                await client.send_bs(w)
+                k += 1
+                await asyncio.sleep(1 / 30)
+
+        sender = asyncio.create_task(publish())
+        try:
+            while not self.stop.is_set():
+                try:
+                    f = await client.recv_frame(timeout=0.1)
+                except TimeoutError:
+                    f = None
                 with self.lock:
-                    self.problems.append(str(e))
-                continue
-            with self.lock:
-                if isinstance(m, Join):
-                    self.joins[m.member] = m
-                    if m.avatar is not None:
-                        self.formats[m.member] = member_format(self.welcome, m)
-                elif isinstance(m, Leave):
-                    self.leaves.append(m)
-                    self.formats.pop(m.member, None)
-                elif isinstance(m, Frame):
-                    self.frames.setdefault(m.member, []).append(m.seq)
-
-    def send_bs(self, jaw: float) -> None:
-        w = np.zeros(52, np.float32)
-        w[JAW] = jaw
-        self.seq += 1
-        self.ws.send(encode(Blendshapes(seq=self.seq, t=time.monotonic_ns() // 1000, w=w)))
+                    if f is not None:
+                        self.frames.setdefault(f.member, []).append(f.seq)
+                    self.joins = {j.member: j for j in client.joins}
+                    self.leaves = list(client.leaves)
+        except BaseException as e:
+            self.error = e
+        finally:
+            sender.cancel()
+            await client.close()  # bye
 
     def wait_for(self, what: str, condition, timeout_s: float = 120) -> None:
         deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and self.error is None:
             with self.lock:
                 if condition(self):
                     return
             time.sleep(0.05)
         with self.lock:
             frames = {k: len(v) for k, v in self.frames.items()}
-            pytest.fail(f"the Python peer waited {timeout_s} s for {what}: joins {list(self.joins)}, leaves "
-                        f"{self.leaves}, frames {frames}, problems {self.problems}")
+            pytest.fail(f"the Python client waited {timeout_s} s for {what}: joins {list(self.joins)}, leaves "
+                        f"{self.leaves}, frames {frames}, error {self.error!r}")
 
     def bye(self) -> None:
-        self.ws.send(encode(Bye()))
-        self.ws.close()
-        self.reader.join(timeout=10)
-
-
-def _publisher(peer: RoomPeer, stop: threading.Event) -> None:
-    """The peer's face: jawOpen swinging at about 30 Hz until `stop`."""
-    k = 0
-    while not stop.is_set():
-        peer.send_bs(0.5 + 0.5 * np.sin(k / 5))
-        k += 1
-        stop.wait(1 / 30)
+        self.stop.set()
+        self.thread.join(timeout=30)
+        assert self.error is None, self.error
 
 
 def _member(page, member: str) -> dict | None:
@@ -146,7 +138,6 @@ def test_page_meets_a_python_publisher_and_a_watcher(browser, server) -> None:
     page = open_page(browser, f"{server}/?{ROOM_PAGE}&room={room}&self=1", settle=False)
     watcher = None
     peer = None
-    stop = threading.Event()
     try:
         wait(page, "__ofera.room && __ofera.room.member !== null")
         me = page.evaluate("__ofera.room.member")
@@ -155,7 +146,6 @@ def test_page_meets_a_python_publisher_and_a_watcher(browser, server) -> None:
         assert _member(page, me)["self"] is True
 
         peer = RoomPeer(server, room)
-        threading.Thread(target=_publisher, args=(peer, stop), daemon=True).start()
         wait(page, _streaming(peer.member))
         info = _member(page, peer.member)
         assert 0 < info["count"] <= 20000, info  # the page's own max_gaussians applies to every member
@@ -190,8 +180,6 @@ def test_page_meets_a_python_publisher_and_a_watcher(browser, server) -> None:
         peer.wait_for("the watcher's join", lambda p: viewer in p.joins and p.joins[viewer].publish is False)
 
         # the Python client leaves: its tile goes from both pages within 3 s
-        stop.set()
-        time.sleep(0.1)
         left_at = time.monotonic()
         peer.bye()
         gone = f"!__ofera.room.members.some(m => m.member === '{peer.member}')"
@@ -211,7 +199,6 @@ def test_page_meets_a_python_publisher_and_a_watcher(browser, server) -> None:
         assert page.evaluate("__ofera.room.left")[0] == {"member": viewer, "reason": "closed"}
         assert not page_errors(page), page_errors(page)
     finally:
-        stop.set()
         if peer is not None:
             peer.bye()
         if watcher is not None:

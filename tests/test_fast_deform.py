@@ -8,7 +8,15 @@ import gc
 import numpy as np
 import pytest
 from ofera.avatar import BarycentricBinding, GaussianAvatar, TriangleBinding
-from ofera.avatar.fast import FastAvatar, StatePool, affected_vertices, reference_frame
+from ofera.avatar.fast import (
+    Activity,
+    FastAvatar,
+    StatePool,
+    ThreadChoice,
+    affected_vertices,
+    reference_frame,
+    use_threads,
+)
 from ofera.avatar.frames import face_scales
 from ofera.head.lbs import HeadSubject, pose_rotations
 from ofera.head.lbs_fast import SubsetLBS, subset_lbs_reference
@@ -218,7 +226,50 @@ def test_parallel_kernels_match_serial(head, subject, kind) -> None:
     fast = FastAvatar(random_avatar(head, kind, rng, sorted_faces=True), subject)
     expr, rot = random_flame(rng)
     a = fast.session(parallel=True).run(expr, rot)
-    b = fast.session().run(expr, rot)
+    b = fast.session(parallel=False).run(expr, rot)
     np.testing.assert_array_equal(a.position, b.position)
     np.testing.assert_array_equal(a.rotation, b.rotation)
     np.testing.assert_array_equal(a.scale, b.scale)
+
+
+def test_thread_choice_rules() -> None:
+    assert use_threads(1, 2) and use_threads(1, 2, load=0.5)
+    assert not use_threads(2, 2)  # another session computes: one thread each
+    assert not use_threads(1, 1)  # no second thread
+    assert not use_threads(1, 2, load=2.3)  # other processes hold the cores
+    activity = Activity(window_s=0.5)
+    assert activity.note(1, now=10.0) == 1
+    assert activity.note(2, now=10.1) == 2
+    assert activity.note(2, now=10.7) == 1  # session 1 has not computed for 0.6 s: alone again
+    activity.forget(2)
+    assert activity.note(3, now=10.8) == 1
+
+
+def test_thread_choice_follows_the_measured_times() -> None:
+    choice = ThreadChoice(window=5, probe=10)
+    assert choice.choose()  # no samples yet: try the parallel mode first
+    for _ in range(3):  # warm-up: both modes get samples
+        for par in (False, True):
+            choice.record(par, 100 if par else 300)
+    picks = [choice.choose() for _ in range(20)]
+    assert picks.count(True) == 18 and picks.count(False) == 2  # parallel is faster; serial is probed (10th, 20th)
+    for _ in range(5):
+        choice.record(True, 5000)  # the other core became busy: parallel frames are slow now
+    assert [choice.choose() for _ in range(8)] == [False] * 8
+
+
+def test_auto_sessions_fall_back_to_one_thread_when_not_alone(head, subject) -> None:
+    rng = np.random.default_rng(12)
+    fast = FastAvatar(random_avatar(head, "triangle", rng, sorted_faces=True), subject)
+    activity = Activity(window_s=60.0)
+    a, b = (fast.session() for _ in range(2))
+    a.activity = b.activity = activity
+    a.choice.record(True, 1)
+    expr, rot = random_flame(rng)
+    ref = fast.session(parallel=False).run(expr, rot)
+    for s in (a, b):
+        state = s.run(expr, rot)
+        np.testing.assert_array_equal(state.position, ref.position)
+    assert not b.threaded  # a computed a frame within the window: b runs on one thread
+    a.run(expr, rot)
+    assert not a.threaded

@@ -385,3 +385,63 @@ def test_fast_decoder_checks_like_the_codec(kernels) -> None:
     with pytest.raises(ProtocolError) as e:
         dec.decode(pack_map({**good, "scale": np.zeros((1, 3), "<f2")}))
     assert e.value.code == "bad_length"
+
+
+@pytest.mark.parametrize("enc", ["f16", "q13"])
+@pytest.mark.parametrize("sparse", [False, True])
+def test_stamped_encode_time_is_the_codecs_bytes_with_that_timing(kernels, enc, sparse) -> None:
+    rng = np.random.default_rng(5)
+    pos, rot, scale = finite_for(enc, *state(rng))
+    quant = make_quant(pos[100:], scale[100:])
+    fmt = FrameFormat(enc, N, sparse, quant if enc == "q13" else None)
+    gather = np.sort(rng.choice(N, N // 3, replace=False)).astype(np.int64) if sparse else None
+    index = gather.astype(np.uint32) if sparse else None
+    sel = (lambda a: a[gather]) if sparse else (lambda a: a)
+    writer = FrameWriter(fmt, "unity", gather, index, kernels=kernels, stamp_encode=True)
+    for timing in (TIMING, {}, {f"s{i}": i for i in range(15)}, {**TIMING, "encode": 1 << 40}):  # 15: map grows
+        out = writer.encode(9, 123, timing, pos, rot, scale)
+        stamped = decode_server_message(bytes(out), fmt).timing
+        assert set(stamped) == set(timing) | {"encode"} and 0 <= stamped["encode"] < 10_000_000
+        p, r = to_coords(sel(pos), sel(rot), "unity")
+        ref = encode_frame(Frame(seq=9, t=123, timing={**timing, "encode": stamped["encode"]}, position=p, rotation=r,
+                                 scale=sel(scale), index=index), fmt)
+        assert bytes(out) == ref
+        del out
+
+
+@pytest.mark.parametrize("k", [3, 4, 5])
+@pytest.mark.parametrize("gathered", [False, True])
+def test_unrolled_f16_kernel_equals_the_plain_loop(kernels, k, gathered) -> None:
+    from ofera.streaming.encode_fast import f16_kernel, f16_kernel_reference
+
+    rng = np.random.default_rng(6)
+    src = (rng.standard_normal((3000, k)) * 10.0 ** rng.integers(-8, 5, (3000, k))).astype(np.float32)
+    src[:4, 0] = [65504.0, 65520.0, -0.0, 6e-8]  # the largest half, the first value rounding to inf, -0, subnormal
+    gather = rng.permutation(3000)[:1000].astype(np.int64) if gathered else np.zeros(0, np.int64)
+    n = 1000 if gathered else 3000
+    sign = np.where(rng.random(k) < 0.5, -1, 1).astype(np.float32)
+    a, b = np.zeros(n * k, np.uint16), np.ones(n * k, np.uint16)
+    ok_a, ok_b = f16_kernel(src, gather, n, sign, a), f16_kernel_reference(src, gather, n, sign, b)
+    assert ok_a == ok_b and np.array_equal(a, b)
+    src[src == 65520.0] = 1.0
+    src = np.clip(src, -60000, 60000)
+    assert f16_kernel(src, gather, n, sign, a) and f16_kernel_reference(src, gather, n, sign, b)
+    assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("gathered", [False, True])
+def test_branch_free_q13_positions_equal_the_plain_loop(kernels, gathered) -> None:
+    from ofera.streaming.encode_fast import q13_position_kernel, q13_position_kernel_reference
+
+    rng = np.random.default_rng(7)
+    src = (rng.standard_normal((4000, 3)) * 0.2).astype(np.float32)
+    src[:8] = [[np.nan, np.inf, -np.inf], [3e38, -3e38, 0], [-0.0, 1e-30, -1e-30], [0.15, -0.15, 0.3],
+               [1e20, -1e20, 1e-3], [0.5, 0.5, 0.5], [-0.5, -0.5, -0.5], [0, 0, 0]]
+    lo, k = np.array([-0.15, -0.2, -0.1]), np.array([65535 / 0.3, 65535 / 0.4, 65535 / 0.2])
+    gather = rng.permutation(4000)[:1500].astype(np.int64) if gathered else np.zeros(0, np.int64)
+    n = 1500 if gathered else 4000
+    for sign in (np.ones(3, np.float32), np.array([-1, 1, 1], np.float32)):
+        a, b = np.zeros(3 * n, np.uint16), np.ones(3 * n, np.uint16)
+        q13_position_kernel(src, gather, n, sign, lo, k, a)
+        q13_position_kernel_reference(src, gather, n, sign, lo, k, b)
+        assert np.array_equal(a, b)

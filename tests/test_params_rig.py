@@ -100,8 +100,8 @@ def test_rig_tiny_vector_decodes_to_the_tiny_rig():
     rig = decode_rig(chunk.data)
     assert rig == tiny_rig()
     desc = json.loads((VECTORS / "rig_tiny.json").read_text())
-    assert desc["body"]["gaussians"] == 4 and desc["body"]["expr_basis"]["dtype"] == "float16"
-    np.testing.assert_array_equal(np.array(desc["body"]["expr_basis"]["values"], np.float16), rig.expr_basis)
+    assert desc["body"]["gaussians"] == 4 and desc["body"]["pose_basis"]["dtype"] == "float16"
+    np.testing.assert_array_equal(np.array(desc["body"]["pose_basis"]["values"], np.float16), rig.pose_basis)
 
 
 def test_rig_tiny_frames_match_the_reference_and_a_float32_port():
@@ -226,7 +226,7 @@ def test_default_rig_size_and_content(default_assets):
     np.testing.assert_array_equal(rig.index, movable)
     assert rig.binding == "triangle" and rig.expr_dims == 50 and rig.count == default_assets.count
     assert set(rig.pose_rows.tolist()) <= set(range(9, 36))  # no neck rows
-    assert len(encode_rig(rig)) < 4_500_000  # 4.1 MB: PROTOCOL.md 13.3
+    assert len(encode_rig(rig)) < 6_000_000  # 5.5 MB: PROTOCOL.md 13.3
 
 
 def test_default_rig_matches_the_server_frames(default_assets):
@@ -244,10 +244,10 @@ def test_default_rig_matches_the_server_frames(default_assets):
         p, q, s = deform_rig(rig, y)
         cp, cq, cs = client.deform(y)
         idx = rig.index.astype(np.int64)
-        assert np.abs(p - state.position[idx]).max() < 5e-5  # N(0, 1) expressions: 21 um at worst (f16 basis)
+        assert np.abs(p - state.position[idx]).max() < 5e-6
         assert rotation_error(q, state.rotation[idx]) < 5e-3
         assert (np.abs(s - state.scale[idx]) / state.scale[idx]).max() < 5e-3
-        assert np.abs(cp - p).max() < 1e-7 and rotation_error(cq, q) < 1e-6  # two implementations, one rig
+        assert np.abs(cp - p).max() < 1e-7 and rotation_error(cq, q) < 1e-5  # two implementations, one rig
         np.testing.assert_allclose(cs, s, rtol=1e-6)
 
 

@@ -350,3 +350,23 @@ def test_start_without_redis_names_the_url() -> None:
 
     asyncio.run(main())
     assert "hunter2" not in redact(url)
+
+
+def test_the_serve_path_imports_redis_only_with_a_redis_url() -> None:
+    probe = ("import sys; from ofera.streaming import Settings, create_app; import ofera.cli.serve; "
+             "create_app(Settings(warmup=False)); print(sorted(m for m in sys.modules if m.split('.')[0] == 'redis'))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_serve_refuses_to_start_without_redis_in_one_line() -> None:
+    from ofera.cli.main import app
+    from typer.testing import CliRunner
+
+    url = f"redis://127.0.0.1:{free_port()}/0"
+    out = CliRunner().invoke(app, ["serve", "--redis", url, "--port", "0"])
+    assert out.exit_code == 2 and "Traceback" not in out.output
+    lines = out.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"error: cannot reach Redis at {url}")
+    bad = CliRunner().invoke(app, ["serve", "--redis", "http://127.0.0.1:1", "--port", "0"])
+    assert bad.exit_code == 2 and "not a Redis URL" in bad.output

@@ -2,14 +2,19 @@
 
 Each kernel is compiled with glslang's HLSL front end (`glslangValidator -D -V -S comp -e KERNEL`) and run on a
 CPU Vulkan device (lavapipe) through `wgpu`, as tests/test_unity_kernels.py does for the upload kernels (its
-helpers are reused). A rig is built for small random avatars of both binding types; the kernels' output in the
-renderer's splat buffers (position Float32; 10.10.10.2 rotation + Float32 scale) is compared with the Python
-reference deformation for random params. Skipped only without glslangValidator or a Vulkan adapter (CI installs
-both and fails instead).
+helpers are reused). The rig words are the rig body's bins as they arrived (RigGpuWords in the C# core). The
+kernels' output in the renderer's splat buffers (position Float32; 10.10.10.2 rotation + Float32 scale) is compared
+with the golden frames of PROTOCOL.md 13.7 and, for rigs of small random avatars of both binding types (the server's
+build_rig), with the Python reference ofera_protocol.rig.deform_rig on random params. With mono, the C# core's rig
+words and its deformation (RigDeformer) are compared with the same bytes and the same reference. Skipped only
+without glslangValidator or a Vulkan adapter (CI installs both and fails instead).
 """
 
 from __future__ import annotations
 
+import os
+
+import msgpack
 import numpy as np
 import pytest
 from test_unity_kernels import NAN_BITS, SHADERS, UNMATCHED, _compile, _entry, device, hidden, ugs_pack_rotation
@@ -18,12 +23,15 @@ RIG = SHADERS / "OferaRigDeform.compute"
 KERNELS = ("CSOferaRigPose", "CSOferaRigVertices", "CSOferaRigFaces", "CSOferaRigGaussians")
 TEST_DEFINES = ("-DOFERA_STRUCTURED_BUFFERS", "-DOFERA_VK_BINDINGS", "-DOFERA_RIG_DEBUG_ROTATION")
 GROUP = 256
-UNIFORM = ("vertices", "joints", "expr", "pose", "faces", "moving", "barycentric", "template", "basis", "weights",
-           "joint", "joint_expr", "parents", "pose_rows", "face_vertices", "gauss_face", "ids", "local", "rotation",
-           "scale", "shift", "canonical", "server_count", "splat_count", "mirror_x")
-POS_ATOL = 2e-6  # metres: float32 skinning of a ~0.2 m head (the C# and server references run in float64)
-ROT_ATOL = 1e-4  # quaternion components: float32 frames of mm-sized faces (the renderer keeps 10 bits, 1.4e-3)
-SCALE_RTOL = 2e-5
+UNIFORM = ("vertices", "expr", "pose", "faces", "gaussians", "barycentric", "index", "joints", "joints_expr",
+           "template", "expr_basis", "pose_rows", "pose_basis", "weights", "face", "gaussian_face", "local",
+           "normal_offset", "local_rotation", "local_scale", "server_count", "splat_count", "mirror_x")
+# float32 kernels against the float64 reference (PROTOCOL.md 13.4: within 1e-6 m); measured on these random rigs:
+# positions 2.5e-7 m, scales 2.5e-5 relative, quaternion components 1.5e-5 (8e-5 on the smallest random faces at
+# |psi| 2.5: float32 face frames of mm-sized triangles); the renderer keeps 10 bits of each component (1.4e-3)
+POS_ATOL = 1e-6
+ROT_ATOL = 2e-4
+SCALE_RTOL = 5e-5
 
 __all__ = ["device"]  # the wgpu device fixture, shared with test_unity_kernels
 
@@ -36,42 +44,26 @@ def spirv(tmp_path_factory):
 
 # ----------------------------------------------------------------------------- the GPU rig layout
 
-
-def gpu_words(rig: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, int]]:
-    """The `_OferaRig` words (see OferaRigDeform.compute) of a rig given as arrays, and the uniform's counts and
-    word offsets. Float arrays become float32 bits, integer arrays uint32 (-1 -> 0xffffffff)."""
-    order = ("template", "basis", "weights", "joint", "joint_expr", "parents", "pose_rows", "face_vertices",
-             "gauss_face", "ids", "local", "rotation", "scale", "shift", "canonical")
-    words, offsets, at = [], {}, 0
-    for name in order:
-        a = np.asarray(rig.get(name, np.zeros(0, np.float32)))
-        w = a.astype(np.float32).view(np.uint32) if a.dtype.kind == "f" else a.astype(np.int64).astype(np.uint32)
-        offsets[name] = at
-        words.append(w.reshape(-1))
-        at += w.size
-    basis = np.asarray(rig["basis"])
-    counts = {"vertices": rig["template"].size // 3, "joints": rig["parents"].size, "expr": basis.shape[0]
-              - rig["pose_rows"].size, "pose": rig["pose_rows"].size, "faces": rig["face_vertices"].size // 3,
-              "moving": rig["ids"].size, "barycentric": int("shift" in rig)}
-    return np.concatenate(words), {**counts, **offsets}
+SECTIONS = ("index", "joints", "joints_expr", "template", "expr_basis", "pose_rows", "pose_basis", "weights", "face",
+            "gaussian_face", "local", "normal_offset", "local_rotation", "local_scale")
 
 
-def rig_from_fast(fast) -> dict[str, np.ndarray]:
-    """The rig arrays of a server FastAvatar (its subset LBS and per-Gaussian columns)."""
-    lbs, a = fast.lbs, fast.arrays
-    m = a.ids.size
-    gface = np.empty(m, np.int64)
-    for face, m0, n in zip(a.run_face, a.run_m, a.run_len, strict=True):
-        gface[m0:m0 + n] = face
-    rig = {"template": lbs.v_id, "basis": lbs.basis_t, "weights": lbs.weights, "joint": lbs.j_id,
-           "joint_expr": lbs.j_expr, "parents": lbs.parents, "pose_rows": lbs.pose_rows,
-           "face_vertices": a.face_vids, "gauss_face": gface, "ids": a.ids, "rotation": a.lrot.T,
-           "scale": a.lscale.T}
-    if a.bary is not None:
-        rig |= {"local": a.bary.T, "shift": a.shift, "canonical": a.inv_canonical}
-    else:
-        rig["local"] = a.lpos.T
-    return rig
+def gpu_words(body: bytes) -> tuple[np.ndarray, dict[str, int]]:
+    """The `_OferaRig` words of a rig body (RigGpuWords in the C# core): its bins in wire order, each copied from a
+    4-byte boundary (the triangle binding has no normal_offset: an empty section); and the uniform's counts and word
+    offsets."""
+    m = msgpack.unpackb(body, raw=False)
+    m["local"] = m.get("local_position", m.get("bary"))
+    words, layout, at = [], {}, 0
+    for name in SECTIONS:
+        data = m.get(name, b"")
+        data += b"\0" * (-len(data) % 4)
+        layout[name] = at
+        words.append(np.frombuffer(data, "<u4"))
+        at += len(data) // 4
+    layout |= {"vertices": m["vertices"], "expr": m["expr_dims"], "pose": len(m["pose_rows"]), "faces": m["faces"],
+               "gaussians": m["gaussians"], "barycentric": int(m["binding"] == "barycentric")}
+    return np.concatenate(words), layout
 
 
 # ----------------------------------------------------------------------------- running the passes
@@ -105,9 +97,8 @@ def run_rig(device, spirv, words: np.ndarray, layout: dict[str, int], params: np
     values = {**layout, "server_count": perm.size, "splat_count": splats.m, "mirror_x": int(mirror)}
     uniform = np.array([values[k] for k in UNIFORM], np.uint32)
     uniform = np.concatenate([uniform, np.zeros(-uniform.size % 4, np.uint32)])
-    s, k, rows, u, m = (layout["vertices"], layout["joints"], layout["expr"] + layout["pose"], layout["faces"],
-                        layout["moving"])
-    scratch = np.zeros(rows + 12 * k + 3 * s + 20 * u, np.float32)
+    s, u, m = layout["vertices"], layout["faces"], layout["gaussians"]
+    scratch = np.zeros(layout["pose"] + 12 * 5 + 3 * s + 17 * u, np.float32)
 
     def storage(a: np.ndarray, write: bool = False):
         data = np.ascontiguousarray(a).view(np.uint32)
@@ -169,51 +160,140 @@ def test_rig_kernel_compiles_for_unity(kernel, tmp_path):
         assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
+VECTORS = SHADERS.parents[3] / "protocol" / "vectors"
+
+
+def _check(splats: Splats, debug_rot: np.ndarray, ref, index: np.ndarray, perm: np.ndarray, mirror: bool,
+           pos_atol: float = POS_ATOL, rot_atol: float = ROT_ATOL, scale_rtol: float = SCALE_RTOL) -> None:
+    """The splat buffers at perm[index] hold the reference (position, rotation (x, y, z, w), scale) of rig order,
+    mirrored if asked; the packed rotation words are the debug rotations packed; every other splat is still hidden."""
+    dst = perm[index]
+    keep = dst != UNMATCHED
+    dst = dst[keep].astype(np.int64)
+    pos, rot, scale = (np.array(a, np.float32)[keep] for a in ref)
+    if mirror:
+        pos[:, 0] = -pos[:, 0]
+        rot[:, 1:3] = -rot[:, 1:3]
+    np.testing.assert_allclose(splats.pos.reshape(-1, 3)[dst].view(np.float32), pos, rtol=0, atol=pos_atol)
+    got_rot = debug_rot[keep]
+    np.testing.assert_allclose(got_rot, rot, rtol=0, atol=rot_atol)
+    other = splats.other.reshape(-1, 4)[dst]
+    assert np.array_equal(other[:, 0], ugs_pack_rotation(got_rot)), "rotation words are not the packed rotations"
+    np.testing.assert_allclose(other[:, 1:].copy().view(np.float32), scale, rtol=scale_rtol, atol=0)
+    untouched = np.ones(splats.m, bool)
+    untouched[dst] = False
+    assert (splats.pos.reshape(-1, 3)[untouched] == NAN_BITS).all(), "a splat of no rig Gaussian was written"
+
+
+def test_rig_kernels_reproduce_the_golden_frames(device, spirv):
+    """rig_tiny_frames.json (PROTOCOL.md 13.7) within its tolerances: the kernels on the golden rig and params."""
+    import json
+
+    from ofera_protocol import codec
+
+    chunk = codec.decode_server_message((VECTORS / "rig_tiny.msgpack").read_bytes())
+    words, layout = gpu_words(chunk.data)
+    v = json.loads((VECTORS / "rig_tiny_frames.json").read_text())
+    tol = v["tolerance"]
+    index = np.asarray(v["index"], np.int64)
+    perm = np.arange(v["count"], dtype=np.uint32)[::-1].copy()  # a permutation that is not the identity
+    for frame in v["frames"]:
+        splats = Splats(v["count"])
+        debug = run_rig(device, spirv, words, layout, np.asarray(frame["params"], np.float32), perm, splats, False)
+        ref = (frame["position"], frame["rotation"], frame["scale"])
+        _check(splats, debug, ref, index, perm, False, tol["position_m"], tol["rotation"], tol["scale_relative"])
+
+
 def _avatar(head, kind: str, seed: int):
     from test_fast_deform import random_avatar
 
     return random_avatar(head, kind, np.random.default_rng(seed), n=3000, sorted_faces=True)
 
 
-def _check(splats: Splats, debug_rot: np.ndarray, ref, ids: np.ndarray, perm: np.ndarray, mirror: bool) -> None:
-    dst = perm[ids]
-    keep = dst != UNMATCHED
-    dst, rows = dst[keep].astype(np.int64), ids[keep]
-    pos = np.array(ref.position[rows], np.float32)
-    rot = np.array(ref.rotation[rows], np.float32)
-    if mirror:
-        pos[:, 0] = -pos[:, 0]
-        rot[:, 1:3] = -rot[:, 1:3]
-    got_pos = splats.pos.reshape(-1, 3)[dst].view(np.float32)
-    np.testing.assert_allclose(got_pos, pos, rtol=0, atol=POS_ATOL)
-    got_rot = debug_rot[keep]
-    np.testing.assert_allclose(got_rot, rot, rtol=0, atol=ROT_ATOL)
-    other = splats.other.reshape(-1, 4)[dst]
-    assert np.array_equal(other[:, 0], ugs_pack_rotation(got_rot)), "rotation words are not the packed rotations"
-    np.testing.assert_allclose(other[:, 1:].view(np.float32), ref.scale[rows], rtol=SCALE_RTOL, atol=0)
-
-
-@pytest.mark.parametrize("kind,mirror", [("triangle", False), ("triangle", True), ("barycentric", False)])
-def test_rig_kernels_match_the_server_deformation(device, spirv, head, kind, mirror):
-    from ofera.avatar.fast import FastAvatar
-    from ofera.mapping.flame_values import split_flame_values
+@pytest.mark.parametrize("kind,mirror", [("triangle", False), ("triangle", True), ("barycentric", False),
+                                         ("barycentric", True)])
+def test_rig_kernels_match_deform_rig(device, spirv, head, kind, mirror):
+    """Random avatars' rigs (the server's build_rig, through the wire encoding) and random params: the splat buffers
+    hold ofera_protocol.rig.deform_rig's Gaussians (mirrored in `unity` sessions), through a permutation with unmatched
+    Gaussians; no other splat is written."""
+    from ofera.avatar.fast import gaussian_selection
+    from ofera.avatar.rig import build_rig
+    from ofera.head.lbs import HeadSubject
+    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig
 
     avatar = _avatar(head, kind, seed=3 + int(mirror))
-    fast = FastAvatar(avatar)
-    words, layout = gpu_words(rig_from_fast(fast))
+    rows = np.flatnonzero(gaussian_selection(avatar, "movable"))
+    body = encode_rig(build_rig(avatar, HeadSubject.create(head), rows, rows, avatar.count))
+    rig = decode_rig(body)
+    words, layout = gpu_words(body)
     rng = np.random.default_rng(11)
     n_splats = avatar.count + 50
     perm = rng.permutation(n_splats)[: avatar.count].astype(np.uint32)
     perm[rng.choice(avatar.count, 30, replace=False)] = UNMATCHED  # server Gaussians without a splat
-    splats = Splats(n_splats)
-    session = fast.session()
     for scale in (0.0, 1.0, 2.0):
         y = random_params(rng, scale)
+        splats = Splats(n_splats)
         debug = run_rig(device, spirv, words, layout, y, perm, splats, mirror)
-        ref = session.run(*split_flame_values(y))
-        _check(splats, debug, ref, fast.arrays.ids, perm, mirror)
-    # splats of no moving Gaussian (and unmatched ones) were not touched: still hidden
-    touched = np.zeros(n_splats, bool)
-    dst = perm[fast.arrays.ids]
-    touched[dst[dst != UNMATCHED]] = True
-    assert (splats.pos.reshape(-1, 3)[~touched] == NAN_BITS).all()
+        _check(splats, debug, deform_rig(rig, y), np.asarray(rig.index, np.int64), perm, mirror)
+
+
+# ----------------------------------------------------------------------------- the C# core, same bytes
+
+TOOL = SHADERS.parents[2] / "Tests" / "RigGpuReference.cs"
+
+
+@pytest.fixture(scope="module")
+def csharp_rig_tool(tmp_path_factory):
+    import shutil
+    import subprocess
+
+    missing = [t for t in ("mcs", "mono") if shutil.which(t) is None]
+    if missing:
+        reason = f"{' and '.join(missing)} not found (apt-get install -y mono-mcs mono-runtime)"
+        if os.environ.get("CI"):
+            pytest.fail(f"CI is set but {reason}")
+        pytest.skip(reason)
+    out = tmp_path_factory.mktemp("cs") / "RigGpuReference.exe"
+    core = sorted((SHADERS.parents[2] / "Runtime" / "Core").glob("*.cs"))
+    cmd = ["mcs", "-langversion:7.2", "-nologo", "-warn:4", "-r:System.dll", f"-out:{out}", str(TOOL), *map(str, core)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return out
+
+
+@pytest.mark.parametrize("kind", ["triangle", "barycentric"])
+def test_csharp_rig_words_and_deformation_match(device, spirv, csharp_rig_tool, head, tmp_path, kind):
+    """The C# core's GPU words equal the Python layout's; its RigDeformer matches deform_rig (PROTOCOL.md 13.7's
+    tolerances) and the kernels' output."""
+    import subprocess
+
+    from ofera.avatar.fast import gaussian_selection
+    from ofera.avatar.rig import build_rig
+    from ofera.head.lbs import HeadSubject
+    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig
+
+    avatar = _avatar(head, kind, seed=7)
+    rows = np.flatnonzero(gaussian_selection(avatar, "movable"))
+    body = encode_rig(build_rig(avatar, HeadSubject.create(head), rows, rows, avatar.count))
+    rig = decode_rig(body)
+    rng = np.random.default_rng(5)
+    params = np.stack([random_params(rng, s) for s in (0.0, 1.0, 2.5)])
+    (tmp_path / "rig.bin").write_bytes(body)
+    params.astype("<f4").tofile(tmp_path / "params.bin")
+    proc = subprocess.run(["mono", str(csharp_rig_tool), str(tmp_path), str(len(params))], capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    words, layout = gpu_words(body)
+    assert np.array_equal(np.fromfile(tmp_path / "words.bin", "<u4"), words), "C# rig words differ from the layout"
+    assert list(np.fromfile(tmp_path / "words.hdr", "<i4")) == [layout[k] for k in SECTIONS]
+    perm = np.arange(avatar.count, dtype=np.uint32)
+    for k, y in enumerate(params):
+        ours = tuple(np.fromfile(tmp_path / f"{a}{k}.bin", "<f4").reshape(-1, w)
+                     for a, w in (("position", 3), ("rotation", 4), ("scale", 3)))
+        pos, rot, scale = deform_rig(rig, y)
+        np.testing.assert_allclose(ours[0], pos, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(ours[1], rot, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(ours[2], scale, rtol=1e-5, atol=0)
+        splats = Splats(avatar.count)
+        debug = run_rig(device, spirv, words, layout, y, perm, splats, False)
+        _check(splats, debug, ours, np.asarray(rig.index, np.int64), perm, False)

@@ -280,9 +280,12 @@ class RigChunk(_ArrayEq):
 
 @dataclass(frozen=True)
 class ParamsFormat:
-    """What a receiver needs to decode a params session's frames: `length` float32 values (68 FLAME values)."""
+    """What a receiver needs to decode a params session's frames: `length` float32 values (68 FLAME values). Never
+    sparse, never deltas (like a FrameFormat's flags)."""
 
     length: int = 68
+    sparse: ClassVar[bool] = False
+    delta: ClassVar[bool] = False
 
 
 @dataclass(eq=False)

@@ -27,7 +27,7 @@ RIG_BINDINGS = ("triangle", "barycentric")
 JOINTS = 5
 """FLAME's joints, in order: root, neck, jaw, left eye, right eye (parents -1, 0, 1, 1, 1)."""
 MAX_RIG_BYTES = MAX_SERVER_MESSAGE
-"""Largest rig body a client accepts (64 MiB); the built-in avatar's is 4.1 MB."""
+"""Largest rig body a client accepts (64 MiB); the built-in avatar's is 5.5 MB."""
 DEFAULT_RIG_CHUNK_BYTES = 4 * 1024 * 1024
 """Default upper bound on the body bytes one `rig` message carries (like an avatar chunk's arrays)."""
 EPS2 = 1e-20
@@ -41,7 +41,7 @@ class Rig(_ArrayEq):
 
     count: Gaussians of the session's avatar (N); index (M,) uint32 strictly ascending session ids it deforms.
     joints (5, 3) float32 and joints_expr (5, 3, E) float32: the joints are joints + joints_expr . expr.
-    template (S, 3) float32 (the subject's identity baked in); expr_basis (S, E, 3) float16; pose_rows (P,)
+    template (S, 3) float32 (the subject's identity baked in); expr_basis (S, E, 3) float32; pose_rows (P,)
     uint8, entries of FLAME's 36-long pose feature (R_k - I, k = 1..4, row-major), ascending; pose_basis (S, P, 3)
     float16; weights (S, 5) float32 skinning weights. face (U, 3) uint32 rig vertex ids; gaussian_face (M,) uint32.
     triangle: local_position (M, 3) float32 in face units. barycentric: bary (M, 3) float32, normal_offset (M,)
@@ -88,7 +88,7 @@ def _schema(binding: str, s: int, u: int, m: int, e: int, p: int) -> dict[str, t
     """Wire dtype and shape of every array of a rig body, in wire order."""
     out: dict[str, tuple[str, tuple[int, ...]]] = {
         "index": ("<u4", (m,)), "joints": ("<f4", (JOINTS, 3)), "joints_expr": ("<f4", (JOINTS, 3, e)),
-        "template": ("<f4", (s, 3)), "expr_basis": ("<f2", (s, e, 3)), "pose_rows": ("u1", (p,)),
+        "template": ("<f4", (s, 3)), "expr_basis": ("<f4", (s, e, 3)), "pose_rows": ("u1", (p,)),
         "pose_basis": ("<f2", (s, p, 3)), "weights": ("<f4", (s, JOINTS)), "face": ("<u4", (u, 3)),
         "gaussian_face": ("<u4", (m,)),
     }

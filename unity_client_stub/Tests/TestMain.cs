@@ -188,6 +188,7 @@ namespace Ofera.Client.Tests
         static int Main(string[] args)
         {
             string vectors = null, live = null, python = null;
+            bool benchRig = false;
             int frames = 100;
             for (int i = 0; i < args.Length; i++)
             {
@@ -195,15 +196,23 @@ namespace Ofera.Client.Tests
                 else if (args[i] == "--live") live = args[++i];
                 else if (args[i] == "--python") python = args[++i];
                 else if (args[i] == "--frames") frames = int.Parse(args[++i]);
+                else if (args[i] == "--bench-rig") benchRig = true;
             }
+            if (benchRig) return RigTests.Bench(live, 200); // one JSON line: the C# params deformation time
             Console.WriteLine("OFERA Unity client core tests (mono " + Environment.Version + ")");
             if (vectors != null) Run("tables", delegate { TableTests(vectors); });
             if (vectors != null) VectorTests(vectors);
             UnitTests(python);
             if (vectors != null) SessionTests(vectors);
-            RoomTests();
+            RoomTests.Unit(Run, Check); // RoomTests.cs (PROTOCOL.md 12)
             if (vectors != null) PayloadTests(vectors);
+            if (vectors != null) Run("rig frames", delegate { RigTests.Frames(vectors, Check); }); // PROTOCOL.md 13
+            if (vectors != null) Run("params sessions", delegate { RigTests.Sessions(vectors, Check); });
+            if (vectors != null) Run("params rooms", delegate { RigTests.RoomSessions(vectors, Check); });
             if (live != null) LiveTests(live, frames);
+            if (live != null) RoomTests.Live(live, python, Run, Check, WaitFor); // RoomTests.cs (PROTOCOL.md 12)
+            if (live != null && vectors != null) // params against the server (PROTOCOL.md 13), the real capture if present
+                Run("live params session", delegate { RigTests.Live(live, Check, python, Path.GetDirectoryName(Path.GetDirectoryName(Path.GetFullPath(vectors))), 180); });
             if (Failures.Count > 0)
             {
                 Console.WriteLine();
@@ -246,6 +255,7 @@ namespace Ofera.Client.Tests
             {
                 string name = Path.GetFileNameWithoutExtension(path);
                 if (name == "tables") continue; // the protocol's tables, not a vector: TableTests
+                if (name == "rig_tiny_frames") continue; // rig_tiny's deformed frames, not a message: RigTests.Frames
                 Run("vector " + name, delegate { OneVector(dir, name); });
             }
         }
@@ -328,6 +338,8 @@ namespace Ofera.Client.Tests
                 return;
             }
             if (DeltaTests.Handles(name, v)) { DeltaTests.Vector(dir, name, v, Check); return; } // PROTOCOL.md 7.1
+            if (RigTests.Handles(name, v)) { RigTests.Vector(dir, name, v, Check); return; } // PROTOCOL.md 13
+            if (RoomTests.Handles(name)) { RoomTests.Vector(dir, name, v, Check); return; } // PROTOCOL.md 12
             bool toServer = (string)v["direction"] == "client_to_server";
             if (J.Has(v, "expect_error"))
             {
@@ -645,230 +657,6 @@ namespace Ofera.Client.Tests
         }
 
         // ============================================================ unit tests
-
-        // ============================================================ rooms (hand-built messages)
-
-        static byte[] Msg(MsgPackWriter w) { byte[] b = new byte[w.Length]; Buffer.BlockCopy(w.Buffer, 0, b, 0, w.Length); return b; }
-
-        static void Member(MsgPackWriter w, object member)
-        {
-            w.WriteString("member");
-            if (member is string) w.WriteString((string)member); else w.WriteInt(Convert.ToInt64(member));
-        }
-
-        static byte[] RoomWelcome(string room, object member)
-        {
-            MsgPackWriter w = new MsgPackWriter();
-            w.WriteMapHeader(room != null ? 10 : 8);
-            w.WriteString("type"); w.WriteString("welcome");
-            w.WriteString("protocol"); w.WriteInt(1);
-            w.WriteString("session"); w.WriteString("room-test");
-            w.WriteString("avatar"); w.WriteMapHeader(3);
-            w.WriteString("id"); w.WriteString("own"); w.WriteString("count"); w.WriteInt(2); w.WriteString("sh_degree"); w.WriteInt(0);
-            w.WriteString("layout"); w.WriteString("ovr63");
-            w.WriteString("encoding"); w.WriteString("f32");
-            w.WriteString("coords"); w.WriteString("unity");
-            w.WriteString("sparse"); w.WriteBool(true);
-            if (room != null) { w.WriteString("room"); w.WriteString(room); Member(w, member); }
-            return Msg(w);
-        }
-
-        static byte[] Join(object member, int count)
-        {
-            MsgPackWriter w = new MsgPackWriter();
-            w.WriteMapHeader(3);
-            w.WriteString("type"); w.WriteString("join");
-            Member(w, member);
-            w.WriteString("avatar"); w.WriteMapHeader(3);
-            w.WriteString("id"); w.WriteString("default"); w.WriteString("count"); w.WriteInt(count); w.WriteString("sh_degree"); w.WriteInt(0);
-            return Msg(w);
-        }
-
-        static byte[] Leave(object member)
-        {
-            MsgPackWriter w = new MsgPackWriter();
-            w.WriteMapHeader(3);
-            w.WriteString("type"); w.WriteString("leave");
-            Member(w, member);
-            w.WriteString("reason"); w.WriteString("bye");
-            return Msg(w);
-        }
-
-        /// <summary>Avatar chunk of Gaussians [offset, offset + n) of count; position x = base + index.</summary>
-        static byte[] Chunk(object member, int count, int chunk, int chunks, int offset, int n, float baseX)
-        {
-            MsgPackWriter w = new MsgPackWriter();
-            w.WriteMapHeader(member != null ? 13 : 12);
-            w.WriteString("type"); w.WriteString("avatar");
-            w.WriteString("count"); w.WriteInt(count);
-            w.WriteString("sh_degree"); w.WriteInt(0);
-            w.WriteString("chunk"); w.WriteInt(chunk);
-            w.WriteString("chunks"); w.WriteInt(chunks);
-            w.WriteString("offset"); w.WriteInt(offset);
-            w.WriteString("n"); w.WriteInt(n);
-            float[] op = new float[n], sh = new float[3 * n], pos = new float[3 * n], rot = new float[4 * n], sc = new float[3 * n];
-            for (int i = 0; i < n; i++) { op[i] = 1f; pos[3 * i] = baseX + offset + i; rot[4 * i + 3] = 1f; sc[3 * i] = sc[3 * i + 1] = sc[3 * i + 2] = 0.01f; }
-            w.WriteString("opacity"); w.WriteFloat32Bin(op, 0, n);
-            w.WriteString("sh"); w.WriteFloat32Bin(sh, 0, 3 * n);
-            w.WriteString("position"); w.WriteFloat32Bin(pos, 0, 3 * n);
-            w.WriteString("rotation"); w.WriteFloat32Bin(rot, 0, 4 * n);
-            w.WriteString("scale"); w.WriteFloat32Bin(sc, 0, 3 * n);
-            if (member != null) Member(w, member);
-            return Msg(w);
-        }
-
-        /// <summary>Dense f32 frame (member null: own) with position x = value for every Gaussian.</summary>
-        static byte[] RoomFrame(object member, int count, long seq, float value)
-        {
-            MsgPackWriter w = new MsgPackWriter();
-            w.WriteMapHeader(member != null ? 9 : 8);
-            w.WriteString("type"); w.WriteString("frame");
-            if (member != null) Member(w, member); // first: decoders accept any key order
-            w.WriteString("seq"); w.WriteInt(seq);
-            w.WriteString("t"); w.WriteInt(1000 + seq);
-            w.WriteString("timing"); w.WriteMapHeader(0);
-            w.WriteString("n"); w.WriteInt(count);
-            float[] pos = new float[3 * count], rot = new float[4 * count], sc = new float[3 * count];
-            for (int i = 0; i < count; i++) { pos[3 * i] = value; rot[4 * i + 3] = 1f; sc[3 * i] = 0.02f; }
-            w.WriteString("position"); w.WriteFloat32Bin(pos, 0, 3 * count);
-            w.WriteString("rotation"); w.WriteFloat32Bin(rot, 0, 4 * count);
-            w.WriteString("scale"); w.WriteFloat32Bin(sc, 0, 3 * count);
-            return Msg(w);
-        }
-
-        static string Feed(ClientConnection c, byte[] b, ServerMessage m)
-        {
-            try { c.Receive(b, 0, b.Length, m); return "ok"; }
-            catch (ProtocolException e) { return e.Code + (e.Fatal ? " fatal" : " non-fatal"); }
-        }
-
-        static void RoomTests()
-        {
-            Run("rooms: join, member avatars, routed frames, leave", delegate
-            {
-                ClientConnection c = new ClientConnection();
-                MsgPackWriter hw = new MsgPackWriter();
-                Hello h = new Hello(); h.Layout = "ovr63"; h.Coords = "unity"; h.Sparse = true; h.Room = "lab"; h.Self = false;
-                c.EncodeHello(h, hw);
-                ClientMessage cm = new ClientMessage();
-                new ClientMessageDecoder().Decode(hw.Buffer, 0, hw.Length, null, cm);
-                Check(cm.Kind == ClientMessageKind.Hello && ToHex(hw.Buffer, 0, hw.Length).Contains(ToHex(Encoding.ASCII.GetBytes("room"), 0, 4)),
-                      "rooms: hello carries room/self (a v1 server ignores unknown keys)");
-                ServerMessage m = new ServerMessage();
-                FrameExchange ex = new FrameExchange();
-                m.Frame = ex.DecodeTarget;
-                Check(Feed(c, RoomWelcome("lab", "me"), m) == "ok" && c.InRoom && c.Welcome.Room == "lab" && c.Welcome.Member == "me",
-                      "rooms: welcome.room and welcome.member decoded");
-                // watch-only start: no own avatar yet; a member joins and streams
-                string r1 = Feed(c, Join("alice", 3), m);
-                string r2 = Feed(c, Chunk("alice", 3, 0, 1, 0, 3, 10f), m);
-                Check(r1 == "ok" && r2 == "ok" && c.CompletedMember != null && c.CompletedMember.Id == "alice" && c.State == ClientState.ReceivingAvatar,
-                      "rooms: a member's avatar completes before the own avatar", r1 + " " + r2 + " " + c.State);
-                Check(c.Member("alice").Avatar.Count == 3 && c.Member("alice").Avatar.Position[3] == 11f, "rooms: member avatar assembled");
-                Welcome mw = c.Welcome.ForMember(c.Member("alice").Join);
-                Check(mw.Count == 3 && mw.AvatarId == "default" && mw.Encoding == "f32" && mw.Coords == "unity" && c.Welcome.Count == 2,
-                      "rooms: a member's welcome (session settings, member's avatar) for its sinks");
-                string r3 = Feed(c, RoomFrame("alice", 3, 5, 0.5f), m);
-                Check(r3 == "ok" && m.Frame.Member == "alice" && m.Frame.N == 3 && m.Frame.Position[0] == 0.5f,
-                      "rooms: a member's frame is accepted before the own avatar, decoded with the member's count", r3);
-                bool dropped = ex.Publish(m.Frame.Member);
-                m.Frame = ex.DecodeTarget;
-                // an int member id, avatar in two chunks
-                Feed(c, Join(7, 2), m);
-                string r4 = Feed(c, Chunk(7, 2, 0, 2, 0, 1, 20f), m);
-                Check(r4 == "ok" && c.CompletedMember == null, "rooms: first of two chunks does not complete the member");
-                Feed(c, Chunk(7, 2, 1, 2, 1, 1, 20f), m);
-                Check(c.CompletedMember != null && c.CompletedMember.Id == "7" && c.Member("7").Avatar.Position[3] == 21f,
-                      "rooms: int member id routed as its decimal string, chunks assembled");
-                string own = Feed(c, RoomFrame(null, 2, 1, 1f), m);
-                Check(own == "not_ready non-fatal" && c.State == ClientState.ReceivingAvatar,
-                      "rooms: an own frame before the own avatar is a non-fatal not_ready in a room", own);
-                Feed(c, Chunk(null, 2, 0, 1, 0, 2, 0f), m);
-                Check(c.State == ClientState.Streaming, "rooms: own avatar (no member) still assembles the session's avatar", c.State.ToString());
-                Feed(c, RoomFrame(null, 2, 2, 2f), m);
-                Check(m.Frame.Member == null && m.Frame.N == 2, "rooms: a frame without member moves the own avatar");
-                ex.Publish(null);
-                m.Frame = ex.DecodeTarget;
-                Feed(c, RoomFrame(7, 2, 9, 7f), m);
-                ex.Publish(m.Frame.Member);
-                m.Frame = ex.DecodeTarget;
-                Feed(c, RoomFrame("alice", 3, 6, 0.75f), m);
-                bool dropped2 = ex.Publish(m.Frame.Member);
-                m.Frame = ex.DecodeTarget;
-                FrameData fa = ex.Take("alice"), f7 = ex.Take("7"), fo = ex.Take(null), none = ex.Take("bob");
-                Check(!dropped && dropped2 && fa != null && fa.Seq == 6 && fa.Position[0] == 0.75f && f7 != null && f7.Position[0] == 7f &&
-                      fo != null && fo.Position[0] == 2f && none == null && ex.Take("alice") == null,
-                      "rooms: newest frame per member (alice's seq 5 replaced by 6), own and members kept apart");
-                string bad = Feed(c, RoomFrame("alice", 2, 7, 1f), m);
-                Check(bad == "bad_length non-fatal", "rooms: a member frame with the wrong count is a non-fatal bad_length", bad);
-                string unknown = Feed(c, RoomFrame("carol", 3, 1, 1f), m);
-                Check(unknown == "not_ready non-fatal" && c.State == ClientState.Streaming, "rooms: a frame for an unknown member is dropped (non-fatal not_ready)", unknown);
-                string orphan = Feed(c, Chunk("carol", 1, 0, 1, 0, 1, 0f), m);
-                Check(orphan == "not_ready non-fatal", "rooms: an avatar chunk before the member's join is dropped", orphan);
-                Feed(c, Leave("alice"), m);
-                Check(c.LeftMember != null && c.LeftMember.Id == "alice" && c.Member("alice") == null && c.MemberCount == 1, "rooms: leave removes the member");
-                ex.Drop("alice");
-                string after = Feed(c, RoomFrame("alice", 3, 8, 1f), m);
-                Check(after == "not_ready non-fatal", "rooms: frames after leave are dropped", after);
-                Feed(c, Leave("nobody"), m);
-                Check(c.LeftMember == null && c.MemberCount == 1, "rooms: leave of an unknown member is ignored");
-                Feed(c, Join(7, 4), m);
-                string early = Feed(c, RoomFrame(7, 4, 1, 1f), m);
-                Check(early == "not_ready non-fatal" && c.Member("7").Avatar.Count == 4, "rooms: a re-join replaces the member; frames wait for its new avatar", early);
-            });
-
-            Run("rooms: join/leave cycles allocate no frames", delegate
-            {
-                FrameExchange ex = new FrameExchange();
-                // one life of a member: two frames published, the newest taken, then it leaves (receive thread)
-                // and the main thread takes its Left event (OferaClient.TryTakeRoomEvent -> Release)
-                Action<string, bool> life = (member, release) =>
-                {
-                    ex.Publish(member); ex.Publish(member);
-                    FrameData held = ex.Take(member);
-                    ex.Publish(null); ex.Take(null);
-                    ex.Drop(member);
-                    for (int k = 0; k < 3; k++)  // while parked, the held frame is never decoded into
-                    {
-                        if (ReferenceEquals(ex.DecodeTarget, held)) throw new Exception("a departed member's held frame was reused before its release");
-                        ex.Publish("other"); ex.Take("other");
-                    }
-                    if (release) ex.Release(member);
-                };
-                for (int i = 0; i < 4; i++) life("warm" + i, true);
-                int warm = ex.Allocated;
-                for (int i = 0; i < 200; i++) life("m" + i, true);  // a new id each time
-                Check(ex.Allocated == warm && ex.ParkedCount == 0,
-                      "rooms: 200 join/leave cycles (Left taken) allocate no FrameData", warm + " -> " + ex.Allocated);
-                for (int i = 0; i < 200; i++) life("again", false);  // the same id rejoining: its next Take recycles
-                Check(ex.Allocated == warm && ex.ParkedCount <= 1, "rooms: a member rejoining reuses its last life's frame",
-                      warm + " -> " + ex.Allocated + ", parked " + ex.ParkedCount);
-                ex.Release("again");
-                for (int session = 2; session < 100; session++)  // new sessions with members holding frames
-                {
-                    ex.Publish("a"); ex.Publish("b"); ex.Take("a"); ex.Take("b");
-                    ex.Reset(session);
-                    ex.ReleaseBefore(session);  // the main thread sees the new session (an event or avatar of it)
-                }
-                Check(ex.Allocated == warm && ex.ParkedCount == 0,
-                      "rooms: new sessions with held member frames allocate no FrameData",
-                      warm + " -> " + ex.Allocated + ", parked " + ex.ParkedCount);
-            });
-
-            Run("rooms: v1 sessions are unchanged", delegate
-            {
-                ClientConnection c = new ClientConnection();
-                MsgPackWriter hw = new MsgPackWriter();
-                Hello h = new Hello(); h.Layout = "ovr63"; h.Coords = "unity"; h.Sparse = true;
-                c.EncodeHello(h, hw);
-                ServerMessage m = new ServerMessage();
-                m.Frame = new FrameData();
-                Feed(c, RoomWelcome(null, null), m);
-                Check(!c.InRoom && c.Welcome.Room == null, "rooms: welcome without room is v1");
-                string early = Feed(c, RoomFrame(null, 2, 1, 1f), m);
-                Check(early == "not_ready fatal", "rooms: outside a room a frame before the avatar stays fatal", early);
-            });
-        }
 
         /// <summary>The payload of bin field `key` in a msgpack message (found by its key; test helper).</summary>
         static byte[] BinOf(byte[] msg, string key)
@@ -1444,7 +1232,7 @@ namespace Ofera.Client.Tests
         }
 
         // raw ClientWebSocket + ClientConnection, for what the high-level client does not expose
-        sealed class Raw : IDisposable
+        internal sealed class Raw : IDisposable
         {
             public readonly ClientWebSocket Ws = new ClientWebSocket();
             public readonly ClientConnection Conn = new ClientConnection();

@@ -11,6 +11,8 @@
 #   OFERA_STUB_SERVER_ARGS="..."   extra arguments for `ofera serve` (e.g. --avatars DIR)
 #   OFERA_STUB_SERVER_TIMEOUT=300  seconds to wait for /healthz
 #   OFERA_STUB_FRAMES=100          frames in the live session
+#   OFERA_STUB_BENCH_RIG=1         only print the C# params deformation time as one JSON line (RigTests.Bench): the
+#                                  server's default rig when the live part runs, else a synthetic rig of that size
 # Ends with the test program's closing line "N passed, N failed"; exit status non-zero if any failed.
 set -u
 
@@ -48,7 +50,7 @@ if ! mcs -langversion:7.2 -nologo -warn:4 -target:library -r:System.dll \
     echo "0 passed, 1 failed"; exit 1
 fi
 if ! mcs -langversion:7.2 -nologo -warn:4 -r:System.dll -r:"$BUILD/Ofera.Client.Core.dll" \
-        -out:"$BUILD/TestMain.exe" "$HERE/TestMain.cs" "$HERE/DeltaTests.cs"; then
+        -out:"$BUILD/TestMain.exe" "$HERE/TestMain.cs" "$HERE/DeltaTests.cs" "$HERE"/Room*.cs "$HERE/RigTests.cs"; then
     echo "0 passed, 1 failed"; exit 1
 fi
 # The Unity-side scripts need UnityEngine.dll, which this machine does not have: they are type-checked
@@ -61,7 +63,8 @@ for SDK60 in -define:OFERA_META_SDK_60 ""; do
             -define:OFERA_GAUSSIAN_SPLATTING -define:OFERA_META_SDK $SDK60 -out:"$BUILD/UnityTypeCheck.dll" \
             "$HERE/UnityStandIn.cs" "$PKG"/Runtime/Unity/OferaAvatarClient.cs "$PKG"/Runtime/Unity/Sinks.cs \
             "$PKG"/Runtime/Unity/FaceSources.cs "$PKG"/Runtime/Unity/MemberPoseSource.cs \
-            "$PKG"/Runtime/Unity/GaussianSplatting/GaussianSplattingSink.cs "$PKG"/Runtime/Unity/MetaQuest/OvrFaceSource.cs; then
+            "$PKG"/Runtime/Unity/GaussianSplatting/GaussianSplattingSink.cs "$PKG"/Runtime/Unity/GaussianSplatting/RigSplattingSink.cs \
+            "$PKG"/Runtime/Unity/MetaQuest/OvrFaceSource.cs; then
         echo "0 passed, 1 failed"; exit 1
     fi
 done
@@ -101,6 +104,12 @@ if [ "${OFERA_STUB_LIVE:-1}" != "0" ]; then
 $(tail -n 15 "$LOG" 2>/dev/null)"
         fi
     fi
+fi
+
+if [ "${OFERA_STUB_BENCH_RIG:-0}" = "1" ]; then
+    # one JSON line: the C# params deformation time (the live server's default rig, else a synthetic rig of its size)
+    mono "$BUILD/TestMain.exe" --bench-rig "${ARGS[@]}"
+    exit $?
 fi
 
 mono --debug "$BUILD/TestMain.exe" "${ARGS[@]}" | tee "$BUILD/out.txt"

@@ -27,19 +27,24 @@ still references it or any view of its arrays (CPython reference counts), so the
 hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
 nothing. States are read-only.
 
-Threads: ``session(parallel=None)`` (the default, "auto") runs the face frames and the triangle kernel with
-prange over numba's threads while its session is the only one of the process that computed a frame in the
-last :data:`ACTIVITY` window, and single-threaded as soon as another one does (several sessions already keep
-every core busy, and a parallel region would wait for a core another session holds). ``parallel=True`` /
-``False`` force either; the results are the same bits (every Gaussian and face is computed by the same
-code, whichever thread runs it). benchmarks/profile_frame.py and scaling.py measure both.
+Threads: ``session(parallel=None)`` (the default, "auto") may run the face frames and the triangle kernel
+with prange over numba's threads, only while (1) its session is the only one of the process that computed a
+frame in the last :data:`ACTIVITY` window (several sessions already keep every core busy), (2) the machine is
+not busy (1-minute load average below the thread count: other processes hold the cores), and (3) its own
+recent parallel frames were faster than its serial ones (:class:`ThreadChoice`: a parallel region waits for
+its slowest thread, so on a loaded core it can be ten times slower than one thread; the choice re-checks
+the other mode now and then). Otherwise single-threaded. ``parallel=True`` / ``False`` force either; the
+results are the same bits (every Gaussian and face is computed by the same code, whichever thread runs
+it). benchmarks/profile_frame.py and scaling.py measure both.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 import numba
@@ -165,9 +170,40 @@ ACTIVITY = Activity()
 """The process-wide activity record every automatic FastSession consults."""
 
 
-def use_threads(active_sessions: int, threads: int) -> bool:
-    """The thread choice: parallel kernels only for a session that is alone, when there is a second thread."""
-    return threads > 1 and active_sessions <= 1
+def use_threads(active_sessions: int, threads: int, load: float | None = None) -> bool:
+    """Whether parallel kernels may run: a second thread, a session alone, and (if known) a 1-minute load
+    average below the thread count."""
+    return threads > 1 and active_sessions <= 1 and (load is None or load < threads)
+
+
+def load_average() -> float | None:
+    """The machine's 1-minute load average (None where the OS has none)."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
+
+
+class ThreadChoice:
+    """Serial or parallel for the next frame, from the durations of the last ``window`` frames of each: the
+    faster median wins; every ``probe`` frames the other mode runs once, so a change of load is noticed.
+    A mode with fewer than 3 samples is tried first."""
+
+    def __init__(self, window: int = 15, probe: int = 60) -> None:
+        self.times: dict[bool, deque[int]] = {False: deque(maxlen=window), True: deque(maxlen=window)}
+        self.probe = probe
+        self.frames = 0
+
+    def choose(self) -> bool:
+        self.frames += 1
+        serial, parallel = self.times[False], self.times[True]
+        if len(serial) < 3 or len(parallel) < 3:
+            return len(parallel) <= len(serial)
+        best = bool(np.median(parallel) < np.median(serial))
+        return (not best) if self.frames % self.probe == 0 else best
+
+    def record(self, parallel: bool, ns: int) -> None:
+        self.times[parallel].append(ns)
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,6 +302,7 @@ class FastSession:
         self.fast = fast
         self.parallel = parallel  # None: automatic (use_threads of the sessions active in `activity`)
         self.activity = activity
+        self.choice = ThreadChoice()
         self.threaded = False  # whether the last frame ran on numba's threads
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
@@ -297,7 +334,8 @@ class FastSession:
         """This frame's thread choice (``parallel``, or automatic: see the module docstring)."""
         par = self.parallel
         if par is None:
-            par = use_threads(self.activity.note(id(self)), numba.get_num_threads())
+            par = (use_threads(self.activity.note(id(self)), numba.get_num_threads(), load_average())
+                   and self.choice.choose())
         self.threaded = par
         return par
 
@@ -310,6 +348,7 @@ class FastSession:
         state, pos, rot, scale = self.pool.acquire()
         bary = a.bary is not None
         par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
+        t0 = time.perf_counter_ns()
         (K.face_frames_kernel_parallel if par else K.face_frames_kernel)(verts, a.face_vids, self.face, bary)
         if bary:
             K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.bary,
@@ -317,6 +356,8 @@ class FastSession:
         else:
             kernel = K.triangle_kernel_parallel if par else K.triangle_kernel
             kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.lpos, a.lrot, a.lscale, pos, rot, scale)
+        if self.parallel is None:
+            self.choice.record(par, time.perf_counter_ns() - t0)
         return state
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:

@@ -33,7 +33,7 @@ def build_rig(avatar: GaussianAvatar, subject: HeadSubject, rows: np.ndarray, id
     session of `count` Gaussians. FLAME space; f16 arrays as PROTOCOL.md 13.3 says."""
     if avatar.expression != "flame68":
         raise RigError(f"params needs a FLAME-driven avatar (expression flame68); {avatar.name!r} is driven by "
-                       f"{avatar.expression} weights")
+                       f"{avatar.expression} weights: ask for f32, f16 or q13")
     binding = avatar.binding
     if not isinstance(binding, (TriangleBinding, BarycentricBinding)):
         raise RigError(f"params needs triangle or barycentric Gaussians; {avatar.name!r} is {binding.kind}-bound")
@@ -64,7 +64,7 @@ def build_rig(avatar: GaussianAvatar, subject: HeadSubject, rows: np.ndarray, id
         binding=kind, count=int(count), index=np.asarray(ids, np.uint32),
         joints=subject.j_id.astype(np.float32), joints_expr=np.ascontiguousarray(subject.j_expr[:, :, :e], np.float32),
         template=subject.v_id[vids].astype(np.float32),
-        expr_basis=np.ascontiguousarray(np.asarray(head.exprdirs)[vids, :, :e].transpose(0, 2, 1), np.float16),
+        expr_basis=np.ascontiguousarray(np.asarray(head.exprdirs)[vids, :, :e].transpose(0, 2, 1), np.float32),
         pose_rows=pose_rows.astype(np.uint8),
         pose_basis=np.ascontiguousarray(pose[pose_rows].transpose(1, 0, 2), np.float16),
         weights=np.asarray(head.weights, np.float32)[vids], face=face.reshape(-1, 3).astype(np.uint32),

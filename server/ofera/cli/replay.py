@@ -139,8 +139,9 @@ replay_app = typer.Typer(cls=ReplayGroup, context_settings={"help_option_names":
 
 
 def replay(
-    log: Annotated[Path, typer.Argument(help="Face log: face-log/MediaPipe/ARKit CSV, Quest Pro Unity log, "
-                                       "Live Link Face CSV or .gesichter capture.", show_default=False)],
+    log: Annotated[Path | None, typer.Argument(help="Face log: face-log/MediaPipe/ARKit CSV, Quest Pro Unity log, "
+                                              "Live Link Face CSV or .gesichter capture (optional with --watch).",
+                                              show_default=False)] = None,
     url: UrlOpt = "ws://127.0.0.1:8000",
     speed: Annotated[float, typer.Option("--speed", help="Playback speed (2: twice as fast).")] = 1.0,
     loop: Annotated[bool, typer.Option("--loop", help="Repeat the log until Ctrl-C.")] = False,
@@ -167,24 +168,90 @@ def replay(
     drain: Annotated[float, typer.Option("--drain", help="Seconds to wait for the last frames after "
                                          "sending.")] = 2.0,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    room: Annotated[str | None, typer.Option("--room", help="Join this room (PROTOCOL.md 12): the log drives this "
+                                             "client's avatar there, and every other member's frames are counted "
+                                             "per member.")] = None,
+    watch: Annotated[bool, typer.Option("--watch", help="With --room: watch only (send nothing), for --seconds, or "
+                                        "for the LOG's duration, or until Ctrl-C.")] = False,
+    self_view: Annotated[bool, typer.Option("--self", help="With --room: also receive one's own avatar (latency of "
+                                            "one's own frames, as without a room).")] = False,
+    room_token: Annotated[str | None, typer.Option("--room-token", help="With --room: the room's token, if the "
+                                                   "server has a room secret.")] = None,
+    seconds: Annotated[float | None, typer.Option("--seconds", help="With --watch: how long to watch.")] = None,
 ) -> None:
     """Send a recorded face log to a server at its recorded pace and measure the frames that come back.
 
     Quest Pro logs send one `bs` per tracker sample (repeated rows dropped), with their lower/upper face
     confidences when the log has them. `ofera replay inspect LOG` shows what a log holds, without a server.
 
+    With --room, several replays into one room are several people meeting (each sees the others); --watch joins
+    as a watch-only member.
+
     Exits 1 when the server refuses the session or reports errors, 2 on a bad argument or log.
     """
+    if watch or room is not None:
+        _room_checks(log, room, watch, delta, seconds)
+    if watch:
+        _watch(log, url, room, encoding, token, room_token, json_out, seconds, quiet)
+        return
     _replay(log, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar, encoding,
-            token, max_lag, drain, quiet, delta)
+            token, max_lag, drain, quiet, delta, room, self_view, room_token)
+
+
+@user_errors()
+def _room_checks(log, room, watch, delta, seconds) -> None:
+    if room is None:
+        raise CliError("--watch needs --room NAME (the room to watch)")
+    if delta:
+        raise CliError("--delta is not offered in rooms (PROTOCOL.md 12.1)")
+    if not watch and log is None:
+        raise CliError("give the face LOG to replay into the room (or --watch to watch it)")
+    if seconds is not None and seconds <= 0:
+        raise CliError(f"--seconds must be positive, got {seconds}")
+
+
+@user_errors()
+def _watch(log_path, url, room, encoding, token, room_token, json_out, seconds, quiet) -> None:
+    from ofera.replay import LinkOptions, stream_url, watch_through
+
+    _check_encoding(encoding)
+    target = stream_url(url)
+    if seconds is None and log_path is not None:
+        from ofera.sources import read_facelog_report
+
+        log, _ = read_facelog_report(log_path, "auto", None)
+        seconds = float(log.duration)
+    options = LinkOptions(layout="arkit52", encoding=encoding, token=token, room=room, publish=False,
+                          room_token=room_token)
+    console = _err_console()
+    console.print(f"watching room {room!r} at {target}" + (f" for {seconds:g} s" if seconds else " until Ctrl-C"))
+    stop = asyncio.Event()
+
+    def on_tick(stats) -> None:
+        if not quiet:
+            counts = ", ".join(f"{m} {len(v)}" for m, v in sorted(stats.members.items())) or "no frames yet"
+            console.print(f"\r{counts}", end="")
+
+    stats = _run_with_sigint(lambda: watch_through(target, options, seconds, stop, on_tick, tick_s=0.5), stop.set)
+    if not quiet:
+        console.print()
+    summary = stats.summary(url=target, room=room, watch=True, seconds=seconds)
+    _write_json(json_out, summary)
+    for member, info in summary.get("members", {}).items():
+        lat = info["latency_ms"]
+        console.print(f"member {member}: {info['received']} frames, latency p50 {lat['p50']} ms, p99 {lat['p99']} ms")
+    console.print(f"joined {len(stats.joined)}, left {len(stats.left)}, errors {stats.errors}")
+    _explain_failure(stats, "watch")
 
 
 @user_errors()
 def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar,
-            encoding, token, max_lag, drain, quiet, delta=False) -> None:
+            encoding, token, max_lag, drain, quiet, delta=False, room=None, self_view=False, room_token=None) -> None:
     from ofera.replay import FrameRecorder, LinkOptions, Replayer, replay_through, stream_url
     from ofera.sources import read_facelog_report
 
+    if log_path is None:
+        raise CliError("give the face LOG to replay (ofera replay LOG --url URL)")
     if passes is not None and passes < 1:
         raise CliError(f"--passes must be at least 1, got {passes}")
     _check_encoding(encoding)
@@ -198,7 +265,7 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
                         max_passes=passes if loop else 1)
     recorder = FrameRecorder(log.layout.name, log.weights, replayer.times, record_positions) if record else None
     options = LinkOptions(layout=log.layout.name, avatar=avatar, encoding=encoding, token=token, delta=delta,
-                          track=record_positions)
+                          track=record_positions, room=room, self_view=self_view, room_token=room_token)
     console = _err_console()
     console.print(f"replaying {log_path} ({len(log)} frames, {log.duration:.2f} s, layout {log.layout.name}) "
                   f"to {target} at x{speed:g}{' in a loop' if loop else ''}")
@@ -214,7 +281,7 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
             lambda: replay_through(replayer, target, options, recorder, drain_s=drain, on_tick=on_tick),
             replayer.stop)
     summary = stats.summary(
-        log=str(log_path), layout=log.layout.name, url=target, speed=speed, loop=loop, passes=stats.passes,
+        log=str(log_path), layout=log.layout.name, url=target, speed=speed, loop=loop, passes=stats.passes, room=room,
         frames_in_log=len(log), log_duration_s=round(replayer.log_duration, 4),
         log_format=report.format, rows_in_log=report.rows, time_source=report.time_source,
         confidence_sent=log.confidence is not None,
@@ -228,6 +295,10 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
         f"sent {stats.sent}, received {stats.received}, skipped {stats.skipped}, errors {stats.errors}; "
         f"sending took {stats.duration:.3f} s (expected {stats.expected_duration or 0:.3f} s), "
         f"wall {stats.wall:.3f} s; latency p50 {lat['p50']} ms, p99 {lat['p99']} ms")
+    for member, info in summary.get("members", {}).items():
+        mlat = info["latency_ms"]
+        console.print(f"member {member}: {info['received']} frames, latency p50 {mlat['p50']} ms, "
+                      f"p99 {mlat['p99']} ms")
     _explain_failure(stats, "replay")
 
 

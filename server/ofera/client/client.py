@@ -5,6 +5,11 @@
     frame = await client.recv_frame()        # decoded float32 arrays, stage timings, seq, t
     print(client.latency.summary())          # p50/p99 of now - frame.t (ms)
     await client.close()
+
+Rooms (PROTOCOL.md 12): `connect(url, room="lab", avatar="default")` joins a room and publishes;
+`publish=False` watches only (`watch(url, "lab")`). Every member's frames come through `recv_frame` with
+`frame.member`; `client.members` holds who is there (their join, avatar, Gaussians with `track=True`),
+`client.member_latency` per-member latency, `client.joins` / `client.leaves` the membership events seen.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ from ofera_protocol import (
     ClientState,
     ErrorMessage,
     Frame,
+    Join,
+    Leave,
     Pong,
     ProtocolError,
     ServerMessage,
@@ -65,16 +72,20 @@ class ServerError(Exception):
 class Client:
     """One open session (use `connect`). Not safe for concurrent receivers: one task reads."""
 
-    def __init__(self, ws: WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar) -> None:
+    def __init__(self, ws: WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar | None) -> None:
         self.ws = ws
         self.conn = conn
         self.welcome = welcome
-        self.avatar = avatar
+        self.avatar = avatar  # None in a room session: every avatar comes with a join (`members`)
         self.latency = LatencyStats()
+        self.member_latency: dict[str, LatencyStats] = {}  # rooms: per member
+        self.joins: list[Join] = []  # rooms: every join seen, in order
+        self.leaves: list[Leave] = []  # rooms: every leave seen, in order
         self.errors: list[ErrorMessage] = []  # non-fatal errors seen while reading frames
         self.pongs: list[int] = []  # ping round trips, microseconds
         self.seq = -1
         self.frames_received = 0
+        self.last_bytes = 0  # size of the last message received (bandwidth measurements)
         self.rig_deformer = None  # params sessions (PROTOCOL.md 13): params.RigDeformer of the rig, with track=True
         if conn.rig is not None and conn.gaussians is not None:
             from .params import RigDeformer
@@ -87,7 +98,22 @@ class Client:
 
     @property
     def count(self) -> int:
-        return self.welcome.avatar.count
+        """Gaussians of this client's own avatar (0 for a watch-only room member)."""
+        return self.welcome.avatar.count if self.welcome.avatar is not None else 0
+
+    @property
+    def room(self) -> str | None:
+        return self.welcome.room
+
+    @property
+    def member(self) -> str | None:
+        """This client's member id in its room."""
+        return self.welcome.member
+
+    @property
+    def members(self):  # noqa: ANN201 - dict[str, ofera_protocol.connection.RoomMember]
+        """Rooms: the members present (joined and not left), by member id."""
+        return self.conn.members
 
     # ------------------------------------------------------------------ sending
 
@@ -128,6 +154,7 @@ class Client:
                               True, rcvd.code if rcvd else None) from None
         if isinstance(data, str):
             raise ServerError("text_frame", "the server sent a text message", True)
+        self.last_bytes = len(data)
         try:
             msg = self.conn.receive(data)
         except ProtocolError:
@@ -137,6 +164,12 @@ class Client:
         if isinstance(msg, Frame):
             self.frames_received += 1
             self.latency.add(now_us() - msg.t)
+            if msg.member is not None:
+                self.member_latency.setdefault(msg.member, LatencyStats()).add(now_us() - msg.t)
+        elif isinstance(msg, Join):
+            self.joins.append(msg)
+        elif isinstance(msg, Leave):
+            self.leaves.append(msg)
         elif isinstance(msg, ParamsFrame):  # params sessions: stamped frames carry t; the client deforms
             self.frames_received += 1
             if msg.t is not None:
@@ -149,7 +182,8 @@ class Client:
 
     async def recv_frame(self, timeout: float | None = None) -> Frame | ParamsFrame:
         """The next frame (a params session's: a ParamsFrame). Non-fatal errors are kept in `errors`; a fatal one
-        raises ServerError."""
+        raises ServerError. Rooms: joins, avatar chunks and leaves are taken in passing (`members`, `joins`,
+        `leaves`); `timeout` applies to each message."""
         while True:
             msg = await self.recv(timeout)
             if isinstance(msg, (Frame, ParamsFrame)):
@@ -198,7 +232,8 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
                   coords: str = "flame", token: str | None = None, *, device: str | None = None,
                   sparse: bool = False, max_gaussians: int | None = None, open_timeout: float = 60.0,
                   max_size: int = MAX_SERVER_MESSAGE, max_queue: int = 2, delta: bool = False,
-                  track: bool = False) -> Client:
+                  track: bool = False, room: str | None = None, publish: bool = True, self_view: bool = False,
+                  room_token: str | None = None) -> Client:
     """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused.
 
     `delta`: ask for key/delta frames (f16, q13; PROTOCOL.md 7.1): delta frames are returned as sparse-like
@@ -208,24 +243,41 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
 
     `max_queue`: messages the websockets library may read ahead of the application. Kept small so that
     a client slower than the stream leaves frames to the server's newest-wins backpressure instead of
-    queueing stale ones locally (which would only add latency)."""
+    queueing stale ones locally (which would only add latency).
+
+    `room` joins that room (PROTOCOL.md 12): `publish` False watches only, `self_view` also receives one's own
+    avatar, `room_token` answers a server with a room secret. The handshake ends at welcome (avatars follow with
+    each join)."""
     ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
                           ping_interval=None, max_queue=max_queue)
     conn = ClientConnection(max_message_size=max_size, track_gaussians=track)
     try:
         await ws.send(conn.hello(layout, avatar, encoding=encoding, coords=coords, sparse=sparse, device=device,
-                                 token=token, max_gaussians=max_gaussians, delta=delta))
+                                 token=token, max_gaussians=max_gaussians, delta=delta, room=room, publish=publish,
+                                 self_view=self_view, room_token=room_token))
         welcome = await asyncio.wait_for(_handshake(ws, conn), open_timeout)
     except BaseException:
         await ws.close()
         raise
-    assert conn.avatar is not None
+    assert conn.avatar is not None or room is not None
     return Client(ws, conn, welcome, conn.avatar)
+
+
+async def watch(url: str, room: str, **kwargs: object) -> Client:
+    """Watch a room without publishing: `connect(url, room=room, publish=False, ...)`."""
+    return await connect(url, room=room, publish=False, **kwargs)  # type: ignore[arg-type]
+
+
+def _handshake_done(conn: ClientConnection) -> bool:
+    """v1: the avatar (params: and the rig after it) is complete; rooms: welcome arrived."""
+    if conn.welcome is not None and conn.welcome.room is not None:
+        return True
+    return conn.avatar is not None and conn.state is not ClientState.RECEIVING_RIG
 
 
 async def _handshake(ws: WsConnection, conn: ClientConnection) -> Welcome:
     welcome: Welcome | None = None
-    while conn.avatar is None or conn.state is ClientState.RECEIVING_RIG:  # params: the rig follows the avatar
+    while not _handshake_done(conn):
         try:
             data = await ws.recv()
         except ConnectionClosed as e:

@@ -8,7 +8,7 @@ saves the received frames (`--record`).
 from ofera.replay.core import Replayer, ReplayStats, percentiles_ms
 from ofera.replay.link import Link, LinkError, LinkOptions, open_link, stream_url
 from ofera.replay.record import FrameRecorder
-from ofera.replay.run import receive_loop, replay_through
+from ofera.replay.run import receive_loop, replay_through, watch_through
 
 __all__ = [
     "FrameRecorder",
@@ -22,4 +22,5 @@ __all__ = [
     "receive_loop",
     "replay_through",
     "stream_url",
+    "watch_through",
 ]

@@ -66,6 +66,10 @@ class ReplayStats:
     last_seq_answered: int | None = None
     scheduled: tuple[float, float] | None = None
     """Due offsets (seconds after the start) of the first and last frame sent."""
+    members: dict[str, list[float]] = field(default_factory=dict)
+    """Rooms: latency (s, from the member's bs.t, same-host clocks) of every frame received from each other member."""
+    joined: list[str] = field(default_factory=list)  # rooms: members announced by `join`, in order
+    left: list[tuple[str, str]] = field(default_factory=list)  # rooms: (member, reason) of every `leave`
 
     MAX_MESSAGES = 20
 
@@ -84,6 +88,10 @@ class ReplayStats:
         if seq is not None and (self.last_seq_answered is None or seq > self.last_seq_answered):
             self.last_seq_answered = seq
         self.latencies.append(max(0, now_us - t_us) * 1e-6)
+
+    def on_member_frame(self, member: str, now_us: int, t_us: int) -> None:
+        """Rooms: a frame of another `member` (its seq is that member's, not an answer to this client's bs)."""
+        self.members.setdefault(member, []).append(max(0, now_us - t_us) * 1e-6)
 
     def on_error(self, text: str, fatal: bool = False) -> None:
         self.errors += 1
@@ -127,6 +135,9 @@ class ReplayStats:
             "last_seq_sent": self.last_seq_sent,
             "last_seq_answered": self.last_seq_answered,
         }
+        if self.joined or self.members:
+            out["joined"], out["left"] = list(self.joined), [list(x) for x in self.left]
+            out["members"] = {m: {"received": len(v), "latency_ms": percentiles_ms(v)} for m, v in self.members.items()}
         out.update(extra)
         out["fatal_error"] = self.fatal_error
         out["error_messages"] = list(self.error_messages)

@@ -39,6 +39,10 @@ class LinkOptions:
     open_timeout: float = 60.0
     delta: bool = False  # ask for key/delta frames (f16, q13; PROTOCOL.md 7.1)
     track: bool = False  # keep the client's reconstruction of every Gaussian (client.gaussians)
+    room: str | None = None  # join this room (PROTOCOL.md 12); None: a v1 session
+    publish: bool = True  # rooms: False watches only
+    self_view: bool = False  # rooms: also receive one's own avatar
+    room_token: str | None = None  # rooms: the room's token, if the server asks for one
 
 
 class Link:
@@ -56,6 +60,11 @@ class Link:
     @property
     def count(self) -> int:
         return self.client.count
+
+    @property
+    def member(self) -> str | None:
+        """Rooms: this client's member id."""
+        return self.client.member
 
     async def send(self, seq: int, t_us: int, w: np.ndarray, conf: np.ndarray | None = None) -> None:
         """One `bs`; `conf`: optional (2,) [lower, upper] face confidence in [0, 1]."""
@@ -98,7 +107,8 @@ async def open_link(url: str, options: LinkOptions) -> Link:
     try:
         client = await connect(target, layout=options.layout, avatar=options.avatar, encoding=options.encoding,
                                token=options.token, device=options.device, open_timeout=options.open_timeout,
-                               delta=options.delta, track=options.track)
+                               delta=options.delta, track=options.track, room=options.room,
+                               publish=options.publish, self_view=options.self_view, room_token=options.room_token)
     except ServerError as e:
         if e.code == "closed":
             raise LinkError(f"the server closed the connection during the handshake: {e}") from None

@@ -28,7 +28,9 @@ async def receive_loop(
     """Count every frame and error the server sends until the session ends. A fatal error, or the
     server closing the connection, calls `on_fatal` (the sender stops)."""
     async for msg in link.events():
-        if isinstance(msg, Frame):
+        if isinstance(msg, Frame) and msg.member is not None and msg.member != link.member:
+            stats.on_member_frame(msg.member, now_us(), msg.t)  # rooms: another member's frame
+        elif isinstance(msg, Frame):
             t = now_us()
             stats.on_frame(t, msg.t, msg.seq)
             if on_frame is not None:
@@ -78,6 +80,8 @@ async def replay_through(
     def last_answered() -> bool:
         if stats.fatal_error is not None or stats.last_seq_sent is None:
             return True
+        if options.room is not None and not options.self_view:
+            return True  # a room member sees its own frames only with self_view: nothing answers its bs
         return stats.last_seq_answered is not None and stats.last_seq_answered >= stats.last_seq_sent
 
     async def ticker() -> None:
@@ -102,9 +106,49 @@ async def replay_through(
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await receiver
         stats.finished = time.monotonic()
+        room_events(stats, link)
         if on_tick is not None:
             on_tick(replayer)
     return stats
+
+
+async def watch_through(url: str, options: LinkOptions, seconds: float | None, stop: asyncio.Event | None = None,
+                        on_tick: Callable[[ReplayStats], None] | None = None, tick_s: float = 0.1) -> ReplayStats:
+    """Rooms: watch `options.room` without publishing for `seconds` (None: until `stop` is set), counting every
+    member's frames (`stats.members`)."""
+    stats = ReplayStats()
+    stats.started = time.monotonic()
+    options = LinkOptions(**{**vars(options), "publish": False})
+    try:
+        link = await open_link(url, options)
+    except LinkError as e:
+        stats.on_error(str(e), fatal=True)
+        stats.finished = time.monotonic()
+        return stats
+    stop = stop or asyncio.Event()
+    receiver = asyncio.create_task(receive_loop(link, stats, on_fatal=stop.set))
+    try:
+        deadline = None if seconds is None else time.monotonic() + seconds
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            if on_tick is not None:
+                on_tick(stats)
+            left = tick_s if deadline is None else min(tick_s, max(0.0, deadline - time.monotonic()))
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stop.wait(), left)
+    finally:
+        await link.close()
+        receiver.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await receiver
+        stats.finished = time.monotonic()
+    room_events(stats, link)
+    return stats
+
+
+def room_events(stats: ReplayStats, link: Link) -> None:
+    """Rooms: copy the joins and leaves the client saw into `stats`."""
+    stats.joined = [j.member for j in link.client.joins]
+    stats.left = [(m.member, m.reason) for m in link.client.leaves]
 
 
 async def _drain(done: Callable[[], bool], event: asyncio.Event, timeout: float) -> None:

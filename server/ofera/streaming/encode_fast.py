@@ -449,7 +449,7 @@ def warm_up() -> None:
 
 
 def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
-                 index: np.ndarray | None = None, pool: int = 4, stamp_encode: bool = True) -> FrameWriter:
+                 index: np.ndarray | None = None, pool: int = 4, stamp_encode: bool = False) -> FrameWriter:
     """A FrameWriter using the numba kernels; ``stamp_encode``: each frame's timing carries its own "encode" (us)."""
     return FrameWriter(fmt, coords, gather, index, kernels=numba_kernels(), pool=pool, stamp_encode=stamp_encode)
 

@@ -6,8 +6,9 @@
 - `ParamsWriter`: encodes a frame from its expression values (`needs_state = False`: the source need not deform
   for it), stamping `seq`, `t` and `timing` on the first frame and then at least once per `stamp_interval` s.
 
-Refusals: an avatar the rig cannot describe (ARKit-driven, vertex-bound) raises `avatar.rig.RigError`, which the
-session answers with a fatal `unknown_encoding` naming the reason.
+Refusals: an avatar the rig cannot describe (ARKit-driven, vertex-bound) has no rig: `rig_messages` ends a v1 session
+with a fatal `unknown_encoding` naming the reason (SessionFatal); in a room (`member` given) it raises
+`avatar.rig.RigError` for the rooms to handle.
 """
 
 from __future__ import annotations
@@ -17,13 +18,15 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from ofera_protocol import ConnectionUsageError, ServerConnection, encode
+from ofera_protocol import ConnectionUsageError, ProtocolError, ServerConnection, encode
 from ofera_protocol.constants import COORDS, PARAMS
+from ofera_protocol.errors import UNKNOWN_ENCODING
 from ofera_protocol.messages import ParamsFrame
 from ofera_protocol.rig import DEFAULT_RIG_CHUNK_BYTES, encode_rig, split_rig
 
 from ..avatar.rig import RigError, build_rig
 from .pipeline import AvatarAssets
+from .roles import SessionFatal
 from .wire import reduced_size
 
 PARAMS_LENGTH = 68
@@ -69,7 +72,13 @@ def rig_messages(conn: ServerConnection, assets: AvatarAssets, coords: str, max_
         raise ConnectionUsageError("rig messages are for a connection whose hello asked for encoding params")
     if coords not in COORDS:
         raise ConnectionUsageError(f"unknown coords {coords!r}; expected one of {COORDS}")
-    return [encode(c) for c in split_rig(rig_body(assets, max_gaussians), chunk_bytes, member)]
+    try:
+        body = rig_body(assets, max_gaussians)
+    except RigError as exc:
+        if member is not None:
+            raise
+        raise SessionFatal(ProtocolError(UNKNOWN_ENCODING, str(exc), True)) from None
+    return [encode(c) for c in split_rig(body, chunk_bytes, member)]
 
 
 class ParamsWriter:

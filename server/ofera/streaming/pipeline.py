@@ -236,6 +236,8 @@ class Pipeline:
         t3 = clock()
         if self.arkit:
             expr, rotations = np.asarray(values, np.float32), _IDENTITY5
+        elif self.fast is not None:  # the fast path's own split: one numba call (split_flame_values: ~0.3 ms)
+            expr, rotations = self.fast.flame(values)
         else:
             expr, rotations = split_flame_values(np.asarray(values, np.float32))
         if self.fast is not None:

@@ -17,7 +17,8 @@ A server subscribes to a room's channel while it has local members there, report
 and ignores its own messages. Lost Redis: ``bus_state(False)`` (every remote member is then gone for the listener),
 reconnection with exponential backoff, then this server's members re-announced, ``bus_state(True)`` and every remote
 member replayed with ``remote_joined``. `publish` never waits: one pending message per member (newest wins), sent by
-a background task; drops are counted by reason.
+a background task; drops are counted by reason. Avatars never cross: every server resolves a member's avatar id in
+its own avatars (PROTOCOL.md 12.5). Metrics: `ofera_bus_*` (streaming.metrics).
 """
 
 from __future__ import annotations
@@ -178,6 +179,7 @@ class RedisBus:
         self._listener: BusListener | None = None
         self._link: _Link | None = None  # None while Redis is lost (or before start / after close)
         self._reconnect: asyncio.Task | None = None
+        self._closing: set[asyncio.Task] = set()  # lost links being closed
         self._closed = False
         self._local: dict[str, dict[str, MemberInfo]] = {}  # room -> this server's members there
         self._remote: dict[str, dict[str, MemberInfo]] = {}  # room -> remote members reported to the listener
@@ -205,7 +207,8 @@ class RedisBus:
     async def start(self, listener: BusListener) -> None:
         self._listener = listener
         try:
-            self._link = await self._connect()
+            async with self._ops:
+                self._link = await self._connect()
         except (RedisError, OSError, asyncio.TimeoutError, ValueError) as exc:
             raise BusUnavailable(f"cannot reach Redis at {redact(self.url)}: {exc or type(exc).__name__}") from None
         self._set_connected(True)
@@ -331,7 +334,9 @@ class RedisBus:
         for task in link.tasks:
             if task is not asyncio.current_task():
                 task.cancel()
-        asyncio.get_running_loop().create_task(_drop(link))
+        closing = asyncio.get_running_loop().create_task(_drop(link))
+        self._closing.add(closing)  # held until done (the loop keeps only weak references to tasks)
+        closing.add_done_callback(self._closing.discard)
         self.metrics.bus_dropped.labels("down").inc(len(self._pending))
         self._pending.clear()
         for room in list(self._remote):
@@ -343,13 +348,14 @@ class RedisBus:
         delay, most = self.backoff_s
         while not self._closed:
             await asyncio.sleep(delay)
-            try:
-                link = await self._connect()
-            except (RedisError, OSError, asyncio.TimeoutError) as exc:
-                log.debug("rooms bus: reconnect failed: %s", exc)
-                delay = min(most, delay * 2)
-                continue
-            self._link = link
+            async with self._ops:  # no join or leave between what _connect announces and the link being up
+                try:
+                    link = await self._connect()
+                except (RedisError, OSError, asyncio.TimeoutError) as exc:
+                    log.debug("rooms bus: reconnect failed: %s", exc)
+                    delay = min(most, delay * 2)
+                    continue
+                self._link = link
             self.metrics.bus_reconnects.inc()
             log.warning("rooms bus: Redis at %s is back; rooms heal", redact(self.url))
             self._set_connected(True)

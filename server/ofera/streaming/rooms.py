@@ -32,11 +32,12 @@ from ofera_protocol.messages import Join, Leave
 
 from .bus import BusListener, ExpressionValues, MemberInfo, RoomBus
 from .config import Settings
+from .member_wire import MemberWire, prepare_member_wire, wire_key
 from .metrics import Metrics
 from .pipeline import AvatarAssets
 from .registry import AvatarRegistry
 from .roles import ComputedFrame, SendBytes, Source, encode_computed
-from .wire import MemberWire, prepare_member_wire, reduced_size, wire_key
+from .wire import reduced_size
 
 log = logging.getLogger("ofera.streaming.rooms")
 
@@ -67,6 +68,8 @@ class MemberSlot:
         return self.frame is not None
 
     def offer(self, frame: ComputedFrame) -> None:
+        if frame.state is None and self.wire.needs_state:
+            return  # computed without Gaussians while this slot was full (needs_state): keep what it holds
         if self.frame is not None:
             self.viewer.skipped += 1
             self.viewer.metrics.skipped.labels("frame").inc()
@@ -152,7 +155,7 @@ class RoomViewer:
             self.metrics.frames_out.inc()
             self.metrics.bytes_out.inc(n)
             self.metrics.server_latency.observe((time.monotonic_ns() - frame.received_ns) * 1e-9)
-        except BaseException as exc:  # noqa: BLE001 - handed to run(), which ends the session
+        except Exception as exc:  # noqa: BLE001 - handed to run(), which ends the session
             self._error = exc
         finally:
             self.inflight -= n

@@ -26,12 +26,13 @@ from .bus import MemberInfo, RoomBus
 from .config import Settings
 from .core import Action, Close, Compute, Count, KeyFrame, SessionCore, Start
 from .core import Send as SendAction
+from .member_wire import PARAMS, params_parts
 from .metrics import Metrics
 from .pipeline import AvatarAssets, Pipeline
 from .registry import AvatarRegistry
 from .roles import PendingBs, SessionFatal, Source, Viewer
 from .rooms import BYE, CLOSED, Member, Rooms, RoomViewer, new_member_id
-from .wire import PARAMS, make_delta_writer, make_writer, params_parts, reduced_size
+from .wire import make_delta_writer, make_writer, reduced_size
 
 __all__ = ["ConnectionGone", "Hub", "Session", "Transport", "make_delta_writer", "make_writer", "reduced_size"]
 
@@ -225,7 +226,7 @@ class Session:
             writer = make_delta_writer(self.conn.format, hello.coords, gather, self._movable, s)
             key = (*key, "delta", self.id)
         elif hello.encoding == PARAMS:
-            writer, rig = params_parts(self.conn, assets, hello, size, None, s.avatar_chunk_bytes)
+            writer, rig = params_parts(self.conn, assets, hello, None, s.avatar_chunk_bytes)
             for data in rig:
                 await self.t.send(data)
             self.source.needs_state = lambda: False  # params frames carry values: the client deforms

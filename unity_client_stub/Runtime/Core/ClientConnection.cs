@@ -161,7 +161,7 @@ namespace Ofera.Client
                         MirrorDeformed = w.Coords == "unity" || Mirroring;
                         Rig = null; _deformer = null;
                         _rig = Format.Params ? new RigAssembler() : null;
-                        if (Format.Params && !w.RigBytes.HasValue)
+                        if (Format.Params && w.Room == null && !w.RigBytes.HasValue) // rooms: each member's rig follows its join
                             throw new ProtocolException(ErrorCodes.BadField, "welcome of a params session without 'rig_bytes'", true);
                         Avatar = new AvatarData(w.Count, w.ShDegree); // a room's: never assembled (it comes with a join)
                         _nextChunk = 0; _nextOffset = 0; _totalChunks = -1;

@@ -115,6 +115,7 @@ namespace Ofera.Client
         Task _supervisor;
         volatile ClientStatus _status = ClientStatus.Stopped;
         volatile bool _byeRequested;
+        volatile string _member;
         int _sessionNumber;
 
         // blendshape mailbox (newest wins)
@@ -167,6 +168,8 @@ namespace Ofera.Client
         public OferaClientOptions Options { get { return _opt; } }
         /// <summary>Number of the current (or last) session, 1 for the first.</summary>
         public int SessionNumber { get { return Volatile.Read(ref _sessionNumber); } }
+        /// <summary>Rooms: this client's member id in the current (or last) room session (welcome.member); null outside a room.</summary>
+        public string Member { get { return _member; } }
 
         // ------------------------------------------------------------------ lifecycle
 
@@ -420,6 +423,7 @@ namespace Ofera.Client
                     {
                         case ServerMessageKind.Welcome:
                             end.GotWelcome = true;
+                            _member = msg.Welcome.Member;
                             if (conn.InRoom) // a room session streams from welcome on; every avatar comes with a join
                             {
                                 handshakeDone = true;

@@ -28,7 +28,8 @@ namespace Ofera.Client
 
     /// <summary>
     /// One avatar's rig, FLAME space, metres (ofera_protocol.rig.Rig): S vertices, U faces, M Gaussians, E expression
-    /// components, P pose-corrective rows. Arrays are row-major, float32 (f16 wire arrays converted exactly).
+    /// components, P pose-corrective rows. Arrays are row-major, float32 (the f16 wire arrays pose_basis, local_rotation
+    /// and local_scale converted exactly).
     /// </summary>
     public sealed class RigData
     {
@@ -58,7 +59,7 @@ namespace Ofera.Client
 
     /// <summary>
     /// The rig body's arrays as GPU words, in wire order, each section copied byte for byte from its bin and starting
-    /// on a 4-byte boundary (zero padding): index u32, joints f32, joints_expr f32, template f32, expr_basis f16,
+    /// on a 4-byte boundary (zero padding): index u32, joints f32, joints_expr f32, template f32, expr_basis f32,
     /// pose_rows u8, pose_basis f16, weights f32, face u32, gaussian_face u32, local_position or bary f32,
     /// normal_offset f32 (empty for triangle rigs), local_rotation f16, local_scale f16.
     /// <see cref="Word"/> holds each section's first word (OferaRigDeform.compute's _OferaRig*Word).
@@ -135,7 +136,7 @@ namespace Ofera.Client
             Section(RigGpuWords.Joints, Keys.JointsKey, 4, j * 3, "float32", true);
             Section(RigGpuWords.JointsExpr, Keys.JointsExpr, 4, j * 3 * e, "float32", true);
             Section(RigGpuWords.Template, Keys.Template, 4, s * 3, "float32", true);
-            Section(RigGpuWords.ExprBasis, Keys.ExprBasis, 2, s * e * 3, "float16", true);
+            Section(RigGpuWords.ExprBasis, Keys.ExprBasis, 4, s * e * 3, "float32", true);
             Section(RigGpuWords.PoseRows, Keys.PoseRows, 1, p, "uint8", false);
             Section(RigGpuWords.PoseBasis, Keys.PoseBasis, 2, s * p * 3, "float16", true);
             Section(RigGpuWords.Weights, Keys.Weights, 4, s * j, "float32", true);
@@ -155,7 +156,7 @@ namespace Ofera.Client
             r.Joints = F32(b, RigGpuWords.Joints);
             r.JointsExpr = F32(b, RigGpuWords.JointsExpr);
             r.Template = F32(b, RigGpuWords.Template);
-            r.ExprBasis = F16(b, RigGpuWords.ExprBasis);
+            r.ExprBasis = F32(b, RigGpuWords.ExprBasis);
             r.PoseRows = new byte[p];
             Buffer.BlockCopy(b, po, r.PoseRows, 0, p);
             r.PoseBasis = F16(b, RigGpuWords.PoseBasis);

@@ -23,6 +23,7 @@ namespace Ofera.Client
         const int FaceStride = 17; // R (9, row-major), q (w, x, y, z), s_f, c_f (3)
         public readonly RigData Rig;
         readonly double[] _expr, _rot = new double[9 * J], _a = new double[12 * J], _coef, _verts, _face;
+        readonly double[] _local; // M x 4 normalize(local_rotation) (x, y, z, w): the same every frame
 
         public RigDeformer(RigData rig)
         {
@@ -34,6 +35,14 @@ namespace Ofera.Client
             _coef = new double[rig.PoseCount];
             _verts = new double[3 * rig.Vertices];
             _face = new double[FaceStride * rig.Faces];
+            _local = new double[4 * rig.Gaussians];
+            float[] lr = rig.LocalRotation;
+            for (int m = 0; m < rig.Gaussians; m++)
+            {
+                double x = lr[4 * m], y = lr[4 * m + 1], z = lr[4 * m + 2], w = lr[4 * m + 3];
+                double n = Math.Max(Math.Sqrt(x * x + y * y + z * z + w * w), 1e-12);
+                _local[4 * m] = x / n; _local[4 * m + 1] = y / n; _local[4 * m + 2] = z / n; _local[4 * m + 3] = w / n;
+            }
         }
 
         /// <summary>The deformed rig vertices (S x 3, metres, FLAME space) of the last <see cref="Deform"/> call.</summary>
@@ -192,7 +201,8 @@ namespace Ofera.Client
         {
             RigData r = Rig;
             double[] o = _face, v = _verts;
-            float[] lp = r.Local, lr = r.LocalRotation, ls = r.LocalScale;
+            float[] lp = r.Local, ls = r.LocalScale;
+            double[] lr = _local;
             bool tri = r.Binding == RigBinding.Triangle;
             for (int m = 0; m < r.Gaussians; m++)
             {
@@ -215,10 +225,8 @@ namespace Ofera.Client
                     position[3 * m + 1] = (float)(b0 * v[i0 + 1] + b1 * v[i1 + 1] + b2 * v[i2 + 1] + (e1z * e2x - e1x * e2z) * off);
                     position[3 * m + 2] = (float)(b0 * v[i0 + 2] + b1 * v[i1 + 2] + b2 * v[i2 + 2] + (e1x * e2y - e1y * e2x) * off);
                 }
-                // local (x, y, z, w), normalised (the identity if zero); Hamilton quat(R_f) (x) local, normalised
+                // Hamilton quat(R_f) (x) normalize(local (x, y, z, w)), normalised
                 double bx = lr[4 * m], by = lr[4 * m + 1], bz = lr[4 * m + 2], bw = lr[4 * m + 3];
-                double bn = Math.Max(Math.Sqrt(bx * bx + by * by + bz * bz + bw * bw), 1e-12);
-                bx /= bn; by /= bn; bz /= bn; bw /= bn;
                 double aw = o[f + 9], ax = o[f + 10], ay = o[f + 11], az = o[f + 12];
                 double qw = aw * bw - ax * bx - ay * by - az * bz;
                 double qx = aw * bx + ax * bw + ay * bz - az * by;

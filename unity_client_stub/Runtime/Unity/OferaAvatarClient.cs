@@ -1,9 +1,10 @@
 // The MonoBehaviour that ties it together: connects to the server (OferaClient, Core), feeds it the
 // face source's samples, applies the avatar and frames to the sinks on the main thread, and shows
-// statistics in the inspector. In a room (DESIGN.md "Rooms"; the reference server does not implement
-// rooms yet) it spawns one instance of memberPrefab per member that joins, each with its own sinks
-// (and so its own server->GPU permutation), removes it when the member leaves, and places it at the
-// member's head pose when a MemberPoseSource knows it. Needs UnityEngine; not compiled by Tests/run.sh.
+// statistics in the inspector. In a room (PROTOCOL.md 12) it spawns one instance of memberPrefab per
+// publishing member that joins (oneself too with Receive Self), each with its own sinks (and so its own
+// server->GPU permutation), removes it when the member leaves, and places it at the member's head pose when
+// a MemberPoseSource knows it; watch-only members are only counted. Needs UnityEngine; type-checked by
+// Tests/run.sh against Tests/UnityStandIn.cs.
 using System.Collections.Generic;
 using UnityEngine;
 
@@ -13,14 +14,14 @@ namespace Ofera.Client.Unity
     [DefaultExecutionOrder(200)] // after the face source (OvrFaceSource: 100) and OVRFaceExpressions / GaussianSplatRenderer (0)
     public sealed class OferaAvatarClient : MonoBehaviour
     {
-        public enum FrameEncodingChoice { F32, F16, Q13 }
+        public enum FrameEncodingChoice { F32, F16, Q13, Params }
 
         [Header("Server")]
         [Tooltip("ws://host:port/v1/stream (the address `ofera serve` prints); wss:// behind TLS.")]
         public string serverUrl = "ws://192.168.1.20:8000/v1/stream";
         [Tooltip("Avatar id on the server; 'default' is the server's default avatar.")]
         public string avatarId = "default";
-        [Tooltip("Frame encoding: F32 exact (40 B/Gaussian), F16 (20 B), Q13 quantised (13 B).")]
+        [Tooltip("Frame encoding: F32 exact (40 B/Gaussian), F16 (20 B), Q13 quantised (13 B); Params: 68 values a frame (about 300 B) and this client deforms the avatar from the rig sent at the handshake (add a RigSplattingSink next to the GaussianSplattingSink; CPU sinks get the C# deformation).")]
         public FrameEncodingChoice encoding = FrameEncodingChoice.Q13;
         [Tooltip("Ask for sparse frames (only the Gaussians expressions move).")]
         public bool sparse = true;
@@ -68,6 +69,8 @@ namespace Ofera.Client.Unity
         public float roundTripMsP95;
         public float serverMsP50;
         public int members;
+        [Tooltip("Watch-only members who joined (they have no avatar).")]
+        public int watchers;
 
         /// <summary>One shown avatar: its sinks, and the CPU state only if a sink needs it.</summary>
         sealed class View
@@ -115,6 +118,7 @@ namespace Ofera.Client.Unity
         readonly View _own = new View();
         readonly Dictionary<string, View> _members = new Dictionary<string, View>();
         readonly List<string> _memberIds = new List<string>();
+        readonly Dictionary<string, int> _watching = new Dictionary<string, int>(); // watch-only member -> its session
         float[] _weights = new float[70];
         float _nextStats;
 
@@ -145,7 +149,8 @@ namespace Ofera.Client.Unity
             o.Url = serverUrl;
             o.Avatar = string.IsNullOrEmpty(avatarId) ? "default" : avatarId;
             o.Layout = faceSource != null ? faceSource.Layout : "ovr63";
-            o.Encoding = encoding == FrameEncodingChoice.F32 ? "f32" : encoding == FrameEncodingChoice.F16 ? "f16" : "q13";
+            o.Encoding = encoding == FrameEncodingChoice.F32 ? "f32" : encoding == FrameEncodingChoice.F16 ? "f16"
+                : encoding == FrameEncodingChoice.Params ? ParamsProtocol.Encoding : "q13";
             o.Coords = "unity";
             o.Sparse = sparse;
             o.Device = deviceProfile;
@@ -187,11 +192,13 @@ namespace Ofera.Client.Unity
         {
             _memberIds.Clear();
             foreach (KeyValuePair<string, View> kv in _members) if (kv.Value.Session < olderThanSession) _memberIds.Add(kv.Key);
+            foreach (KeyValuePair<string, int> kv in _watching) if (kv.Value < olderThanSession) _memberIds.Add(kv.Key);
             foreach (string id in _memberIds) RemoveMember(id);
         }
 
         void RemoveMember(string id)
         {
+            if (_watching.Remove(id)) watchers = _watching.Count;
             View v;
             if (!_members.TryGetValue(id, out v)) return;
             foreach (IGaussianSink s in v.Sinks) s.Clear();
@@ -248,8 +255,9 @@ namespace Ofera.Client.Unity
                 if (logEvents) Debug.Log("[OFERA] room: " + re);
                 if (re.Session != _client.SessionNumber) continue; // stale
                 RemoveMembers(re.Session);
-                if (re.Kind == RoomEventKind.Joined) SpawnMember(re);
-                else RemoveMember(re.Member);
+                if (re.Kind == RoomEventKind.Left) RemoveMember(re.Member);
+                else if (re.Avatar != null) SpawnMember(re);
+                else { _watching[re.Member] = re.Session; watchers = _watching.Count; } // watch-only: nothing to show
             }
 
             long t;

@@ -20,7 +20,7 @@ const intParam = (name) => {
   return Number.isFinite(v) && v > 0 ? v : null;
 };
 const opts = {
-  encoding: ["f32", "f16", "q13"].includes(params.get("enc")) ? params.get("enc") : "f16",
+  encoding: ["f32", "f16", "q13", "params"].includes(params.get("enc")) ? params.get("enc") : "f16",
   sparse: params.get("sparse") !== "0",
   delta: params.get("delta") === "1",
   forcedMax: intParam("max"),
@@ -434,6 +434,11 @@ function onMessage(c, buffer) {
     setStatus(`receiving avatar: ${msg.avatar.count} Gaussians …`);
     return;
   }
+  if (type === "rig") { // params sessions (PROTOCOL.md 13): after the avatar's chunks; assembled in the worker
+    if (c.welcome.encoding !== "params") throw new ProtocolError("bad_field", "a rig message outside a params session");
+    worker.postMessage({ kind: "rig", gen: c.gen, buffer }, [buffer]);
+    return;
+  }
   if (c.state === "avatar") {
     if (type !== "avatar") throw new ProtocolError("not_ready", `expected an avatar chunk, got ${type}`);
     setStatus(`receiving avatar: chunk ${intField(msg, "chunk") + 1}/${intField(msg, "chunks")}`);
@@ -441,14 +446,15 @@ function onMessage(c, buffer) {
     return;
   }
   if (type !== "frame") throw new ProtocolError("bad_field", `unexpected ${type} while streaming`);
-  const seq = intField(msg, "seq"), t = intField(msg, "t");
+  const stamped = msg.params === undefined || msg.seq !== undefined; // params frames: seq and t once a second
+  const seq = stamped ? intField(msg, "seq") : c.lastSeq + 1, t = stamped ? intField(msg, "t") : null;
   lastBytes = bytes.length;
   worker.postMessage({ kind: "frame", gen: c.gen, buffer }, [buffer]);
   if (c.lastSeq >= 0 && seq > c.lastSeq + 1) droppedSeq += seq - c.lastSeq - 1;
   c.lastSeq = seq;
   framesReceived++;
-  lastTiming = msg.timing;
-  latencies.push((nowUs() - t) / 1000);
+  if (msg.timing) lastTiming = msg.timing; // unstamped params frames carry none
+  if (t !== null) latencies.push((nowUs() - t) / 1000);
   if (latencies.length > 30) latencies.shift();
   prepWanted = true;
   wake();

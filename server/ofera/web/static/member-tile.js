@@ -2,7 +2,9 @@
 // (splat-worker.js, which keeps that member's Gaussians), a view of the room's shared orbit camera framed on
 // this member's avatar, and the member's stream statistics: frames per second arriving and drawn, and latency
 // (now - frame.t: meaningful when the source's clock is this page's, e.g. another page; a source on another
-// clock shows "other clock").
+// clock shows "other clock"). Frames reach the worker paced by the drawing: one frame, then one prepare; a frame
+// that arrives while the worker is busy waits, and a newer one replaces it (newest wins, counted in `skipped`:
+// room frames are dense or sparse against the neutral avatar, never deltas, so any one of them is complete).
 import { nowUs } from "./protocol.js";
 import { lookAt, perspective, SplatRenderer } from "./renderer.js";
 
@@ -69,6 +71,8 @@ export class MemberTile {
     this.latencies = [];
     this.framesReceived = 0;
     this.framesDrawn = 0;
+    this.skipped = 0; // frames replaced by a newer one before the worker took them
+    this.pending = null; // the newest frame not yet handed to the worker: its bytes
     this.lastSeq = -1;
     this.drawnSeq = -1;
     this.lastTiming = null;
@@ -87,10 +91,11 @@ export class MemberTile {
     this.worker.postMessage({ kind: "chunk", gen: 1, buffer }, [buffer]);
   }
 
-  /** A `frame` of this member: `msg` decoded (seq, t, timing), `buffer` its bytes (handed to the worker). */
+  /** A `frame` of this member: `msg` decoded (seq, t, timing), `buffer` its bytes (for the worker, at the next prepare). */
   frame(msg, buffer) {
     const now = performance.now();
-    this.worker.postMessage({ kind: "frame", gen: 1, buffer }, [buffer]);
+    if (this.pending) this.skipped++;
+    this.pending = buffer;
     this.framesReceived++;
     this.lastSeq = msg.seq;
     this.lastTiming = msg.timing ?? null;
@@ -155,7 +160,11 @@ export class MemberTile {
   tick(now) {
     if (this.state !== "streaming") return false;
     if (this.drawnView !== this.view.version) this.prepWanted = true;
-    if (this.prepWanted && !this.prepBusy) {
+    if ((this.prepWanted || this.pending) && !this.prepBusy) {
+      if (this.pending) {
+        this.worker.postMessage({ kind: "frame", gen: 1, buffer: this.pending }, [this.pending]);
+        this.pending = null;
+      }
       const [view, proj] = this.matrices();
       this.prepBusy = true;
       this.prepWanted = false;
@@ -172,7 +181,7 @@ export class MemberTile {
     const since = now - STATS_MS;
     while (this.arrivals.length && this.arrivals[0] < since) this.arrivals.shift();
     while (this.draws.length && this.draws[0] < since) this.draws.shift();
-    return this.prepBusy || this.prepWanted || this.needsDraw;
+    return this.prepBusy || this.prepWanted || this.needsDraw || this.pending !== null;
   }
 
   /** Frames per second arriving from this member (over the last second). */
@@ -191,7 +200,7 @@ export class MemberTile {
   /** Streaming, the newest frame drawn in the current view. */
   get settled() {
     return this.state === "streaming" && this.drawnSeq === this.lastSeq && this.drawnView === this.view.version
-      && !this.prepBusy && !this.prepWanted && !this.needsDraw;
+      && !this.prepBusy && !this.prepWanted && !this.needsDraw && !this.pending;
   }
 
   updateCaption() {
@@ -207,7 +216,8 @@ export class MemberTile {
   /** What tests read (window.__ofera.members). */
   snapshot() {
     return { member: this.member, avatar: this.welcome.avatar.id, count: this.welcome.avatar.count, self: this.self,
-      state: this.state, framesReceived: this.framesReceived, framesDrawn: this.framesDrawn, lastSeq: this.lastSeq,
+      state: this.state, framesReceived: this.framesReceived, framesDrawn: this.framesDrawn, skipped: this.skipped,
+      lastSeq: this.lastSeq,
       drawnSeq: this.drawnSeq, fps: this.fps, drawFps: this.drawFps, latencyMs: this.latencyMs, settled: this.settled };
   }
 }

@@ -6,6 +6,9 @@ import { decode, encode, MsgpackError } from "./msgpack.js";
 export const PROTOCOL = 1;
 export const ENDPOINT = "/v1/stream";
 export const ENCODINGS = ["f32", "f16", "q13"];
+/** Expression streaming (section 13): frames carry PARAMS_LENGTH float32 values, the client deforms with the rig. */
+export const PARAMS = "params";
+export const PARAMS_LENGTH = 68;
 /** Bytes per Gaussian of position, rotation, scale in each frame encoding (section 6). */
 export const FIELD_BYTES = { f32: [12, 16, 12], f16: [6, 8, 6], q13: [6, 4, 3] };
 /** Close codes of the errors this client finds in what it receives (section 10; tests check them against tables.json). */
@@ -141,7 +144,8 @@ export function decodeServerMessage(bytes) {
         delta: field(msg, "delta", "boolean", true) ?? false,
         room: room ?? null, member: room === undefined ? null : field(msg, "member", "string"),
       };
-      if (!ENCODINGS.includes(out.encoding)) throw new ProtocolError("bad_field", `welcome: unknown encoding ${out.encoding}`);
+      if (!ENCODINGS.includes(out.encoding) && out.encoding !== PARAMS) throw new ProtocolError("bad_field", `welcome: unknown encoding ${out.encoding}`);
+      if (out.encoding === PARAMS) out.rigBytes = field(msg, "rig_bytes", "int", true) ?? null; // section 13
       if (out.encoding === "q13") {
         const q = field(msg, "quant", "map", room !== undefined); // rooms: each join carries its avatar's
         if (q !== undefined) out.quant = quantOf(q);
@@ -171,6 +175,7 @@ export function decodeServerMessage(bytes) {
       };
     }
     case "frame":
+      if (msg.params !== undefined) return paramsFrame(type, msg);
       return {
         type, member: field(msg, "member", "string", true), seq: field(msg, "seq", "int"), t: field(msg, "t", "int"),
         timing: field(msg, "timing", "map", true) ?? {},
@@ -180,6 +185,12 @@ export function decodeServerMessage(bytes) {
         wide: field(msg, "wide", "bin", true),
         position_delta: field(msg, "position_delta", "bin", true), position: field(msg, "position", "bin"),
         rotation: field(msg, "rotation", "bin"), scale: field(msg, "scale", "bin"),
+      };
+    case "rig": // section 13.2: bytes [offset, offset + data.length) of the rig body (rig.js assembles and decodes it)
+      return {
+        type, member: field(msg, "member", "string", true), chunk: field(msg, "chunk", "int"),
+        chunks: field(msg, "chunks", "int"), size: field(msg, "size", "int"), offset: field(msg, "offset", "int"),
+        data: field(msg, "data", "bin"),
       };
     case "error":
       return {
@@ -191,6 +202,16 @@ export function decodeServerMessage(bytes) {
     default:
       throw new ProtocolError("unknown_type", `unknown message type '${type}'`);
   }
+}
+
+/** A params frame (section 13.5): 68 finite float32 values; seq and t together or neither (stamped frames). */
+function paramsFrame(type, msg) {
+  const seq = field(msg, "seq", "int", true), t = field(msg, "t", "int", true);
+  if ((seq === undefined) !== (t === undefined)) throw new ProtocolError("bad_field", "frame: a params frame carries 'seq' and 't' together or neither");
+  const params = f32view(binLength(msg, "params", PARAMS_LENGTH * 4));
+  checkFinite(params, "frame params");
+  return { type, member: field(msg, "member", "string", true), seq: seq ?? null, t: t ?? null,
+    timing: field(msg, "timing", "map", true) ?? null, params };
 }
 
 function avatarInfo(av) {

@@ -195,5 +195,5 @@ function statsText(m) {
   if (t.state !== "streaming") return t.state === "avatar" ? "receiving avatar …" : t.state;
   const lat = t.latencyMs;
   const latText = t.latencies.length === 0 ? "-" : lat === null ? "other clock" : `${lat.toFixed(1)} ms`;
-  return `${t.fps.toFixed(0)} fps · latency ${latText} · ${t.framesReceived} frames`;
+  return `${t.fps.toFixed(0)} fps (drawn ${t.drawFps.toFixed(0)}) · latency ${latText} · ${t.framesReceived} frames, ${t.skipped} not drawn`;
 }

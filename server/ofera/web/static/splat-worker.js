@@ -4,11 +4,15 @@
 // (+0.3 px^2 low-pass), the ellipse axes (eigenvectors scaled by sqrt(2 lambda)), culling (behind the
 // camera, off screen, transparent), and a 16-bit counting sort of depths, farthest first.
 //
-// main -> worker: {kind: "welcome", gen, welcome} | {kind: "chunk" | "frame", gen, buffer}
-//                 | {kind: "prep", gen, id, view, proj, width, height, scaleMul, buffer?}
+// main -> worker: {kind: "welcome", gen, welcome} | {kind: "chunk" | "rig" | "frame", gen, buffer}
+//                 | {kind: "prep", gen, id, view, proj, width, height, scaleMul, buffer?} | {kind: "dump", gen, id}
 // worker -> main: {kind: "avatar", gen, count, lo, hi} | {kind: "error", gen, fatal, code, message}
-//                 | {kind: "prepared", gen, id, seq, count, buffer}
-import { AvatarState, decodeServerMessage } from "./protocol.js";
+//                 | {kind: "prepared", gen, id, seq, count, buffer} | {kind: "rig", gen, gaussians, bytes}
+//                 | {kind: "dump", gen, id, seq, position, rotation, scale} (copies of the Gaussians, for tests)
+// A params session (PROTOCOL.md 13): `rig` chunks follow the avatar's; each frame's 68 values are deformed here
+// (rig.js), into the same arrays dense and sparse frames update.
+import { AvatarState, decodeServerMessage, PARAMS, ProtocolError } from "./protocol.js";
+import { decodeRig, RigAssembler, RigDeformer } from "./rig.js";
 
 const WORDS = 7; // per visible splat while sorting: centre x, y; axis 1 x, y; axis 2 x, y (NDC); RGBA8 colour
 const OUT_WORDS = 12; // per splat drawn: 4 corners of (x, y, RGBA8), see renderer.js
@@ -16,6 +20,7 @@ let gen = -1;
 let state = null;
 let cov = null; // 6 per Gaussian: s00 s01 s02 s11 s12 s22
 let seq = -1;
+let rigParts = null, rig = null; // params sessions: the rig's chunks while they arrive, then its RigDeformer
 let scratch = null, depth = null, keys = null;
 const counts = new Uint32Array(65536);
 
@@ -137,6 +142,8 @@ self.onmessage = ({ data }) => {
     state = new AvatarState(data.welcome);
     cov = new Float32Array(state.count * 6);
     seq = -1;
+    rig = null;
+    rigParts = data.welcome.encoding === PARAMS ? new RigAssembler(data.welcome.rigBytes ?? null) : null;
     return;
   }
   if (data.kind === "prep" && (data.gen !== gen || !state?.complete)) { // always answered
@@ -164,16 +171,40 @@ self.onmessage = ({ data }) => {
     } catch (e) {
       fail(e, true);
     }
+  } else if (data.kind === "rig") {
+    try {
+      const c = decodeServerMessage(new Uint8Array(data.buffer));
+      if (c.type !== "rig" || !rigParts || !state.complete) throw new ProtocolError("not_ready", "a rig chunk outside a params session's handshake");
+      if (rigParts.add(c)) {
+        const body = rigParts.result();
+        const r = decodeRig(body);
+        if (r.count !== state.count) throw new ProtocolError("bad_field", `rig for ${r.count} Gaussians, the avatar has ${state.count}`);
+        rig = new RigDeformer(r);
+        rigParts = null;
+        self.postMessage({ kind: "rig", gen, gaussians: r.gaussians, bytes: body.length });
+      }
+    } catch (e) {
+      fail(e, true);
+    }
   } else if (data.kind === "frame") {
     try {
       const f = decodeServerMessage(new Uint8Array(data.buffer));
-      const changed = state.applyFrame(f); // the Gaussians it moved (sparse and delta frames), null: all
+      let changed;
+      if (f.params !== undefined) { // params: the client deforms (the rig's Gaussians; the rest stay as sent)
+        if (!rig) throw new ProtocolError("not_ready", "a params frame before the rig was complete");
+        changed = rig.apply(f.params, state.position, state.rotation, state.scale, state.welcome.coords);
+      } else {
+        changed = state.applyFrame(f); // the Gaussians it moved (sparse and delta frames), null: all
+      }
       if (changed) covariance(0, changed.length, changed);
       else covariance(0, state.count, null);
-      seq = f.seq;
+      seq = f.seq ?? seq + 1; // an unstamped params frame answers the next bs (the page sends one at a time)
     } catch (e) {
       fail(e, false); // a bad frame is dropped; the session goes on (a delta session: the page sends resync)
     }
+  } else if (data.kind === "dump") {
+    self.postMessage({ kind: "dump", gen, id: data.id, seq, position: state.position.slice(0, 3 * state.count),
+      rotation: state.rotation.slice(0, 4 * state.count), scale: state.scale.slice(0, 3 * state.count) });
   } else if (data.kind === "prep") {
     const { out, count } = prepare(data);
     self.postMessage({ kind: "prepared", gen, id: data.id, seq, count, buffer: out }, [out]);
