@@ -195,6 +195,7 @@ class ServerProcess:
     threads: int = 2
     max_sessions: int = 64
     extra: dict[str, Any] = field(default_factory=dict)  # more Settings (e.g. redis_url for benchmarks/rooms.py)
+    pythonpath: str | None = None  # run the server from other sources (another checkout's server:protocol dirs)
     port: int = field(default_factory=free_port)
     proc: subprocess.Popen | None = None
     log: Any = None
@@ -208,8 +209,9 @@ class ServerProcess:
                     "default_avatar": AVATAR_ID, "compute_threads": self.threads, "log_level": "warning",
                     "max_sessions": self.max_sessions, "bs_rate": 1000.0, "fast": self.impl == "fast", **self.extra}
         self.log = tempfile.TemporaryFile()
+        env = None if self.pythonpath is None else {**os.environ, "PYTHONPATH": self.pythonpath}
         self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "serve", json.dumps(settings),
-                                      self.impl], stdout=self.log, stderr=subprocess.STDOUT)
+                                      self.impl], stdout=self.log, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:

@@ -96,8 +96,8 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
 
 
 def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
-    with C.ServerProcess(avatars, impl=impl, threads=args.threads,
-                         extra={"event_loop": args.event_loop}) as server:
+    with C.ServerProcess(avatars, impl=impl, threads=args.threads, extra={"event_loop": args.event_loop},
+                         pythonpath=args.server_path) as server:
         http = f"http://127.0.0.1:{server.port}"
         before = C.stage_histograms(C.metrics_text(http))
         with C.CpuMeter(server.proc.pid) as cpu:
@@ -165,6 +165,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--client-decode", default="fast", choices=["fast", "reference"])
     ap.add_argument("--no-floor", action="store_true")
+    ap.add_argument("--server-path", default=None, help="PYTHONPATH of the server process only (before/after "
+                    "comparisons: another checkout's 'server:protocol' directories; the client stays this tree's)")
     ap.add_argument("--json", type=Path, default=C.RESULTS / "profile_frame.json")
     args = ap.parse_args(argv)
 
@@ -184,6 +186,7 @@ def main(argv: list[str] | None = None) -> dict:
         floor = C.transport_floor(first["bytes_per_frame"], args.rate, 3.0)
     report = {"benchmark": "profile_frame", "gaussians": first["count"], "rate_hz": args.rate,
               "encoding": args.encoding, "sparse": args.sparse, "delta": args.delta, "order": list(ORDER),
+              "server_path": args.server_path,
               "results": results, "transport_floor_ms": floor,
               "definitions": {"stages": __doc__.split("\n\n")[2], "percentiles": "per stage over the frames that "
                               "arrived; e2e_ms includes skipped bs (first later frame), answered_e2e_ms does not",

@@ -16,8 +16,10 @@ Two servers: a real redis-server on a free port, servers a and b attached to it;
 even, else b. Streams within one server and streams across servers are reported apart: the Redis hop is the
 difference of their p50 (and the servers' own ofera_bus_hop_seconds, publish() to receipt). Each server deforms
 every member once for its own viewers, so two servers on one machine do up to twice the deformation work.
-Room sessions have no temporal deltas (PROTOCOL.md 12.1): `q13` is the best the server offers in a room (`q13-delta`
-is q13 there); `params` is run when the server offers it (frames carry expression values, clients deform).
+Room sessions have no temporal deltas (PROTOCOL.md 12.1): `q13` (and `q13:sparse`) is the most compact Gaussian
+encoding in a room (`q13-delta` is q13 there); `params` is run when the server offers it (frames carry expression
+values, clients deform): only about one params frame a second carries seq and t, so its latency comes from those and
+its drops from frame counts.
 """
 
 from __future__ import annotations
@@ -109,6 +111,7 @@ class Member:
     arrivals: dict[str, list[tuple[int, float]]] = field(default_factory=dict)  # member -> (seq, arrival us)
     timings: list[dict] = field(default_factory=list)
     frame_bytes: int = 0  # bytes of the frames received in the measured window
+    unstamped: dict[str, list[float]] = field(default_factory=dict)  # params: member -> arrivals of frames without seq
     errors: list[str] = field(default_factory=list)
 
     async def receive(self, first: int, last: int, members: int, done: asyncio.Event) -> None:
@@ -120,7 +123,10 @@ class Member:
                 continue
             h = read_header(data)
             kind = h.get("type")
-            if kind == "frame" and "seq" in h:
+            if kind == "frame" and "seq" not in h and "member" in h:  # params: most frames carry no seq
+                self.unstamped.setdefault(h["member"], []).append(now_us())
+                self.frame_bytes += len(data)
+            elif kind == "frame" and "seq" in h:
                 seq = h["seq"]
                 if seq >= first:
                     self.arrivals.setdefault(h["member"], []).append((seq, now_us()))
@@ -225,8 +231,18 @@ async def run_k(urls: list[str], k: int, weights: np.ndarray, layout: str, encod
             arrivals = viewer.arrivals.get(src.member, [])
             lat = [(t - scheduled[s]) / 1000.0 for s, t in arrivals if s in scheduled]
             late = C.drop_latencies(scheduled, arrivals, end)
-            streams[where] += lat + list(late.values())
             sent[where] += len(scheduled)
+            if src.member in viewer.unstamped or parse_encoding(encoding)[0] == "params":
+                # params (PROTOCOL.md 13): one frame a second carries seq and t. Latency from those; drops from the
+                # count of frames that arrived while the measured bs were due (and one period after).
+                window = (scheduled[first], scheduled[total - 1] + period)
+                got = len({s for s, _ in arrivals if s in scheduled}) + sum(
+                    window[0] <= t <= window[1] for t in viewer.unstamped.get(src.member, []))
+                streams[where] += lat
+                frames[where] += min(got, len(scheduled))
+                dropped[where] += max(0, len(scheduled) - got)
+                continue
+            streams[where] += lat + list(late.values())
             frames[where] += len({s for s, _ in arrivals if s in scheduled})
             dropped[where] += len(late)
     everything = streams["local"] + streams["remote"]
@@ -245,6 +261,8 @@ async def run_k(urls: list[str], k: int, weights: np.ndarray, layout: str, encod
            "frame_bytes_mean": round(sum(m.frame_bytes for m in members) / max(1, sum(frames.values()))),
            "delivered_mb_per_s": round(sum(m.frame_bytes for m in members) / wall / 1e6, 1),
            "errors": sorted({e for m in members for e in m.errors})}
+    if parse_encoding(encoding)[0] == "params":
+        out["latency_from"] = "stamped frames only (PROTOCOL.md 13: about one a second); drops from frame counts"
     if len(urls) > 1:
         for where in ("local", "remote"):
             q = C.pct(streams[where])
@@ -425,8 +443,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(C.table([[name, s["largest_passing_k"]] for name, s in summary.items()], ["run", "largest passing K"]))
     for enc, lim in limits.items():
         print(f"{enc}: a {lim['frame_bytes']} B frame takes {lim['loopback_message_ms_p50']} ms over loopback "
-              f"WebSocket alone: at most {lim['streams_per_core_by_transport_alone']} streams at {args.rate:g} Hz "
-              "per core pair, before any compute")
+              f"WebSocket alone: at most {lim['streams_per_core_by_transport_alone']} such streams at {args.rate:g} "
+              "Hz between one sending and one receiving process, before any compute")
     if hop is not None:
         print(f"Redis hop (servers' publish() to receipt, mean): {hop} ms; p50 differences: {redis_adds}")
     print(f"wrote {path}")

@@ -3,7 +3,7 @@
 - `hello_params`, `welcome_params`: the handshake of a params session;
 - `rig_tiny`: one `rig` message carrying a whole tiny rig (5 vertices, 3 faces, 4 Gaussians, E = 3, P = 2); its
   JSON adds `body`, the rig body's fields (bins as typed arrays);
-- `frame_params` (stamped: seq, t, timing) and `frame_params_unstamped`: params frames;
+- `params_frame_stamped` (seq, t, timing) and `params_frame` (unstamped, 294 B): params frames;
 - `rig_tiny_frames.json`: params and the deformation `deform_rig` gives for them (vertices after step 5, the
   Gaussians' position, rotation, scale), for the clients' tests;
 - invalid: `invalid_params_length`, `invalid_params_seq_without_t`.
@@ -24,6 +24,8 @@ from ofera_protocol.rig import Rig, decode_rig, deform_rig, encode_rig, rig_vert
 C2S, S2C = "client_to_server", "server_to_client"
 TINY_COUNT = 6
 """Gaussians of the tiny rig's avatar; the rig deforms 4 of them (ids 0, 2, 3, 5)."""
+PARAMS_FORMAT = {"encoding": "params", "count": TINY_COUNT, "sparse": False, "quant": None}
+"""The `format` (as other frame vectors give it) of a params session's frames: decode with ParamsFormat()."""
 
 
 def _rot6d(axis: tuple[float, float, float], angle: float) -> list[float]:
@@ -103,16 +105,16 @@ def describe_body(body: bytes) -> dict[str, Any]:
 
 def _entry(name: str, direction: str, data: bytes, note: str, **extra: Any) -> tuple[str, bytes, dict[str, Any]]:
     m = msgpack.unpackb(data, raw=False)
-    fields = {k: ({"dtype": "float32", "shape": [len(v) // 4], "values": np.frombuffer(v, "<f4").tolist()}
-                  if k == "params" else (v.hex() if isinstance(v, bytes) else v)) for k, v in m.items()}
+    dtypes = {"params": "<f4", "data": "u1"}
+    fields = {k: ({"dtype": "float32" if k == "params" else "uint8", "shape": [len(v) // (4 if k == "params" else 1)],
+                   "values": np.frombuffer(v, dtypes[k]).tolist()} if k in dtypes else v) for k, v in m.items()}
     return name, data, {"name": name, "direction": direction, "type": m["type"], "note": note, "size": len(data),
                         "hex": data.hex(), "fields": fields, **extra}
 
 
 def _invalid(name: str, data: bytes, code: str, note: str) -> tuple[str, bytes, dict[str, Any]]:
     return name, data, {"name": name, "direction": S2C, "note": note, "size": len(data), "hex": data.hex(),
-                        "context": {"format": {"encoding": "params", "count": TINY_COUNT, "sparse": False,
-                                               "quant": None}}, "expect_error": {"code": code}}
+                        "context": {"format": PARAMS_FORMAT}, "expect_error": {"code": code}}
 
 
 def params_vectors(seq: int, t: int, timing: dict[str, int]) -> list[tuple[str, bytes, dict[str, Any]]]:
@@ -134,10 +136,11 @@ def params_vectors(seq: int, t: int, timing: dict[str, int]) -> list[tuple[str, 
         _entry("rig_tiny", S2C, encode(chunk), "a whole tiny rig in one rig message (triangle binding, 5 vertices, "
                "3 faces, 4 of 6 Gaussians, 3 expression components, pose rows 13 and 20)",
                body=describe_body(body)),
-        _entry("frame_params", S2C, encode(ParamsFrame(params=y, seq=seq, t=t, timing=timing)),
-               "a stamped params frame (seq, t, timing): the tiny rig's second frame of rig_tiny_frames.json"),
-        _entry("frame_params_unstamped", S2C, encode(ParamsFrame(params=y)),
-               "the same values unstamped: 294 bytes, what most params frames are"),
+        _entry("params_frame_stamped", S2C, encode(ParamsFrame(params=y, seq=seq, t=t, timing=timing)),
+               "a stamped params frame (seq, t, timing): the tiny rig's second frame of rig_tiny_frames.json",
+               format=PARAMS_FORMAT),
+        _entry("params_frame", S2C, encode(ParamsFrame(params=y)),
+               "the same values unstamped: 294 bytes, what most params frames are", format=PARAMS_FORMAT),
         _invalid("invalid_params_length", short, "bad_length", "params frame with 67 values"),
         _invalid("invalid_params_seq_without_t", pack_map({"type": "frame", "seq": seq, "params": y}), "bad_field",
                  "params frame with seq but no t"),

@@ -96,8 +96,8 @@ def port_f32(rig, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 
 def test_rig_tiny_vector_decodes_to_the_tiny_rig():
     chunk = decode_server_message((VECTORS / "rig_tiny.msgpack").read_bytes())
-    assert isinstance(chunk, RigChunk) and chunk.chunks == 1 and chunk.size == len(chunk.data)
-    rig = decode_rig(chunk.data)
+    assert isinstance(chunk, RigChunk) and chunk.chunks == 1 and chunk.size == chunk.data.size
+    rig = decode_rig(chunk.data.tobytes())
     assert rig == tiny_rig()
     desc = json.loads((VECTORS / "rig_tiny.json").read_text())
     assert desc["body"]["gaussians"] == 4 and desc["body"]["pose_basis"]["dtype"] == "float16"
@@ -125,12 +125,12 @@ def test_rig_tiny_frames_match_the_reference_and_a_float32_port():
 
 
 def test_params_frame_vectors():
-    stamped = decode_server_message((VECTORS / "frame_params.msgpack").read_bytes(), ParamsFormat())
-    plain = decode_server_message((VECTORS / "frame_params_unstamped.msgpack").read_bytes(), ParamsFormat())
+    stamped = decode_server_message((VECTORS / "params_frame_stamped.msgpack").read_bytes(), ParamsFormat())
+    plain = decode_server_message((VECTORS / "params_frame.msgpack").read_bytes(), ParamsFormat())
     assert stamped.seq == 42 and stamped.t is not None and stamped.timing["total"] == 597
     assert plain.seq is None and plain.t is None and plain.timing is None
     np.testing.assert_array_equal(stamped.params, plain.params)
-    assert (VECTORS / "frame_params_unstamped.msgpack").stat().st_size == 294
+    assert (VECTORS / "params_frame.msgpack").stat().st_size == 294
     for name in ("invalid_params_length", "invalid_params_seq_without_t"):
         d = json.loads((VECTORS / f"{name}.json").read_text())
         with pytest.raises(ProtocolError) as e:
@@ -232,23 +232,17 @@ def test_default_rig_size_and_content(default_assets):
 def test_default_rig_matches_the_server_frames(default_assets):
     """The rig of the built-in avatar against the server's own fast path (what f32 frames carry): random FLAME values
     with jaw and eyes turned, within the bound PROTOCOL.md 13.3 states."""
-    from ofera.client.params import RigDeformer
-
     rig = _rig(default_assets)
-    client = RigDeformer(rig)
     pipeline = default_assets.pipeline("arkit52")
     rng = np.random.default_rng(18)
     for _ in range(3):
         y = _flame_values(rng)
         state, _ = pipeline.deform_values(y)
         p, q, s = deform_rig(rig, y)
-        cp, cq, cs = client.deform(y)
         idx = rig.index.astype(np.int64)
         assert np.abs(p - state.position[idx]).max() < 5e-6
         assert rotation_error(q, state.rotation[idx]) < 5e-3
         assert (np.abs(s - state.scale[idx]) / state.scale[idx]).max() < 5e-3
-        assert np.abs(cp - p).max() < 1e-7 and rotation_error(cq, q) < 1e-5  # two implementations, one rig
-        np.testing.assert_allclose(cs, s, rtol=1e-6)
 
 
 def test_reduced_rig_uses_session_numbering(default_assets):

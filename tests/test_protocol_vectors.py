@@ -28,7 +28,7 @@ from ofera_protocol import (  # noqa: E402
     decode_server_message,
     encode,
 )
-from ofera_protocol.messages import DeltaFrame  # noqa: E402
+from ofera_protocol.messages import DeltaFrame, ParamsFormat  # noqa: E402
 
 
 def _load_make_vectors() -> Any:
@@ -66,7 +66,9 @@ def _close(a: Any, b: Any, rel: float = 1e-6) -> bool:
     return type(a) is type(b) and a == b
 
 
-def _fmt(d: dict[str, Any]) -> FrameFormat:
+def _fmt(d: dict[str, Any]) -> FrameFormat | ParamsFormat:
+    if d["encoding"] == "params":  # PROTOCOL.md 13: params frames carry 68 values, no Gaussians
+        return ParamsFormat()
     q = d["quant"]
     quant = None if q is None else Quant(*(np.array(q[k], np.float32) for k in ("pos_min", "pos_max", "log_scale")))
     return FrameFormat(d["encoding"], d["count"], d["sparse"], quant, delta=d.get("delta", False))
@@ -85,7 +87,8 @@ def test_every_message_type_and_encoding_has_a_vector() -> None:
 
 def test_regenerating_gives_identical_files() -> None:
     on_disk = {p.name for p in VECTOR_DIR.iterdir()}
-    assert on_disk == {f"{n}.{ext}" for n in NAMES for ext in ("msgpack", "json")} | {"tables.json"}
+    assert on_disk == {f"{n}.{ext}" for n in NAMES for ext in ("msgpack", "json")} | {"tables.json",
+                                                                                       "rig_tiny_frames.json"}
     for name, data, desc in BUILT:
         assert _bytes(name) == data, f"{name}.msgpack differs: run python protocol/make_vectors.py"
         assert _close(_json(name), json.loads(MV.json_text(desc))), f"{name}.json differs"

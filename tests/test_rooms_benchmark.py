@@ -28,7 +28,8 @@ def test_rooms_benchmark_smoke(tmp_path) -> None:
     require_redis()
     out = tmp_path / "rooms.json"
     load_rooms().main(["--gaussians", "5000", "--seconds", "0.5", "--warmup", "0.3", "--ks", "2,3",
-                        "--encodings", "f16,q13", "--servers", "1,2", "--json", str(out)])
+                        "--encodings", "f16,q13", "--servers", "1,2", "--floor-seconds", "0.5",
+                             "--json", str(out)])
     assert out.is_file() and out.with_suffix(".png").stat().st_size > 10_000
     r = json.loads(out.read_text())
     measured = int(0.8 * 72) - int(0.3 * 72)
@@ -46,4 +47,5 @@ def test_rooms_benchmark_smoke(tmp_path) -> None:
                 assert len(run["server_cores_busy"]) == 2
                 assert run["local"]["sent"] + run["remote"]["sent"] == run["sent"] and run["remote"]["frames"] > 0
     assert r["bus_hop_mean_ms"] is not None and r["bus_hop_mean_ms"] > 0
-    assert set(r["redis_adds"]) == {"f16", "q13"}
+    assert set(r["redis_adds"]) == {"f16", "q13"} and set(r["transport_limits"]) == {"f16", "q13"}
+    assert r["transport_limits"]["q13"]["frame_bytes"] < r["transport_limits"]["f16"]["frame_bytes"]

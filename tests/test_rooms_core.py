@@ -500,3 +500,40 @@ def test_a_remote_member_without_local_viewers_costs_no_deformation() -> None:
         assert remote.deformed <= 2
 
     in_world(body)
+
+
+# ============================================================================= the protocol additions
+
+
+def test_watchers_need_no_layout_and_publishers_name_their_avatar() -> None:
+    from ofera_protocol import decode_client_message
+    from ofera_protocol.codec import pack_map
+
+    h = decode_client_message(pack_map({"type": "hello", "protocol": 1, "room": "lab", "publish": False}))
+    assert h.room == "lab" and h.publish is False and h.layout == "arkit52"
+    with pytest.raises(ProtocolError) as e:
+        decode_client_message(pack_map({"type": "hello", "protocol": 1, "room": "lab"}))
+    assert e.value.code == E.UNKNOWN_LAYOUT or e.value.code == E.BAD_FIELD
+    v1 = decode_client_message(pack_map({"type": "hello", "protocol": 1, "layout": "arkit52", "publish": False}))
+    assert v1.room is None  # without a room, publish means nothing: a v1 session
+
+
+def test_client_refuses_inconsistent_joins_and_drops_frames_of_unknown_members() -> None:
+    from ofera_protocol import ClientState, Welcome, decode_server_message
+    from ofera_protocol.codec import pack_map
+
+    with pytest.raises(ProtocolError) as e:
+        decode_server_message(pack_map({"type": "join", "member": "m", "publish": False,
+                                        "avatar": {"id": "a", "count": 1, "sh_degree": 0}}))
+    assert e.value.code == E.BAD_FIELD
+    c = ClientConnection()
+    c.hello("arkit52", room="lab", encoding="q13")
+    c.receive(encode(Welcome(session="s", avatar=AvatarInfo("a", 4, 0), layout="arkit52", encoding="q13", room="lab",
+                             member="m-me")))
+    with pytest.raises(ProtocolError) as q:
+        c.receive(encode(Join(member="m-x", avatar=AvatarInfo("a", 4, 0))))  # q13 without the member's quant
+    assert q.value.code == E.BAD_FIELD and not q.value.fatal
+    frame = pack_map({"type": "frame", "member": "m-y", "seq": 1, "t": 0, "timing": {}, "n": 0})
+    with pytest.raises(ProtocolError) as nf:
+        c.receive(frame)
+    assert nf.value.code == E.NOT_READY and not nf.value.fatal and c.state is ClientState.STREAMING

@@ -111,11 +111,15 @@ def test_self_view_sends_ones_own_frames_with_ones_member_id() -> None:
     server = room_server()
 
     async def main() -> None:
-        me = await connect(server.url, room="mirror", avatar=SMALL, self_view=True, encoding="f16", sparse=True)
+        me = await connect(server.url, room="mirror", avatar=SMALL, self_view=True, encoding="f16", sparse=True,
+                           max_gaussians=1000)
         await me.send_bs(weights(3))
         got = await frames_until(me, {me.member: 1})
         f = got[me.member][0]
-        assert f.index is not None and me.members[me.member].join.avatar.id == SMALL  # sparse, per member
+        join = me.members[me.member].join
+        assert f.index is not None and join.avatar.id == SMALL  # sparse, per member
+        assert join.avatar.count <= 1000 and join.avatar.count == me.welcome.avatar.count  # reduced for this viewer
+        assert me.members[me.member].avatar.count == join.avatar.count
         await me.close()
 
     run(main())

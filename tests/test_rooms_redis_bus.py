@@ -4,6 +4,7 @@ killed server's members leave within 3 s; Redis killed and restarted heals; malf
 from __future__ import annotations
 
 import asyncio
+import signal
 import subprocess
 import sys
 import textwrap
@@ -285,6 +286,33 @@ def test_a_member_leaving_while_redis_is_unreachable_is_withdrawn_when_it_is_bac
         await ra.wait(lambda: len(ra.of("state")) == 3 and present_after_heal(ra) == {"bob"})
         await asyncio.sleep(3 * b.heartbeat_s)
         assert present_after_heal(rb) == {"ann"}
+        await a.close()
+        await b.close()
+
+    asyncio.run(main())
+
+
+def test_a_redis_that_stops_answering_is_lost_and_found_again(redis_server: RedisServer) -> None:
+    """A hung Redis (SIGSTOP: connections stay open, nothing answers) is seen through timeouts, not only resets."""
+    async def main() -> None:
+        a, b = bus(redis_server.url, "A", timeout_s=0.5), bus(redis_server.url, "B", timeout_s=0.5)
+        ra, rb = Recorder(), Recorder()
+        await a.start(ra)
+        await b.start(rb)
+        await a.join(ROOM, ALICE)
+        await b.join(ROOM, BOB)
+        redis_server.proc.send_signal(signal.SIGSTOP)
+        try:
+            await ra.wait(lambda: ra.of("state")[-1] == ("state", False), timeout=5.0)
+            a.publish(ExpressionValues(ROOM, "alice", 1, 1, values(1)))  # returns at once, counted as dropped
+        finally:
+            redis_server.proc.send_signal(signal.SIGCONT)
+        await rb.wait(lambda: len(rb.of("state")) >= 3 and rb.of("state")[-1] == ("state", True)
+                      and present_after_heal(rb) == {"alice"}, timeout=10.0)
+        await ra.wait(lambda: len(ra.of("state")) >= 3 and present_after_heal(ra) == {"bob"}, timeout=10.0)
+        before = len(rb.of("values"))
+        a.publish(ExpressionValues(ROOM, "alice", 2, 2, values(2)))
+        await rb.wait(lambda: len(rb.of("values")) == before + 1)
         await a.close()
         await b.close()
 

@@ -659,7 +659,7 @@ def encode_rig_chunk(m: RigChunk) -> bytes:
     """`rig`: bytes [offset, offset + len(data)) of a rig body (`ofera_protocol.rig`)."""
     member = {} if m.member is None else {"member": m.member}
     return pack_map({"type": "rig", **member, "chunk": m.chunk, "chunks": m.chunks, "size": m.size,
-                     "offset": m.offset, "data": bytes(m.data)})
+                     "offset": m.offset, "data": np.ascontiguousarray(m.data, np.uint8)})
 
 
 def decode_rig_chunk(m: dict[str, Any]) -> RigChunk:
@@ -668,7 +668,7 @@ def decode_rig_chunk(m: dict[str, Any]) -> RigChunk:
     size = F.get_int(m, "size", w, lo=0, hi=UINT32_MAX)
     return RigChunk(member=F.get_str(m, "member", w, default=None), chunk=F.get_int(m, "chunk", w, lo=0, hi=chunks - 1),
                     chunks=chunks, size=size, offset=F.get_int(m, "offset", w, lo=0, hi=size),
-                    data=F.get_bin(m, "data", w))
+                    data=np.frombuffer(F.get_bin(m, "data", w), np.uint8))
 
 
 def encode_params_frame(m: ParamsFrame) -> bytes:

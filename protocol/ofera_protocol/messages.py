@@ -267,14 +267,15 @@ class Leave:
 @dataclass(eq=False)
 class RigChunk(_ArrayEq):
     """`rig` (params sessions, PROTOCOL.md 13): bytes [offset, offset + len(data)) of the rig body (`size` bytes
-    in all), chunk `chunk` of `chunks`; `member` in a room session (whose avatar the rig deforms)."""
+    in all), chunk `chunk` of `chunks`; `member` in a room session (whose avatar the rig deforms). `data`: (len,)
+    uint8."""
 
     TYPE: ClassVar[str] = "rig"
     chunk: int
     chunks: int
     size: int
     offset: int
-    data: bytes
+    data: np.ndarray
     member: str | None = None
 
 

@@ -149,18 +149,19 @@ def decode_rig(body: bytes) -> Rig:
 
 def split_rig(body: bytes, max_chunk_bytes: int = DEFAULT_RIG_CHUNK_BYTES, member: str | None = None
               ) -> list[RigChunk]:
-    """Cut a rig body into consecutive `rig` chunks of at most `max_chunk_bytes` (at least one chunk)."""
+    """Cut a rig body into consecutive `rig` chunks of at most `max_chunk_bytes` (at least one chunk; views)."""
     step = max(1, int(max_chunk_bytes))
     starts = list(range(0, len(body), step)) or [0]
-    return [RigChunk(chunk=c, chunks=len(starts), size=len(body), offset=o, data=bytes(body[o:o + step]),
-                     member=member) for c, o in enumerate(starts)]
+    data = np.frombuffer(body, np.uint8)
+    return [RigChunk(chunk=c, chunks=len(starts), size=len(body), offset=o, data=data[o:o + step], member=member)
+            for c, o in enumerate(starts)]
 
 
 class RigAssembler:
     """Collects the `rig` chunks of one avatar, which must arrive in order without gaps."""
 
     def __init__(self) -> None:
-        self._parts: list[bytes] = []
+        self._parts: list[np.ndarray] = []
         self._next = 0
         self._size: int | None = None
         self._chunks: int | None = None
@@ -181,7 +182,7 @@ class RigAssembler:
             problems.append(f"chunks {chunk.chunks} / size {chunk.size} differ from the first chunk's")
         if chunk.offset != self._next:
             problems.append(f"offset {chunk.offset} != {self._next}")
-        end = chunk.offset + len(chunk.data)
+        end = chunk.offset + int(chunk.data.size)
         if end > chunk.size or (chunk.chunk == chunk.chunks - 1 and end != chunk.size):
             problems.append(f"chunk ends at byte {end} of a {chunk.size}-byte rig")
         if chunk.size > MAX_RIG_BYTES:
@@ -197,7 +198,7 @@ class RigAssembler:
         """The whole rig body. Only once `complete`."""
         if not self.complete:
             raise RuntimeError("rig is not complete")
-        return b"".join(self._parts)
+        return b"".join(p.tobytes() for p in self._parts)
 
 
 # ============================================================================= the reference deformation

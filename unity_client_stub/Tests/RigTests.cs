@@ -537,8 +537,8 @@ namespace Ofera.Client.Tests
 
         /// <summary>
         /// The capture (or a synthetic face) in lockstep to a params session and an f32 sparse session (FLAME coords): each
-        /// params frame, deformed by the C# core, against the f32 frame of the same bs (PROTOCOL.md 13.3's f16 bound: the
-        /// issue asks 0.05 mm) and against ofera_protocol.rig.deform_rig of the same rig and params (1e-5 m).
+        /// params frame, deformed by the C# core, against the f32 frame of the same bs (1e-5 m; the issue asks 0.05 mm)
+        /// and against ofera_protocol.rig.deform_rig of the same rig and params (1e-5 m).
         /// </summary>
         public static void Live(string url, CheckFn check, string python, string repo, int maxFrames)
         {
@@ -605,7 +605,8 @@ namespace Ofera.Client.Tests
                 double mean = (double)bytes / frames;
                 Console.WriteLine("INFO live params: " + frames + " frames (" + layout + "), " + R(mean) + " B per frame, " + stampedCount + " stamped; max |C# params - server f32| = "
                                   + R(worst * 1e3) + " mm, max 1-|q.q'| = " + R(worstRot));
-                check(worst <= 5e-5, "live params: every frame of the " + (layout == "livelink61" ? "real capture" : "synthetic face") + " within 0.05 mm of the server's f32 frame",
+                // PROTOCOL.md 13.3 measured 1.4 um on this capture (the float16 pose basis, local rotations and scales)
+                check(worst <= 1e-5, "live params: every frame of the " + (layout == "livelink61" ? "real capture" : "synthetic face") + " within 1e-5 m of the server's f32 frame (the issue asks 0.05 mm)",
                       R(worst * 1e3) + " mm");
                 check(mean <= 300, "live params: at most 300 B per frame after the handshake", R(mean) + " B");
                 check(missing == 0, "live params: every Gaussian the f32 stream moves is in the rig", missing + " missing");

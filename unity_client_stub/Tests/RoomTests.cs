@@ -342,7 +342,8 @@ namespace Ofera.Client.Tests
         // ============================================================ live: a room of `ofera serve`
 
         /// <summary>The Python publisher: joins the room with `ofera.client`, prints "member ID", publishes jawOpen at
-        /// about 30 Hz until a line arrives on stdin, then says bye and prints "bye N" (N bs sent).</summary>
+        /// about 30 Hz (and reads what the room sends it) until a line arrives on stdin, then says bye and prints
+        /// "bye N" (N bs sent).</summary>
         const string PythonPublisher = @"
 import asyncio, sys
 import numpy as np
@@ -352,12 +353,19 @@ async def main(url, room):
     c = await connect(url, room=room, avatar='default', max_gaussians=5000)
     print('member', c.member, flush=True)
     stop = asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
+
+    async def read():
+        while True:
+            await c.recv()
+
+    reader = asyncio.create_task(read())
     w, k = np.zeros(52, np.float32), 0
     while not stop.done():
         w[17] = 0.5 + 0.5 * np.sin(k / 5)
         await c.send_bs(w)
         k += 1
         await asyncio.sleep(1 / 30)
+    reader.cancel()
     await c.close()
     print('bye', k, flush=True)
 

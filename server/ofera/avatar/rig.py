@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from ofera_protocol.rig import Rig
 
+from ..errors import OferaError
 from ..head.lbs import HeadSubject
 from .binding import BarycentricBinding, TriangleBinding, normalize_quaternions
 from .model import GaussianAvatar
@@ -24,7 +25,7 @@ NECK_ROWS = 9
 """Pose-feature entries 0..8 belong to the neck, always the identity in FLAME values (zero coefficients)."""
 
 
-class RigError(ValueError):
+class RigError(OferaError, ValueError):
     """The avatar cannot be streamed as a rig (the message says why)."""
 
 

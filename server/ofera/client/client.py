@@ -212,12 +212,17 @@ class Client:
 
     # ------------------------------------------------------------------ closing
 
-    async def close(self) -> None:
-        """Say bye and close (idempotent)."""
+    async def close(self, timeout: float = 5.0) -> None:
+        """Say bye and close (idempotent). Messages still on their way (a room's other members keep streaming) are
+        read and dropped until the server's close arrives, at most `timeout` seconds: unread, they would hold the
+        close frame back until the library's close timeout."""
         try:
             if self.conn.state.value != "closed":
                 await self.ws.send(self.conn.bye())
-        except ConnectionClosed:
+            async with asyncio.timeout(timeout):
+                while True:
+                    await self.ws.recv()
+        except (ConnectionClosed, TimeoutError):
             pass
         await self.ws.close()
 

@@ -13,6 +13,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, WebSocket
 from fastapi.responses import JSONResponse, Response
 from ofera_protocol import COORDS, ENCODINGS, ENDPOINT, LAYOUTS, PROTOCOL_VERSION
+from ofera_protocol.constants import PARAMS
 from starlette.websockets import WebSocketDisconnect
 
 from .. import __version__, web
@@ -143,7 +144,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def avatars() -> JSONResponse:
         return JSONResponse({"default": registry.default_id, "avatars": registry.describe(),
                              "devices": sorted(registry.devices), "layouts": list(LAYOUTS),
-                             "encodings": list(ENCODINGS), "coords": list(COORDS),
+                             "encodings": [*ENCODINGS, PARAMS], "coords": list(COORDS),
                              "auth": settings.token is not None})
 
     app.include_router(web.router)  # the browser preview: / and /static/

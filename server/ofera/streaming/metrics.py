@@ -10,6 +10,11 @@ _STAGE_BUCKETS = (2e-5, 5e-5, 1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2, 5e
 
 CONTENT_TYPE = CONTENT_TYPE_LATEST
 
+FRAME_STAGES = ("decode", "queue", "layout", "bda", "epm", "map", "head", "deform", "total", "encode", "send", "drain")
+"""The `ofera_stage_seconds` stages of a frame, in order: bs decode, queue (received -> computation starts), the
+pipeline's stages (map = layout + bda), total (received -> computed), encode (the frame message written), send (the
+writes' time on the event loop: bytes into the kernel) and drain (until the kernel took them: streaming.server)."""
+
 
 class Metrics:
     """Sessions, message counts, skipped work, errors by code, per-stage latency histograms."""
@@ -68,6 +73,8 @@ class Metrics:
             self.sessions.labels(role)
         for stage in ("bs", "frame"):
             self.skipped.labels(stage)
+        for stage in FRAME_STAGES:  # listed (at zero) from the start
+            self.stage.labels(stage)
 
     def observe_timings(self, timings: dict[str, int]) -> None:
         """Record a frame's stage durations (microseconds)."""

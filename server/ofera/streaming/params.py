@@ -13,6 +13,7 @@ with a fatal `unknown_encoding` naming the reason (SessionFatal); in a room (`me
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -31,8 +32,10 @@ from .wire import reduced_size
 
 PARAMS_LENGTH = 68
 """Values in a params frame: the EPM's FLAME values."""
-STAMP_INTERVAL_S = 1.0
-"""The reference server stamps (seq, t, timing) one params frame per second at least (PROTOCOL.md 13.5)."""
+STAMP_INTERVAL_S = float(os.environ.get("OFERA_PARAMS_STAMP_INTERVAL", "1.0"))
+"""The reference server stamps (seq, t, timing) one params frame per second at least (PROTOCOL.md 13.5). The
+environment variable OFERA_PARAMS_STAMP_INTERVAL (seconds, read at import) changes it: benchmarks set 0 to stamp
+every frame, so that every frame's latency can be measured."""
 
 __all__ = ["PARAMS_LENGTH", "STAMP_INTERVAL_S", "ParamsWriter", "RigError", "rig_body", "rig_messages", "rig_size"]
 
@@ -84,17 +87,18 @@ def rig_messages(conn: ServerConnection, assets: AvatarAssets, coords: str, max_
 class ParamsWriter:
     """Encodes params frames (PROTOCOL.md 13.5) from a frame's expression values; one per wire format, shared by its
     viewers. `assets`, `coords`, `max_gaussians`: the wire format it serves (the values do not depend on them; an
-    avatar without a rig is refused here, RigError). Thread-safe."""
+    avatar without a rig is refused here, RigError); `stamp_interval` seconds between stamped frames (None:
+    STAMP_INTERVAL_S). Thread-safe."""
 
     needs_state = False
 
     def __init__(self, assets: AvatarAssets | None = None, coords: str = "flame", max_gaussians: int | None = None,
-                 stamp_interval: float = STAMP_INTERVAL_S, clock: Callable[[], float] = time.monotonic) -> None:
+                 stamp_interval: float | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         if assets is not None and assets.expression != "flame68":
             raise RigError(f"params needs a FLAME-driven avatar (expression flame68); {assets.id!r} is driven by "
                            f"{assets.expression} weights")
         self.coords, self.max_gaussians = coords, max_gaussians
-        self.stamp_interval = stamp_interval
+        self.stamp_interval = STAMP_INTERVAL_S if stamp_interval is None else stamp_interval
         self.clock = clock
         self._last: dict[str | None, float] = {}  # member -> clock of its last stamped frame
         self._lock = threading.Lock()

@@ -94,6 +94,10 @@ class ComputedFrame:
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
+    def cached(self, key: tuple) -> Any:
+        """The bytes of wire format `key` if some viewer made them already, else None (no lock: a dict read)."""
+        return self._encoded.get(key)
+
     def encoded(self, key: tuple, make: Callable[[ComputedFrame], Any]) -> tuple[Any, bool]:
         """Bytes for wire format `key` (made once, by whoever asks first); True if made by this call."""
         with self._lock:

@@ -36,7 +36,7 @@ from .member_wire import MemberWire, prepare_member_wire, wire_key
 from .metrics import Metrics
 from .pipeline import AvatarAssets
 from .registry import AvatarRegistry
-from .roles import ComputedFrame, SendBytes, Source, encode_computed
+from .roles import ComputedFrame, SendBytes, SessionFatal, Source, encode_computed
 from .wire import reduced_size
 
 log = logging.getLogger("ofera.streaming.rooms")
@@ -48,10 +48,6 @@ BYE, CLOSED, STALE = "bye", "closed", "stale"
 def new_member_id() -> str:
     """A member id unique across servers with overwhelming probability (48 random bits)."""
     return "m-" + secrets.token_hex(6)
-
-
-class ViewerGone(Exception):
-    """Sending to the viewer's connection failed: the session ends."""
 
 
 class MemberSlot:
@@ -188,16 +184,20 @@ class RoomViewer:
                     await self._event.wait()
                     continue
                 frame = slot.take()
-                slot.busy = True
-                try:
-                    data = await loop.run_in_executor(self.executor, self._encode, slot.wire, frame)
-                except Exception as exc:
-                    log.exception("encoding frame %d of member %s failed", frame.seq, slot.wire.member)
-                    raise ViewerGone(f"encoding failed: {type(exc).__name__}") from exc
-                finally:
-                    slot.busy = False
-                if self.slots.get(slot.wire.member) is not slot:
-                    continue  # it left (its leave is queued) while the frame was encoded
+                data = frame.cached(slot.wire.key)  # another viewer of this format encoded it: no thread hop
+                if data is None:
+                    slot.busy = True
+                    try:
+                        data = await loop.run_in_executor(self.executor, self._encode, slot.wire, frame)
+                    except Exception as exc:
+                        log.exception("encoding frame %d of member %s failed", frame.seq, slot.wire.member)
+                        raise SessionFatal(ProtocolError(E.INTERNAL, f"the server failed encoding frame {frame.seq} "
+                                                         f"of member {slot.wire.member}: {type(exc).__name__}",
+                                                         True)) from exc
+                    finally:
+                        slot.busy = False
+                    if self.slots.get(slot.wire.member) is not slot:
+                        continue  # it left (its leave is queued) while the frame was encoded
                 slot.busy = True
                 slot.size = len(data)
                 self.inflight += slot.size
@@ -474,10 +474,14 @@ class Rooms(BusListener):
         self._spawn(self._load_remote(r, member, aid), f"loading avatar {aid} of remote member {info.member}")
 
     async def _load_remote(self, r: Room, member: Member, aid: str) -> None:
-        assets = await asyncio.get_running_loop().run_in_executor(self.executor, self.registry.get, aid)
+        def load() -> tuple[AvatarAssets, Any]:
+            assets = self.registry.get(aid)
+            return assets, assets.pipeline("arkit52")  # only deform_values is used: the layout does not matter
+
+        assets, pipeline = await asyncio.get_running_loop().run_in_executor(self.executor, load)
         if r.members.get(member.id) is not member or self.rooms.get(r.name) is not r:
             return
-        src = RemoteSource(assets.pipeline("arkit52"), self.executor, self.metrics)
+        src = RemoteSource(pipeline, self.executor, self.metrics)
         src.member = member.id
         src.demand = lambda: member.wants
         src.needs_state = lambda: member.wants_state

@@ -300,7 +300,8 @@ class Session:
                 return reg.get(aid), device_bda
 
             assets, device_bda = await self._load(hello, prepare)
-            info = AvatarInfo(id=aid, count=assets.count, sh_degree=assets.sh_degree, expression=assets.expression)
+            count = reduced_size(hello.max_gaussians, assets.count) or assets.count  # reduced as in v1
+            info = AvatarInfo(id=aid, count=count, sh_degree=assets.sh_degree, expression=assets.expression)
             self.source = Source(self._pipeline(hello, assets, device_bda), hub.executor, self.metrics)
         await self.t.send(self.conn.accept(self.id, info, server=f"ofera/{__version__}", member=member_id))
         viewer = self.viewer = RoomViewer(self.t.send, hub.executor, self.metrics, s.room_send_bytes)

@@ -117,7 +117,7 @@ namespace Ofera.Client
     {
         static readonly string[] Bindings = { "triangle", "barycentric" };
 
-        int[] _off = new int[RigGpuWords.Sections], _len = new int[RigGpuWords.Sections];
+        readonly int[] _off = new int[RigGpuWords.Sections], _len = new int[RigGpuWords.Sections];
 
         public RigData Decode(byte[] body, int offset, int count)
         {

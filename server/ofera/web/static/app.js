@@ -479,9 +479,11 @@ function onRoomMessage(c, type, msg, buffer) {
   }
   if (type === "join") room.join(msg);
   else if (type === "leave") room.leave(msg);
-  else if (type === "avatar" || type === "frame") {
+  else if (type === "avatar" || type === "frame" || type === "rig") {
     if (typeof msg.member !== "string") throw new ProtocolError("bad_field", `${type} without 'member' in a room session`);
     if (type === "avatar") room.chunk(msg.member, buffer);
+    else if (type === "rig") room.rig(msg.member, buffer); // params sessions (PROTOCOL.md 13.6)
+    else if (msg.params !== undefined && msg.seq === undefined) room.frame(msg.member, { seq: null, t: null }, buffer); // unstamped
     else room.frame(msg.member, { seq: intField(msg, "seq"), t: intField(msg, "t"), timing: msg.timing }, buffer);
   } else {
     throw new ProtocolError("bad_field", `unexpected ${type} in a room session`);

@@ -52,7 +52,8 @@ export class MemberTile {
     this.view = view;
     this.res = res;
     this.onError = onError;
-    this.state = "avatar"; // -> "streaming" once every chunk is in, "closed" after a leave
+    this.state = "avatar"; // -> "streaming" once every chunk (params: and the rig) is in, "closed" after a leave
+    this.params = welcome.encoding === "params"; // frames carry 68 values, the worker deforms (PROTOCOL.md 13)
     this.home = null; // { target, dist } framing this avatar
     this.el = document.createElement("figure");
     this.el.className = "tile";
@@ -72,7 +73,8 @@ export class MemberTile {
     this.framesReceived = 0;
     this.framesDrawn = 0;
     this.skipped = 0; // frames replaced by a newer one before the worker took them
-    this.pending = null; // the newest frame not yet handed to the worker: its bytes
+    this.pending = null; // the newest frame not yet handed to the worker: { buffer, seq (null: unstamped) }
+    this.postedSeq = -1; // the seq the worker gives the last frame handed to it (unstamped: the one before + 1)
     this.lastSeq = -1;
     this.drawnSeq = -1;
     this.lastTiming = null;
@@ -91,16 +93,22 @@ export class MemberTile {
     this.worker.postMessage({ kind: "chunk", gen: 1, buffer }, [buffer]);
   }
 
-  /** A `frame` of this member: `msg` decoded (seq, t, timing), `buffer` its bytes (for the worker, at the next prepare). */
+  /** A params session's `rig` message of this member (the worker assembles the rig; it must follow the avatar). */
+  rig(buffer) {
+    this.worker.postMessage({ kind: "rig", gen: 1, buffer }, [buffer]);
+  }
+
+  /** A `frame` of this member: `msg` decoded (seq, t, timing; an unstamped params frame: seq and t null), `buffer`
+   * its bytes (for the worker, at the next prepare). */
   frame(msg, buffer) {
     const now = performance.now();
     if (this.pending) this.skipped++;
-    this.pending = buffer;
+    this.pending = { buffer, seq: msg.seq };
     this.framesReceived++;
-    this.lastSeq = msg.seq;
-    this.lastTiming = msg.timing ?? null;
+    this.lastSeq = msg.seq ?? this.lastSeq + 1; // unstamped params frames: counted
+    if (msg.timing) this.lastTiming = msg.timing;
     this.arrivals.push(now);
-    this.latencies.push((nowUs() - msg.t) / 1000);
+    if (msg.t !== null) this.latencies.push((nowUs() - msg.t) / 1000);
     if (this.latencies.length > LATENCIES) this.latencies.shift();
     this.prepWanted = true;
   }
@@ -116,8 +124,11 @@ export class MemberTile {
     if (this.state === "closed") return;
     if (data.kind === "prepared") this.prepBusy = false;
     if (data.stale) return;
-    if (data.kind === "avatar") {
-      this.state = "streaming";
+    if (data.kind === "rig") {
+      this.state = "streaming"; // a params member: its frames can be deformed now
+      this.prepWanted = true;
+    } else if (data.kind === "avatar") {
+      if (!this.params) this.state = "streaming";
       const { lo, hi } = data;
       const size = Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 1e-3);
       this.home = {
@@ -162,7 +173,9 @@ export class MemberTile {
     if (this.drawnView !== this.view.version) this.prepWanted = true;
     if ((this.prepWanted || this.pending) && !this.prepBusy) {
       if (this.pending) {
-        this.worker.postMessage({ kind: "frame", gen: 1, buffer: this.pending }, [this.pending]);
+        const { buffer, seq } = this.pending;
+        this.worker.postMessage({ kind: "frame", gen: 1, buffer }, [buffer]);
+        this.postedSeq = seq ?? this.postedSeq + 1;
         this.pending = null;
       }
       const [view, proj] = this.matrices();
@@ -199,7 +212,7 @@ export class MemberTile {
 
   /** Streaming, the newest frame drawn in the current view. */
   get settled() {
-    return this.state === "streaming" && this.drawnSeq === this.lastSeq && this.drawnView === this.view.version
+    return this.state === "streaming" && this.drawnSeq === this.postedSeq && this.drawnView === this.view.version
       && !this.prepBusy && !this.prepWanted && !this.needsDraw && !this.pending;
   }
 

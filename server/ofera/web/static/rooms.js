@@ -19,7 +19,7 @@ export class RoomView {
     this.view = new SharedView();
     this.welcome = null; // the session's (room, member: this client's id)
     this.members = new Map(); // member id -> { join, tile (null: watch-only or no avatar), since }
-    this.left = []; // the latest departures: { member, reason }
+    this.left = []; // the latest departures: { member, reason, at (Date.now() when it arrived) }
     this.listAt = 0;
     this.onViewChange = null; // called when the tiles need drawing again (the page wakes its display loop)
     this.resizer = new ResizeObserver(() => { this.resize(); this.onViewChange?.(); }); // tiles reflow as members come and go
@@ -66,7 +66,7 @@ export class RoomView {
     if (!m) return;
     this.closeTile(m.tile);
     this.members.delete(msg.member);
-    this.left.unshift({ member: msg.member, reason: msg.reason });
+    this.left.unshift({ member: msg.member, reason: msg.reason, at: Date.now() }); // at: wall clock, ms
     this.left.length = Math.min(this.left.length, 5);
     this.renderList(true);
   }
@@ -87,6 +87,11 @@ export class RoomView {
   /** An `avatar` chunk carrying `member` (raw bytes, handed to that member's worker). */
   chunk(member, buffer) {
     this.tileOf(member, "an avatar chunk").chunk(buffer);
+  }
+
+  /** A params session's `rig` message carrying `member` (PROTOCOL.md 13.6; assembled in that member's worker). */
+  rig(member, buffer) {
+    this.tileOf(member, "a rig message").rig(buffer);
   }
 
   /** A `frame` carrying `member`: `msg` decoded for seq, t and timing; `buffer` goes to that member's worker. */
