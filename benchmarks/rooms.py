@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import io
+import math
 import os
 import shutil
 import socket
@@ -273,9 +274,11 @@ async def run_k(urls: list[str], k: int, weights: np.ndarray, layout: str, encod
     return out
 
 
-def bus_hop_ms(http_urls: list[str]) -> float | None:
-    """Mean publish()-to-receipt time of expression values over Redis (ms), from the servers' metrics."""
+def bus_hop_ms(http_urls: list[str]) -> dict | None:
+    """publish()-to-receipt time of expression values over Redis (ms), from the servers' ofera_bus_hop_seconds
+    histograms: mean, and p50 interpolated within its bucket."""
     total = count = 0.0
+    buckets: dict[float, float] = {}
     for url in http_urls:
         with urllib.request.urlopen(f"{url}/metrics", timeout=5) as r:
             for line in r.read().decode().splitlines():
@@ -283,7 +286,19 @@ def bus_hop_ms(http_urls: list[str]) -> float | None:
                     total += float(line.split()[-1])
                 elif line.startswith("ofera_bus_hop_seconds_count"):
                     count += float(line.split()[-1])
-    return round(1000 * total / count, 3) if count else None
+                elif line.startswith("ofera_bus_hop_seconds_bucket"):
+                    le = line.split('le="')[1].split('"')[0]
+                    buckets[float(le)] = buckets.get(float(le), 0.0) + float(line.split()[-1])
+    if not count:
+        return None
+    lo, below, p50 = 0.0, 0.0, None
+    for le, cum in sorted(buckets.items()):  # cumulative counts
+        if cum >= count / 2:
+            p50 = lo if math.isinf(le) else lo + (le - lo) * (count / 2 - below) / max(cum - below, 1e-12)
+            break
+        lo, below = le, cum
+    return {"mean_ms": round(1000 * total / count, 3), "p50_ms": None if p50 is None else round(1000 * p50, 3),
+            "messages": int(count)}
 
 
 def offered_encodings(http_url: str) -> list[str]:
@@ -326,7 +341,7 @@ def sweep(avatars: Path, servers: int, encodings: list[str], ks: list[int], weig
                       f"{r['server_cores_busy']} cores, clients {r['client_cores_busy']}{extra_s}", flush=True)
                 time.sleep(0.3)
         if redis:
-            out["bus_hop_mean_ms"] = bus_hop_ms([p.url.replace("ws://", "http://").removesuffix("/v1/stream")
+            out["bus_hop"] = bus_hop_ms([p.url.replace("ws://", "http://").removesuffix("/v1/stream")
                                                  for p in procs])
     finally:
         for p in procs:
@@ -362,6 +377,7 @@ def plot(path: Path, runs: dict, budget: float, max_drop: float, title: str) -> 
     ax[1].axhline(100 * max_drop, color="grey", ls="--", lw=0.8, label=f"limit {100 * max_drop:g} %")
     ax[1].set_ylabel("frames dropped per viewer stream (%)")
     for a in ax:
+        a.set_xticks(sorted({k for res in runs.values() for k in res}))
         a.set_xlabel("publishers K (each watched by the K-1 others)")
         a.legend(fontsize=7)
     C.save_figure(fig, path, title)
@@ -399,7 +415,7 @@ def main(argv: list[str] | None = None) -> dict:
         mode = "one server" if servers == 1 else "two servers + Redis"
         print(f"[rooms] {mode}: K = {ks}, {encodings}, {args.rate:g} Hz, {args.seconds:g} s each", flush=True)
         res = sweep(avatars, servers, encodings, ks, weights, layout, args)
-        hop = res.pop("bus_hop_mean_ms", hop)
+        hop = res.pop("bus_hop", hop)
         for enc, by_k in res.items():
             runs[(mode, enc)] = by_k
     shutil.rmtree(avatars, ignore_errors=True)
@@ -427,7 +443,7 @@ def main(argv: list[str] | None = None) -> dict:
         "benchmark": "rooms", "gaussians": args.gaussians, "rate_hz": args.rate, "seconds": args.seconds,
         "warmup_s": args.warmup, "budget_ms": args.budget_ms, "max_drop": args.max_drop,
         "threads_per_server": args.threads, "client_read": "header only (type, member, seq, t, timing)",
-        "summary": summary, "redis_adds": redis_adds, "bus_hop_mean_ms": hop, "transport_limits": limits,
+        "summary": summary, "redis_adds": redis_adds, "bus_hop": hop, "transport_limits": limits,
         "runs": {f"{enc}, {mode}": {str(k): v for k, v in res.items()} for (mode, enc), res in runs.items()},
         "machine": C.machine(), "notes": notes + [
             "latency: viewer receipt - the source client's scheduled send time; a bs a viewer never got a frame of "
@@ -446,7 +462,7 @@ def main(argv: list[str] | None = None) -> dict:
               f"WebSocket alone: at most {lim['streams_per_core_by_transport_alone']} such streams at {args.rate:g} "
               "Hz between one sending and one receiving process, before any compute")
     if hop is not None:
-        print(f"Redis hop (servers' publish() to receipt, mean): {hop} ms; p50 differences: {redis_adds}")
+        print(f"Redis hop (servers' publish() to receipt): {hop}; p50 differences (ms): {redis_adds}")
     print(f"wrote {path}")
     return report
 

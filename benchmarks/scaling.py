@@ -66,7 +66,7 @@ def measure_size(n: int | None, weights, layout, mapper, frames: int, ref_frames
         out[impl]["moving"] = assets.fast.moving if fast else avatar.count
         if fast and parallel:  # the same deformation with prange over 2 numba threads
             session = assets.fast.session(parallel=True)
-            serial = assets.fast.session()
+            serial = assets.fast.session(parallel=False)
             numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
             from ofera.mapping.flame_values import split_flame_values
 

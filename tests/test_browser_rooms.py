@@ -243,6 +243,58 @@ def test_room_field_joins_and_leaves(browser, server) -> None:
         page.close()
 
 
+def test_page_meets_a_python_publisher_on_another_server(browser) -> None:
+    """Two `ofera serve` processes joined by a real Redis (`--redis`, PROTOCOL.md 12.5): the page on one, the Python
+    client on the other; each sees the other's avatar move (mapped expressions cross, each server deforms), and the
+    Python client's leave reaches the page within 3 s."""
+    from redis_support import running_redis
+
+    room = "lab-redis"
+    with running_redis() as redis, ofera_serve("--redis", redis.url) as (a, _), \
+            ofera_serve("--redis", redis.url) as (b, _):
+        page = open_page(browser, f"{a}/?{ROOM_PAGE}&room={room}", settle=False)
+        peer = None
+        try:
+            wait(page, "__ofera.room && __ofera.room.member !== null")
+            me = page.evaluate("__ofera.room.member")
+            peer = RoomPeer(b, room)
+            wait(page, _streaming(peer.member))
+            assert foreground(_tile_pixels(page, peer.member)).mean() > 0.05, "the remote member's tile shows no avatar"
+            peer.wait_for("the page's join, across servers", lambda p: me in p.joins)
+            before = len(peer.frames.get(me, []))
+            page.locator("#bs-jawOpen").fill("1")
+            peer.wait_for("frames of the page's avatar, across servers", lambda p: len(p.frames.get(me, [])) > before)
+            peer.bye()
+            wait(page, f"!__ofera.room.members.some(m => m.member === '{peer.member}')", timeout_s=LEAVE_S + 5)
+            left = page.evaluate("__ofera.room.left")[0]
+            assert left["member"] == peer.member and left["at"] / 1000 - peer.bye_at < LEAVE_S, left
+            peer = None
+            assert page.evaluate("__ofera.errors") == [], page.evaluate("__ofera.errors")
+        finally:
+            if peer is not None:
+                peer.bye()
+            page.close()
+
+
+def test_params_room_deforms_in_the_page(browser, server) -> None:
+    """A params session in a room (PROTOCOL.md 13.6): one's own avatar (`self`) arrives with its join, avatar and
+    rig, each frame's 68 values are deformed in the tile's worker, and jawOpen moves the picture."""
+    page = open_page(browser, f"{server}/?enc=params&max=20000&room=lab-params&self=1", settle=False)
+    try:
+        wait(page, "__ofera.room && __ofera.room.member !== null")
+        me = page.evaluate("__ofera.room.member")
+        wait(page, _streaming(me, 1) + " && __ofera.room.settled")
+        before = _tile_pixels(page, me)
+        seq = _member(page, me)["drawnSeq"]
+        page.locator("#bs-jawOpen").fill("1")
+        wait(page, f"__ofera.room.members.find(m => m.member === '{me}').drawnSeq > {seq} && __ofera.room.settled")
+        changed = np.abs(_tile_pixels(page, me) - before).max(axis=2) > 40
+        assert foreground(before).mean() > 0.05 and changed.mean() > 0.002, f"jawOpen changed {changed.mean():.4f}"
+        assert page.evaluate("__ofera.errors") == [], page.evaluate("__ofera.errors")
+    finally:
+        page.close()
+
+
 def test_room_vectors_in_javascript(browser, server) -> None:
     """protocol.js against the rooms' golden vectors (PROTOCOL.md 12): hellos byte for byte; welcome, join, leave,
     member avatar chunks and frames decoded with their room fields."""

@@ -169,3 +169,40 @@ def test_writer_stamps_once_per_interval_per_member():
 def test_writer_refuses_bad_values(values):
     with pytest.raises(ValueError, match="68 finite"):
         ParamsWriter().encode_values(0, 0, {}, values, None)
+
+
+# ----------------------------------------------------------------------------- rooms
+
+
+def test_room_viewer_in_params_mode(server):
+    """A params viewer of a room (PROTOCOL.md 13.6) receives the publisher's rig after its join and avatar, then its
+    params frames, and reconstructs what an f32 viewer of the same room receives."""
+    from ofera.client import watch
+
+    room = "params-room"
+    rng = np.random.default_rng(9)
+    weights = rng.uniform(0, 1, (5, 52)).astype(np.float32)
+
+    async def main():
+        publisher = await connect(server.url, layout="arkit52", avatar=SMALL, encoding="f16", room=room)
+        p = await watch(server.url, room, encoding="params", track=True)
+        f = await watch(server.url, room, encoding="f32")
+        worst = 0.0
+        try:
+            for c in (p, f):  # the publisher's join, avatar (and rig) first: frames before them are dropped
+                while publisher.member not in c.conn.formats:
+                    await c.recv(60)
+            for i, w in enumerate(weights):
+                await publisher.send_bs(w, seq=i, t=1000 + i)
+                pf = await p.recv_frame(60)
+                ff = await f.recv_frame(60)
+                assert isinstance(pf, ParamsFrame) and pf.member == publisher.member == ff.member and ff.seq == i
+                member = p.conn.members[publisher.member]
+                assert member.rig is not None and member.rig.count == ff.n
+                worst = max(worst, float(np.abs(member.gaussians.position - ff.position).max()))
+            return worst
+        finally:
+            for c in (publisher, p, f):
+                await c.close()
+
+    assert run(main()) < 1e-5

@@ -277,3 +277,59 @@ def test_real_capture_offline(default_assets):
         cp, _, _ = client.deform(pipeline.values)
         worst = max(worst, float(np.abs(cp - state.position[idx]).max()))
     assert len(log.weights) == 180 and worst < 1e-5, worst
+
+
+# ----------------------------------------------------------------------------- the state machines
+
+
+def _handshake(tiny_rig_body: bytes, chunk_bytes: int = 300):
+    """Both ends of a params session, in memory: (client connection, server connection, rig messages)."""
+    from ofera_protocol import Avatar, AvatarInfo, ClientConnection, ServerConnection, encode
+
+    client, server = ClientConnection(), ServerConnection()
+    server.receive(client.hello("arkit52", encoding="params", sparse=True))
+    client.receive(server.accept("s-1", AvatarInfo("default", 6, 0), rig_bytes=len(tiny_rig_body)))
+    n = 6
+    avatar = Avatar(np.ones(n, np.float32), np.zeros((n, 1, 3), np.float32), np.zeros((n, 3), np.float32),
+                    np.tile(np.float32([0, 0, 0, 1]), (n, 1)), np.full((n, 3), 0.01, np.float32))
+    for data in server.avatar(avatar):
+        client.receive(data)
+    return client, server, [encode(c) for c in split_rig(tiny_rig_body, chunk_bytes)]
+
+
+def test_client_connection_receives_the_rig_then_params_frames():
+    from ofera_protocol import ClientState, encode
+
+    body = encode_rig(tiny_rig())
+    client, _, rig_messages = _handshake(body)
+    assert client.welcome.encoding == "params" and client.welcome.sparse is False and client.welcome.rig_bytes
+    assert client.state is ClientState.RECEIVING_RIG and len(rig_messages) > 1
+    for data in rig_messages:
+        client.receive(data)
+    assert client.state is ClientState.STREAMING and client.rig == tiny_rig()
+    msg = client.receive(encode(ParamsFrame(params=tiny_params()[1][1])))
+    assert isinstance(msg, ParamsFrame) and msg.seq is None
+    with pytest.raises(ProtocolError) as e:  # a bad frame while streaming costs that frame only
+        client.receive(encode(ParamsFrame(params=np.full(68, np.inf, np.float32))))
+    assert e.value.code == "non_finite" and not e.value.fatal
+
+
+def test_client_connection_refuses_frames_before_the_rig():
+    from ofera_protocol import ClientState, encode
+
+    client, _, rig_messages = _handshake(encode_rig(tiny_rig()))
+    client.receive(rig_messages[0])
+    with pytest.raises(ProtocolError) as e:
+        client.receive(encode(ParamsFrame(params=tiny_params()[0][1])))
+    assert e.value.code == "not_ready" and e.value.fatal and client.state is ClientState.CLOSED
+
+
+def test_client_connection_refuses_a_rig_of_another_size():
+    from ofera_protocol import encode
+
+    body = encode_rig(tiny_rig())
+    client, _, _ = _handshake(body)
+    (other,) = split_rig(body + b"\x00")
+    with pytest.raises(ProtocolError, match="welcome announced") as e:
+        client.receive(encode(other))
+    assert e.value.fatal

@@ -57,6 +57,7 @@ from .messages import (
     Hello,
     Join,
     Leave,
+    ParamsFormat,
     ParamsFrame,
     Ping,
     Pong,
@@ -177,7 +178,7 @@ class ServerConnection:
         if delta is None:
             delta = self.hello.delta and encoding in ("f16", "q13") and room is None
         welcome = Welcome(session=session, avatar=avatar, layout=self.hello.layout, encoding=encoding,
-                          coords=self.hello.coords, sparse=self.hello.sparse and not delta,
+                          coords=self.hello.coords, sparse=self.hello.sparse and not delta and encoding != PARAMS,
                           quant=quant if encoding == "q13" and room is None else None, server=server, delta=delta,
                           rig_bytes=rig_bytes,
                           room=room, member=member)
@@ -282,6 +283,8 @@ class RoomMember:
     avatar: Avatar | None = None
     gaussians: GaussianState | None = None
     frames: int = 0
+    rig: Any = None  # params viewers (PROTOCOL.md 13.6): the member's decoded rig (ofera_protocol.rig.Rig)
+    rig_assembler: Any = None  # params viewers: its rig.RigAssembler while the rig's chunks arrive
 
     @property
     def ready(self) -> bool:
@@ -473,9 +476,9 @@ class ClientConnection:
         if self.state is not ClientState.STREAMING or self.welcome is None or self.welcome.room is None:
             raise ProtocolError(NOT_READY, f"{msg.TYPE} with a member outside a room session")
         if isinstance(msg, Join):  # a known member joining again (the room healed) starts over
-            fmt = member_format(self.welcome, msg) if msg.publish else None
-            if fmt is not None and fmt.encoding == "q13" and fmt.quant is None:
+            if msg.publish and self.welcome.encoding == "q13" and msg.quant is None:
                 raise ProtocolError(BAD_FIELD, f"join of {msg.member!r}: a q13 session needs the member's 'quant'")
+            fmt = member_format(self.welcome, msg) if msg.publish else None
             self.formats.pop(msg.member, None)
             assembler = None if msg.avatar is None else AvatarAssembler(msg.avatar.count, msg.avatar.sh_degree)
             self.members[msg.member] = RoomMember(msg, fmt, assembler)
@@ -496,7 +499,28 @@ class ClientConnection:
                 if self.track_gaussians:
                     m.gaussians = GaussianState.from_avatar(m.avatar)
                 assert m.format is not None
+                if isinstance(m.format, ParamsFormat):  # params: its frames decode once its rig is complete too
+                    from .rig import RigAssembler
+
+                    m.rig_assembler = RigAssembler()
+                else:
+                    self.formats[msg.member] = m.format
+        elif isinstance(msg, RigChunk):
+            if m.rig_assembler is None:
+                raise ProtocolError(NOT_READY, f"rig chunk of member {msg.member!r} before its avatar, after its rig, "
+                                    "or outside a params session")
+            if m.rig_assembler.add(msg):
+                from .rig import decode_rig
+
+                rig = decode_rig(m.rig_assembler.result())
+                if m.avatar is None or rig.count != m.avatar.count:
+                    raise ProtocolError(BAD_FIELD, f"rig of member {msg.member!r} for {rig.count} Gaussians, its "
+                                        "avatar has another count")
+                m.rig, m.rig_assembler = rig, None
+                assert m.format is not None
                 self.formats[msg.member] = m.format
+        elif isinstance(msg, ParamsFrame):
+            m.frames += 1
         elif isinstance(msg, Frame):
             m.frames += 1
             if m.gaussians is not None:

@@ -53,6 +53,12 @@ def serve(
     log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
     redis: Annotated[str | None, typer.Option("--redis", help="redis://HOST:PORT/DB: rooms span every server "
                                               "attached to this Redis [env OFERA_REDIS_URL].")] = None,
+    room_members: Annotated[int | None, typer.Option(help="Rooms: most members per room (default 16) [env "
+                                                      "OFERA_ROOM_MEMBERS].")] = None,
+    max_rooms: Annotated[int | None, typer.Option(help="Rooms: most rooms on this server (default 64) [env "
+                                                   "OFERA_MAX_ROOMS].")] = None,
+    room_secret: Annotated[str | None, typer.Option(help="Rooms: every room hello must carry room_token = hex "
+                                                     "HMAC-SHA256(secret, room) [env OFERA_ROOM_SECRET].")] = None,
 ) -> None:
     """Stream Gaussian avatars over WebSocket: warms up the default avatar, prints where to connect."""
     from pydantic import ValidationError
@@ -68,7 +74,8 @@ def serve(
                                    compute_threads=compute_threads, confidence_threshold=confidence_threshold,
                                    key_interval=key_interval, delta_position_mm=delta_position_mm,
                                    delta_rotation_deg=delta_rotation_deg, delta_log_scale=delta_log_scale,
-                                   log_level=log_level, redis_url=redis).items() if v is not None}
+                                   log_level=log_level, redis_url=redis, room_members=room_members,
+                                   max_rooms=max_rooms, room_secret=room_secret).items() if v is not None}
     try:
         settings = Settings(**given)
     except ValidationError as exc:

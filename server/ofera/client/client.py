@@ -87,6 +87,7 @@ class Client:
         self.frames_received = 0
         self.last_bytes = 0  # size of the last message received (bandwidth measurements)
         self.rig_deformer = None  # params sessions (PROTOCOL.md 13): params.RigDeformer of the rig, with track=True
+        self._member_deformers: dict = {}  # rooms: member -> its RigDeformer
         if conn.rig is not None and conn.gaussians is not None:
             from .params import RigDeformer
 
@@ -174,11 +175,26 @@ class Client:
             self.frames_received += 1
             if msg.t is not None:
                 self.latency.add(now_us() - msg.t)
-            if self.rig_deformer is not None and msg.member is None:
-                self.rig_deformer.apply(msg.params, self.conn.gaussians, self.welcome.coords)
+            self._deform(msg)
         elif isinstance(msg, Pong):
             self.pongs.append(now_us() - msg.t)
         return msg
+
+    def _deform(self, msg: ParamsFrame) -> None:
+        """Params sessions with `track`: deform the Gaussians the frame moves (one's own, or a room member's)."""
+        if msg.member is None:
+            if self.rig_deformer is not None:
+                self.rig_deformer.apply(msg.params, self.conn.gaussians, self.welcome.coords)
+            return
+        m = self.conn.members.get(msg.member)
+        if m is None or m.rig is None or m.gaussians is None:
+            return
+        deformer = self._member_deformers.get(msg.member)
+        if deformer is None or deformer.rig is not m.rig:  # a new join brings a new rig
+            from .params import RigDeformer
+
+            deformer = self._member_deformers[msg.member] = RigDeformer(m.rig)
+        deformer.apply(msg.params, m.gaussians, self.welcome.coords)
 
     async def recv_frame(self, timeout: float | None = None) -> Frame | ParamsFrame:
         """The next frame (a params session's: a ParamsFrame). Non-fatal errors are kept in `errors`; a fatal one

@@ -101,6 +101,11 @@ class RoomViewer:
     def ready(self) -> None:
         self._event.set()
 
+    @property
+    def sends(self) -> int:
+        """Frames on their way to the socket now (their bytes: `inflight`)."""
+        return len(self._sending)
+
     # ------------------------------------------------------------------ membership
 
     def announce(self, member: str, messages: list[bytes]) -> None:

@@ -49,10 +49,13 @@ namespace Ofera.Client
         /// <summary>With KeepPayload: also decode frames into floats (false: the GPU decodes; only checks run on the CPU).</summary>
         public bool DecodeValues = true;
 
-        /// <summary>Rooms (DESIGN.md; a v1 server ignores these): room to join, publish this client's face (default true), receive one's own stream.</summary>
+        /// <summary>Rooms (PROTOCOL.md 12; a server without rooms ignores these): room to join, publish this client's face
+        /// (default true; false: watch only), receive one's own stream (default false), and the room token a server with
+        /// a room secret requires (hex HMAC-SHA256 of the room name, from your app server).</summary>
         public string Room;
         public bool? Publish;
         public bool? Self;
+        public string RoomToken;
     }
 
     public enum ClientStatus { Stopped, Connecting, AwaitingWelcome, ReceivingAvatar, Streaming, Reconnecting, Failed }
@@ -309,6 +312,7 @@ namespace Ofera.Client
             h.Room = string.IsNullOrEmpty(_opt.Room) ? null : _opt.Room;
             h.Publish = h.Room != null ? _opt.Publish : null;
             h.Self = h.Room != null ? _opt.Self : null;
+            h.RoomToken = h.Room != null && !string.IsNullOrEmpty(_opt.RoomToken) ? _opt.RoomToken : null;
             return h;
         }
 

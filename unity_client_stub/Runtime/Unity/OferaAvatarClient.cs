@@ -48,6 +48,8 @@ namespace Ofera.Client.Unity
         public bool publishFace = true;
         [Tooltip("Also receive one's own avatar in the room.")]
         public bool receiveSelf;
+        [Tooltip("Room token, if the server has a room secret (hex HMAC-SHA256 of the room name, from your app server).")]
+        public string roomToken = "";
         [Tooltip("Instantiated once per member who joins; its GaussianSinkBehaviours (e.g. GaussianSplatRenderer + GaussianSplattingSink, or a PointCloudSink) show that member.")]
         public GameObject memberPrefab;
         [Tooltip("Parent of the spawned members (default: this object).")]
@@ -164,6 +166,7 @@ namespace Ofera.Client.Unity
                 o.Room = room;
                 o.Publish = publishFace;
                 o.Self = receiveSelf;
+                o.RoomToken = roomToken;
             }
             try
             {

@@ -117,7 +117,7 @@ const debug = {
   },
   get playing() { return playback !== null && playback.timer !== null; },
   /** Rooms: {room, member, members: [{member, avatar, count, self, state, framesReceived, fps, latencyMs, ...}],
-   * left: [{member, reason}], settled} (rooms.js); null outside a room session. */
+   * left: [{member, reason, at}], settled} (rooms.js); null outside a room session. */
   get room() { return conn?.welcome?.room ? room.snapshot() : null; },
   joinRoom,
   setWeight(name, value) { setWeights({ ...currentWeights(), [name]: value }); },
@@ -718,6 +718,10 @@ async function main() {
     const id = opts.avatar === "default" ? info.default : opts.avatar;
     const entry = info.avatars?.find((a) => a.id === id);
     if (entry?.count) fullCount = entry.count;
+    if (opts.fill) { // room tiles enlarge the splats of a reduced avatar as the one view does (scaleMul)
+      for (const a of info.avatars ?? []) if (a.count) room.fullCounts.set(a.id, a.count);
+      if (room.fullCounts.has(info.default)) room.fullCounts.set("default", room.fullCounts.get(info.default));
+    }
   } catch { /* not essential: learnt from the first full welcome instead */ }
   connect(opts.forcedMax);
 }

@@ -44,14 +44,17 @@ export class MemberTile {
    * @param {HTMLElement} parent where the tile's <figure> goes
    * @param {string} member the member id (join.member)
    * @param {object} welcome the session's welcome with this member's avatar (what the worker's AvatarState needs)
-   * @param {{view: SharedView, res: number, self: boolean, onError: (text: string) => void}} options
+   * @param {{view: SharedView, res: number, self: boolean, full: number | null,
+   *   onError: (text: string) => void}} options full: Gaussians of the full avatar, if known
    */
-  constructor(parent, member, welcome, { view, res, self, onError }) {
+  constructor(parent, member, welcome, { view, res, self, full, onError }) {
     this.member = member;
     this.welcome = welcome;
     this.view = view;
     this.res = res;
     this.onError = onError;
+    const n = welcome.avatar.count; // a reduced avatar's splats are enlarged to cover as the full one (app.js scaleMul)
+    this.scaleMul = full && n && n < full ? Math.min(4, Math.sqrt(full / n)) : 1;
     this.state = "avatar"; // -> "streaming" once every chunk (params: and the rig) is in, "closed" after a leave
     this.params = welcome.encoding === "params"; // frames carry 68 values, the worker deforms (PROTOCOL.md 13)
     this.home = null; // { target, dist } framing this avatar
@@ -183,7 +186,7 @@ export class MemberTile {
       this.prepWanted = false;
       this.prepView = this.view.version;
       this.worker.postMessage({ kind: "prep", gen: 1, id: 0, view, proj, width: this.canvas.width,
-        height: this.canvas.height, scaleMul: 1, buffer: this.spare }, this.spare ? [this.spare] : []);
+        height: this.canvas.height, scaleMul: this.scaleMul, buffer: this.spare }, this.spare ? [this.spare] : []);
       this.spare = null;
     }
     if (this.needsDraw) {

@@ -21,6 +21,7 @@ export class RoomView {
     this.members = new Map(); // member id -> { join, tile (null: watch-only or no avatar), since }
     this.left = []; // the latest departures: { member, reason, at (Date.now() when it arrived) }
     this.listAt = 0;
+    this.fullCounts = new Map(); // avatar id -> Gaussians of the full avatar (app.js, from /v1/avatars)
     this.onViewChange = null; // called when the tiles need drawing again (the page wakes its display loop)
     this.resizer = new ResizeObserver(() => { this.resize(); this.onViewChange?.(); }); // tiles reflow as members come and go
     this.setupInput();
@@ -53,7 +54,7 @@ export class RoomView {
     if (msg.avatar) {
       const welcome = { ...this.welcome, avatar: msg.avatar, quant: msg.quant ?? this.welcome.quant };
       tile = new MemberTile(this.grid, msg.member, welcome, { view: this.view, res: this.res,
-        self: msg.member === this.self, onError: this.onError });
+        self: msg.member === this.self, full: this.fullCounts.get(msg.avatar.id) ?? null, onError: this.onError });
       this.resizer.observe(tile.canvas);
     }
     this.members.set(msg.member, { join: msg, tile, since: performance.now() });
