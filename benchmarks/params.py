@@ -225,7 +225,7 @@ def plot(path: Path, report: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2), gridspec_kw={"width_ratios": [1, 1.3, 1.3]})
     by = {k: v["bytes_mean"] for k, v in report["bytes"].items() if v.get("bytes_mean")}
     ax[0].bar(list(by), list(by.values()), color=["tab:green" if k == "params" else "tab:grey" for k in by])
     ax[0].set_yscale("log")
@@ -238,12 +238,12 @@ def plot(path: Path, report: dict) -> None:
         client["browser rig.js"] = report["client_browser"]["ms_per_frame"]
     ax[1].barh(list(client), list(client.values()), color="tab:blue")
     ax[1].set_xlabel("ms per frame (median)")
-    ax[1].set_title(f"client deformation, {report['rig']['gaussians']} moving Gaussians")
+    ax[1].set_title(f"client: deform {report['rig']['gaussians']} Gaussians")
     enc = report["server_encode_us"] | report["server_source_us"]
     ax[2].barh(list(enc), list(enc.values()), color="tab:orange")
     ax[2].set_xscale("log")
     ax[2].set_xlabel("µs per frame (median)")
-    ax[2].set_title("server: per source and per viewer format")
+    ax[2].set_title("server: per source / per format")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 

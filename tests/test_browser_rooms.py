@@ -234,7 +234,20 @@ def test_room_field_joins_and_leaves(browser, server) -> None:
         me = page.evaluate("__ofera.room.member")
         wait(page, _streaming(me, 1))
         assert page.is_visible(f".tile[data-member='{me}']") and not page.is_visible("#canvas")
-        assert foreground(_tile_pixels(page, me)).mean() > 0.05, "one's own tile shows no avatar"
+        home = _tile_pixels(page, me)
+        assert foreground(home).mean() > 0.05, "one's own tile shows no avatar"
+        # the tiles' orbit camera: a drag turns the view, a double click brings it back
+        box = page.locator(f".tile[data-member='{me}'] canvas").bounding_box()
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        page.mouse.move(x, y)
+        page.mouse.down()
+        page.mouse.move(x + 150, y + 20, steps=5)
+        page.mouse.up()
+        wait(page, "__ofera.room.settled")
+        assert (np.abs(_tile_pixels(page, me) - home).max(axis=2) > 40).mean() > 0.05, "dragging did not turn the tile"
+        page.mouse.dblclick(x, y)
+        wait(page, "__ofera.room.settled")
+        assert np.abs(_tile_pixels(page, me) - home).mean() < 2, "a double click did not reset the tile's view"
         page.click("#leave")
         wait(page, "__ofera.room === null && __ofera.settled")
         assert page.is_visible("#canvas") and page.locator(".tile").count() == 0

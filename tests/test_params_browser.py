@@ -83,3 +83,36 @@ def test_preview_streams_in_params_mode(browser, server) -> None:
         assert lower > upper, f"the jaw should move the lower face ({lower:.3f} vs {upper:.3f} of the pixels)"
     finally:
         page.close()
+
+
+RIG_JS = """async ([body, params, count]) => {
+  const R = await import("/static/rig.js");
+  const d = new R.RigDeformer(R.decodeRig(new Uint8Array(body)));
+  const out = [];
+  for (const y of params) {
+    const P = new Float32Array(3 * count), Q = new Float32Array(4 * count), S = new Float32Array(3 * count);
+    d.apply(Float32Array.from(y), P, Q, S, "flame");
+    out.push({ position: Array.from(P), rotation: Array.from(Q), scale: Array.from(S) });
+  }
+  return out;
+}"""
+
+
+def test_rig_js_matches_the_reference_on_a_barycentric_rig(browser, server) -> None:
+    """rig.js's barycentric path (FATE-style avatars; the built-in avatar is triangle-bound) against deform_rig."""
+    from ofera_protocol.rig import decode_rig, deform_rig
+    from test_params_rig import barycentric_rig_and_frames
+
+    body, ys, _ = barycentric_rig_and_frames(n=600, frames=2)
+    rig = decode_rig(body)
+    page = open_page(browser, f"{server}/static/layouts.json", viewport=None, settle=False)
+    try:
+        got = page.evaluate(RIG_JS, [list(body), [y.tolist() for y in ys], rig.count])
+    finally:
+        page.close()
+    idx = rig.index.astype(np.int64)
+    for y, g in zip(ys, got):
+        p, q, s = deform_rig(rig, y)
+        np.testing.assert_allclose(np.array(g["position"]).reshape(-1, 3)[idx], p, atol=1e-7)
+        np.testing.assert_allclose(np.array(g["rotation"]).reshape(-1, 4)[idx], q, atol=1e-6)
+        np.testing.assert_allclose(np.array(g["scale"]).reshape(-1, 3)[idx], s, rtol=1e-6)

@@ -333,3 +333,35 @@ def test_client_connection_refuses_a_rig_of_another_size():
     with pytest.raises(ProtocolError, match="welcome announced") as e:
         client.receive(encode(other))
     assert e.value.fatal
+
+
+def barycentric_rig_and_frames(n: int = 1500, frames: int = 3):
+    """A FATE-style (barycentric) avatar on the default head: its rig body, FLAME values, and the server's frames."""
+    from ofera.head import default_head
+    from ofera.mapping.runtime import Mapper
+    from ofera.streaming.params import rig_body
+    from ofera.streaming.pipeline import AvatarAssets
+    from test_fast_deform import random_avatar
+
+    rng = np.random.default_rng(13)
+    assets = AvatarAssets.create("bary", random_avatar(default_head(), "barycentric", rng, n=n), Mapper.default())
+    pipeline = assets.pipeline("arkit52")
+    ys = [_flame_values(rng) for _ in range(frames)]
+    return rig_body(assets, None), ys, [pipeline.deform_values(y)[0] for y in ys]
+
+
+def test_barycentric_rig_matches_the_server_frames():
+    body, ys, states = barycentric_rig_and_frames()
+    rig = decode_rig(body)
+    assert rig.binding == "barycentric" and rig.local_position is None and rig.gaussians > 0
+    idx = rig.index.astype(np.int64)
+    for y, state in zip(ys, states):
+        p, q, s = deform_rig(rig, y)
+        assert np.abs(p - state.position[idx]).max() < 5e-6
+        assert rotation_error(q, state.rotation[idx]) < 5e-3
+        assert (np.abs(s - state.scale[idx]) / state.scale[idx]).max() < 5e-3
+        p32, q32, s32 = port_f32(dataclasses.replace(rig, index=rig.index[:50], gaussian_face=rig.gaussian_face[:50],
+                                                     bary=rig.bary[:50], normal_offset=rig.normal_offset[:50],
+                                                     local_rotation=rig.local_rotation[:50],
+                                                     local_scale=rig.local_scale[:50]), y)
+        assert np.abs(p32 - p[:50]).max() < 1e-6 and rotation_error(q32, q[:50]) < 1e-5

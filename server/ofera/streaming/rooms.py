@@ -483,7 +483,14 @@ class Rooms(BusListener):
             assets = self.registry.get(aid)
             return assets, assets.pipeline("arkit52")  # only deform_values is used: the layout does not matter
 
-        assets, pipeline = await asyncio.get_running_loop().run_in_executor(self.executor, load)
+        try:
+            assets, pipeline = await asyncio.get_running_loop().run_in_executor(self.executor, load)
+        except Exception as exc:  # noqa: BLE001 - a broken avatar file: that member stays invisible here
+            log.error("room %s: loading avatar %r of remote member %s failed (%s: %s): its viewers here see nothing "
+                      "of it", r.name, aid, member.id, type(exc).__name__, exc)
+            self.metrics.room_unresolved.inc()
+            member.visible = False
+            return
         if r.members.get(member.id) is not member or self.rooms.get(r.name) is not r:
             return
         src = RemoteSource(pipeline, self.executor, self.metrics)

@@ -125,10 +125,8 @@ namespace Ofera.Client
             }
             catch (ProtocolException e)
             {
-                // in a room, membered traffic may run while the own avatar is still arriving (or never comes: watch-only)
-                bool tolerant = State == ClientState.Streaming
-                                || (InRoom && (State == ClientState.ReceivingAvatar || State == ClientState.ReceivingRig) && !e.Fatal);
-                ProtocolException err = tolerant ? e : e.AsFatal();
+                // a bad message while streaming (a room session: from welcome on) costs that message only
+                ProtocolException err = State == ClientState.Streaming ? e : e.AsFatal();
                 if (err.Fatal) State = ClientState.Closed;
                 throw err;
             }
@@ -161,8 +159,6 @@ namespace Ofera.Client
                         MirrorDeformed = w.Coords == "unity" || Mirroring;
                         Rig = null; _deformer = null;
                         _rig = Format.Params ? new RigAssembler() : null;
-                        if (Format.Params && w.Room == null && !w.RigBytes.HasValue) // rooms: each member's rig follows its join
-                            throw new ProtocolException(ErrorCodes.BadField, "welcome of a params session without 'rig_bytes'", true);
                         Avatar = new AvatarData(w.Count, w.ShDegree); // a room's: never assembled (it comes with a join)
                         _nextChunk = 0; _nextOffset = 0; _totalChunks = -1;
                         State = w.Room != null ? ClientState.Streaming : ClientState.ReceivingAvatar;
@@ -235,7 +231,7 @@ namespace Ofera.Client
                     if (m.Rig.Member != null && InRoom) { MemberRig(buf, m.Rig); break; }
                     if (State != ClientState.ReceivingRig)
                         throw new ProtocolException(ErrorCodes.NotReady, "unexpected rig chunk in state " + State, true);
-                    if (m.Rig.Size != Welcome.RigBytes)
+                    if (Welcome.RigBytes.HasValue && m.Rig.Size != Welcome.RigBytes) // optional on decode, as ofera_protocol's
                         throw new ProtocolException(ErrorCodes.BadField, "rig: size " + m.Rig.Size + " != welcome's rig_bytes " + Welcome.RigBytes, true);
                     try
                     {

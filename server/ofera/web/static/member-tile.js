@@ -49,6 +49,7 @@ export class MemberTile {
    */
   constructor(parent, member, welcome, { view, res, self, full, onError }) {
     this.member = member;
+    this.self = self;
     this.welcome = welcome;
     this.view = view;
     this.res = res;
@@ -69,7 +70,6 @@ export class MemberTile {
     this.worker = new Worker(new URL("./splat-worker.js", import.meta.url), { type: "module" });
     this.worker.onmessage = ({ data }) => this.onWorker(data);
     this.worker.postMessage({ kind: "welcome", gen: 1, welcome });
-    this.self = self;
     this.arrivals = []; // performance.now() of frames received in the last STATS_MS
     this.draws = []; // ... and of new pictures drawn
     this.latencies = [];
@@ -219,9 +219,16 @@ export class MemberTile {
       && !this.prepBusy && !this.prepWanted && !this.needsDraw && !this.pending;
   }
 
+  /** "last ms (avg mean)", "other clock" (the source's clock is not this page's) or "-" (no frame yet). */
+  latencyText() {
+    const mean = this.latencyMs;
+    if (!this.latencies.length) return "-";
+    if (mean === null) return "other clock";
+    return `${this.latencies[this.latencies.length - 1].toFixed(1)} ms (avg ${mean.toFixed(1)})`;
+  }
+
   updateCaption() {
-    const lat = this.latencyMs;
-    const latText = this.latencies.length === 0 ? "-" : lat === null ? "other clock" : `${lat.toFixed(1)} ms`;
+    const latText = this.latencyText();
     const server = this.lastTiming?.total !== undefined ? ` · server ${(this.lastTiming.total / 1000).toFixed(1)} ms` : "";
     const head = `${this.member}${this.self ? " (you)" : ""}`;
     this.caption.textContent = this.state === "streaming"
@@ -229,11 +236,11 @@ export class MemberTile {
       : `${head} · ${this.state === "avatar" ? "receiving avatar …" : this.state}`;
   }
 
-  /** What tests read (window.__ofera.members). */
+  /** What tests read (window.__ofera.room.members). */
   snapshot() {
     return { member: this.member, avatar: this.welcome.avatar.id, count: this.welcome.avatar.count, self: this.self,
       state: this.state, framesReceived: this.framesReceived, framesDrawn: this.framesDrawn, skipped: this.skipped,
-      lastSeq: this.lastSeq,
-      drawnSeq: this.drawnSeq, fps: this.fps, drawFps: this.drawFps, latencyMs: this.latencyMs, settled: this.settled };
+      lastSeq: this.lastSeq, drawnSeq: this.drawnSeq, fps: this.fps, drawFps: this.drawFps, latencyMs: this.latencyMs,
+      settled: this.settled };
   }
 }

@@ -18,7 +18,7 @@ export class RoomView {
     this.onError = onError;
     this.view = new SharedView();
     this.welcome = null; // the session's (room, member: this client's id)
-    this.members = new Map(); // member id -> { join, tile (null: watch-only or no avatar), since }
+    this.members = new Map(); // member id -> { join, tile (null: watch-only, or `unshown`: no renderer for it) }
     this.left = []; // the latest departures: { member, reason, at (Date.now() when it arrived) }
     this.listAt = 0;
     this.fullCounts = new Map(); // avatar id -> Gaussians of the full avatar (app.js, from /v1/avatars)
@@ -50,14 +50,19 @@ export class RoomView {
   join(msg) {
     const old = this.members.get(msg.member);
     if (old) this.closeTile(old.tile);
-    let tile = null;
+    let tile = null, unshown = null;
     if (msg.avatar) {
       const welcome = { ...this.welcome, avatar: msg.avatar, quant: msg.quant ?? this.welcome.quant };
-      tile = new MemberTile(this.grid, msg.member, welcome, { view: this.view, res: this.res,
-        self: msg.member === this.self, full: this.fullCounts.get(msg.avatar.id) ?? null, onError: this.onError });
-      this.resizer.observe(tile.canvas);
+      try {
+        tile = new MemberTile(this.grid, msg.member, welcome, { view: this.view, res: this.res,
+          self: msg.member === this.self, full: this.fullCounts.get(msg.avatar.id) ?? null, onError: this.onError });
+        this.resizer.observe(tile.canvas);
+      } catch (e) { // e.g. the browser's WebGL contexts are used up: listed, not drawn, the session goes on
+        unshown = e.message;
+        this.onError(`member ${msg.member}: not shown: ${e.message}`);
+      }
     }
-    this.members.set(msg.member, { join: msg, tile, since: performance.now() });
+    this.members.set(msg.member, { join: msg, tile, unshown });
     this.renderList(true);
   }
 
@@ -78,26 +83,28 @@ export class RoomView {
     tile.close();
   }
 
+  /** The member's tile; null for a member this page cannot show (its messages are dropped quietly). */
   tileOf(member, what) {
     const m = this.members.get(member);
     if (!m) throw new ProtocolError("not_ready", `${what} for member '${member}' before its join`);
+    if (m.unshown) return null;
     if (!m.tile) throw new ProtocolError("bad_field", `${what} for member '${member}', who has no avatar (watch-only)`);
     return m.tile;
   }
 
   /** An `avatar` chunk carrying `member` (raw bytes, handed to that member's worker). */
   chunk(member, buffer) {
-    this.tileOf(member, "an avatar chunk").chunk(buffer);
+    this.tileOf(member, "an avatar chunk")?.chunk(buffer);
   }
 
   /** A params session's `rig` message carrying `member` (PROTOCOL.md 13.6; assembled in that member's worker). */
   rig(member, buffer) {
-    this.tileOf(member, "a rig message").rig(buffer);
+    this.tileOf(member, "a rig message")?.rig(buffer);
   }
 
   /** A `frame` carrying `member`: `msg` decoded for seq, t and timing; `buffer` goes to that member's worker. */
   frame(member, msg, buffer) {
-    this.tileOf(member, "a frame").frame(msg, buffer);
+    this.tileOf(member, "a frame")?.frame(msg, buffer);
   }
 
   /** One display step for every tile; true while any of them has work left. */
@@ -158,7 +165,8 @@ export class RoomView {
     return {
       room: this.room, member: this.self,
       members: [...this.members.entries()].map(([id, m]) => m.tile?.snapshot()
-        ?? { member: id, avatar: null, count: 0, self: id === this.self, state: "watching", publish: m.join.publish }),
+        ?? { member: id, avatar: m.join.avatar?.id ?? null, count: m.join.avatar?.count ?? 0, self: id === this.self,
+          state: m.unshown ? "unshown" : "watching", publish: m.join.publish }),
       left: this.left.slice(), settled: this.settled,
     };
   }
@@ -196,10 +204,9 @@ export class RoomView {
 }
 
 function statsText(m) {
-  if (!m.tile) return m.join.publish === false ? "watch-only" : "no avatar";
+  if (m.unshown) return `not shown: ${m.unshown}`;
+  if (!m.tile) return "watch-only";
   const t = m.tile;
   if (t.state !== "streaming") return t.state === "avatar" ? "receiving avatar …" : t.state;
-  const lat = t.latencyMs;
-  const latText = t.latencies.length === 0 ? "-" : lat === null ? "other clock" : `${lat.toFixed(1)} ms`;
-  return `${t.fps.toFixed(0)} fps (drawn ${t.drawFps.toFixed(0)}) · latency ${latText} · ${t.framesReceived} frames, ${t.skipped} not drawn`;
+  return `${t.fps.toFixed(0)} fps (drawn ${t.drawFps.toFixed(0)}) · latency ${t.latencyText()} · ${t.framesReceived} frames, ${t.skipped} not drawn`;
 }
