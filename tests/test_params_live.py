@@ -121,10 +121,9 @@ def test_rig_size_in_welcome_matches_the_rig(server):
     welcome, rig = run(main())
     assert welcome.sparse is False and welcome.delta is False
     assert rig.count == welcome.avatar.count and 0 < rig.gaussians <= rig.count
-    if welcome.rig_bytes is not None:  # announced (PROTOCOL.md 13.1); optional on decode
-        from ofera_protocol.rig import encode_rig
+    from ofera_protocol.rig import encode_rig
 
-        assert welcome.rig_bytes == len(encode_rig(rig))
+    assert welcome.rig_bytes == len(encode_rig(rig))  # announced by the server (PROTOCOL.md 13.1)
 
 
 def test_arkit_avatar_is_refused_clearly(server):
@@ -134,6 +133,18 @@ def test_arkit_avatar_is_refused_clearly(server):
     with pytest.raises(ServerError) as e:
         run(main())
     assert e.value.code == "unknown_encoding" and "params needs a FLAME-driven avatar" in e.value.message
+
+    async def first_message() -> object:  # refused before welcome: no avatar is sent for nothing
+        import websockets
+        from ofera_protocol import ClientConnection
+
+        conn = ClientConnection()
+        async with websockets.connect(server.url, max_size=None) as ws:
+            await ws.send(conn.hello("arkit52", "face", encoding="params"))
+            return decode_server_message(await ws.recv())
+
+    first = run(first_message())
+    assert type(first).__name__ == "ErrorMessage" and first.code == "unknown_encoding"
 
 
 # ----------------------------------------------------------------------------- the writer

@@ -6,6 +6,7 @@ rest within 3 s, the limits and room tokens refuse clearly, a v1 client sees no 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import json
 import threading
@@ -102,6 +103,37 @@ def test_two_publishers_and_a_watcher_meet_and_a_leave_arrives_within_3_s() -> N
         assert [lv.reason for lv in w.leaves] == ["bye"] and a.member not in w.members
         await a.ws.close()
         for c in (b, w):
+            await c.close()
+
+    run(main())
+
+
+def test_a_member_that_stopped_reading_still_leaves_within_3_s_of_its_bye() -> None:
+    """Its socket is full of another member's frames (5 MB f32 frames of the default avatar, a client that reads
+    nothing): closing it waits for that client, its leave must not."""
+    server = room_server()
+
+    async def main() -> None:
+        import websockets
+
+        stalled = await connect(server.url, room="stall", avatar=SMALL, encoding="f32", max_queue=1)
+        publisher = await connect(server.url, room="stall", avatar="default", encoding="f16")
+        w = await watch(server.url, "stall", encoding="f16", max_gaussians=1000)
+        for _ in range(30):  # the stalled member never reads: its socket fills with the publisher's frames
+            await publisher.send_bs(weights(4))
+            await stalled.send_bs(weights(5))
+            await asyncio.sleep(1 / 72)
+        await asyncio.sleep(1.0)
+        t0 = time.monotonic()
+        await stalled.ws.send(stalled.conn.bye())
+        while not any(lv.member == stalled.member for lv in w.leaves):
+            await w.recv(timeout=3)
+        assert time.monotonic() - t0 < 3
+        assert [lv.reason for lv in w.leaves if lv.member == stalled.member] == ["bye"]
+        stalled.ws.transport.abort()
+        with contextlib.suppress(websockets.ConnectionClosed):
+            await stalled.ws.wait_closed()
+        for c in (publisher, w):
             await c.close()
 
     run(main())

@@ -1,34 +1,48 @@
 """Rooms: everything a viewer of one wire format needs for one member (its `join`, avatar messages, `rig` messages
 for params viewers, and the writer of its frames), made once and shared by every viewer of that format; and the
-hook to the params encoding (`streaming.params`, issue 18), imported only when a client asks for it."""
+parts of a params session (`streaming.params`, PROTOCOL.md 13)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
-from ofera_protocol import AvatarInfo, FrameFormat, Hello, ServerConnection, encode, encode_avatar_chunk, split_avatar
+from ofera_protocol import (
+    AvatarInfo,
+    FrameFormat,
+    Hello,
+    ProtocolError,
+    ServerConnection,
+    encode,
+    encode_avatar_chunk,
+    split_avatar,
+)
+from ofera_protocol.constants import PARAMS
+from ofera_protocol.errors import UNKNOWN_ENCODING
 from ofera_protocol.messages import Join
 
+from . import params
 from .config import Settings
 from .pipeline import AvatarAssets
+from .roles import SessionFatal
 from .wire import make_writer, reduced_size
-
-PARAMS = "params"
-"""The encoding whose frames carry expression values (issue 18, `streaming.params`)."""
 
 
 def params_parts(conn: ServerConnection, assets: AvatarAssets, hello: Hello, member: str | None, chunk_bytes: int
                  ) -> tuple[Any, list[bytes]]:
-    """(writer, `rig` messages) of the params encoding (`streaming.params`, issue 18): a writer with
-    `needs_state = False` and the messages that follow the avatar messages. RuntimeError while that module is
-    missing."""
-    try:
-        from . import params  # type: ignore[attr-defined]
-    except ImportError as exc:
-        raise RuntimeError("the params encoding is not available on this server (streaming.params missing)") from exc
+    """(writer, `rig` messages) of the params encoding (`streaming.params`, PROTOCOL.md 13): a writer with
+    `needs_state = False` and the messages that follow the avatar messages."""
     rig = params.rig_messages(conn, assets, hello.coords, hello.max_gaussians, member, chunk_bytes)
     return params.ParamsWriter(assets, hello.coords, hello.max_gaussians), rig
+
+
+def params_rig_size(assets: AvatarAssets, max_gaussians: int | None) -> int:
+    """`welcome.rig_bytes` of a v1 params session (blocking: builds the rig once per avatar and size). An avatar
+    without a rig (ARKit-driven) ends the session with a fatal `unknown_encoding` naming why (SessionFatal)."""
+    try:
+        return params.rig_size(assets, max_gaussians)
+    except params.RigError as exc:
+        raise SessionFatal(ProtocolError(UNKNOWN_ENCODING, str(exc), True)) from None
 
 
 def wire_key(hello: Hello, size: int | None) -> tuple:

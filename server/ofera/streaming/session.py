@@ -26,7 +26,7 @@ from .bus import MemberInfo, RoomBus
 from .config import Settings
 from .core import Action, Close, Compute, Count, KeyFrame, SessionCore, Start
 from .core import Send as SendAction
-from .member_wire import PARAMS, params_parts
+from .member_wire import PARAMS, params_parts, params_rig_size
 from .metrics import Metrics
 from .pipeline import AvatarAssets, Pipeline
 from .registry import AvatarRegistry
@@ -94,6 +94,9 @@ class Session:
         self.source: Source | None = None
         self.viewer: Viewer | RoomViewer | None = None
         self.close_reason: str | None = None  # set by a Close action ("bye": the client said bye)
+        # Called with the reason before the transport is closed (a room member leaves its room first: closing
+        # waits for a client that stopped reading, and the others must not wait for it to be told).
+        self.before_close: Any = None
         self._movable: tuple | None = None
 
     # ------------------------------------------------------------------ actions
@@ -107,6 +110,8 @@ class Session:
                 await self.t.send(a.data)
             elif isinstance(a, Close):
                 self.close_reason = a.reason
+                if self.before_close is not None:
+                    self.before_close(a.reason)
                 await self.t.close(a.code, a.reason)
                 return True
             elif isinstance(a, Compute):
@@ -213,8 +218,12 @@ class Session:
             return assets, wire, quant, sel, device_bda, size
 
         assets, wire, quant, (gather, index), device_bda, size = await self._load(hello, prepare)
+        rig_bytes = None
+        if hello.encoding == PARAMS:  # refused (no rig: an ARKit-driven avatar) before anything is sent
+            rig_bytes = await self._load(hello, lambda: params_rig_size(assets, hello.max_gaussians))
         info = AvatarInfo(id=aid, count=wire.count, sh_degree=wire.sh_degree, expression=assets.expression)
-        await self.t.send(self.conn.accept(self.id, info, quant=quant, server=f"ofera/{__version__}"))
+        await self.t.send(self.conn.accept(self.id, info, quant=quant, server=f"ofera/{__version__}",
+                                           rig_bytes=rig_bytes))
         for chunk in self.conn.avatar(wire, s.avatar_chunk_bytes):
             await self.t.send(chunk)
             self.metrics.bytes_out.inc(len(chunk))
@@ -316,6 +325,7 @@ class Session:
         roles = (("source",) if self.source is not None else ()) + ("viewer",)
         for role in roles:
             m.sessions.labels(role).inc()
+        self.before_close = lambda reason: rooms.leave_local(hello.room, member_id, BYE if reason == "bye" else CLOSED)
         try:
             coros = [viewer.run(), self._receive_loop()]
             if self.source is not None:
