@@ -67,13 +67,13 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     """One client: bs on a fixed schedule, frames received and decoded; per-frame records after warm-up.
     decode: 'fast' (numba FastFrameDecoder, same checks and values as the codec), 'reference'
     (ofera_protocol's decoder, via the client library's connection), 'header' (arrays left undecoded).
-    delta: a delta session (hello.delta); its frames are applied by the client library's connection."""
+    delta: a delta session (hello.delta); the decoder applies its delta frames to the codes it holds."""
     from ofera.client import connect, now_us
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
 
     client = await connect(url, layout=layout, encoding=encoding, sparse=sparse, delta=delta)
-    fast = FastFrameDecoder(client.conn.format) if decode == "fast" and not delta else None
+    fast = FastFrameDecoder(client.conn.format) if decode == "fast" else None  # delta frames too
     period_us = 1e6 / rate
     total = int((warmup + seconds) * rate)
     first_counted = int(warmup * rate)

@@ -7,9 +7,10 @@ browser), server cost per viewer, and a room of 16 publishers each watched by th
   long building it takes (once per avatar and reduction; cached).
 - bytes: one real session per encoding (params, and f16 / q13 dense for comparison) over a socket, the capture's
   bs at --rate for --seconds: the bytes of every frame off the socket after the handshake, Mbit/s at that rate.
-- client: deforming one frame from the rig, median ms: Python (`ofera.client.params.RigDeformer`: the protocol's
-  numpy reference `deform_rig`), the browser's rig.js in headless Chromium (skipped without /usr/bin/chromium and
-  playwright). C# under mono: the C# benchmark adds its own.
+- client: deforming one frame from the rig, median ms, fast path and reference side by side: Python
+  (`ofera.client.params.RigDeformer`: its numba fast path, and the protocol's numpy reference `deform_rig`), the
+  browser's rig.js in headless Chromium (`RigDeformer` and `deformRigReference` on the same frames, and their
+  largest difference; skipped without /usr/bin/chromium and playwright). C# under mono: the C# benchmark adds its own.
 - server: per frame, what a source computes (map = BDA + EPM, vs map + deformation) and what a viewer's format
   costs to encode (params vs the fast f16 / q13 writers), in process, medians of the same frames side by side.
 - room: benchmarks/rooms.py with K = 16, encoding params, one server of --threads compute threads. Its clients
@@ -58,16 +59,22 @@ BROWSER_SCRIPT = """async ([layout, weights]) => {
   const deformer = new R.RigDeformer(R.decodeRig(asm.result()));
   const setupMs = performance.now() - t0;
   const pos = new Float32Array(3 * n), rot = new Float32Array(4 * n), scl = new Float32Array(3 * n);
-  const ms = [];
+  const refPos = new Float32Array(3 * n), refRot = new Float32Array(4 * n), refScl = new Float32Array(3 * n);
+  const ms = [], refMs = [];
+  let maxPos = 0;
   for (let i = 0; i < weights.length; i++) {
     ws.send(P.bsMessage(i, i, weights[i]));
     const f = P.decodeServerMessage(new Uint8Array(await next()));
-    const t = performance.now();
+    let t = performance.now();
     deformer.apply(f.params, pos, rot, scl, "flame");
     ms.push(performance.now() - t);
+    t = performance.now();
+    R.deformRigReference(deformer.rig, f.params, refPos, refRot, refScl, "flame");
+    refMs.push(performance.now() - t);
+    for (let k = 0; k < 3 * n; k++) maxPos = Math.max(maxPos, Math.abs(pos[k] - refPos[k]));
   }
   ws.close();
-  return { ms, setupMs, gaussians: deformer.rig.gaussians, vertices: deformer.rig.vertices };
+  return { ms, refMs, maxPos, setupMs, gaussians: deformer.rig.gaussians, vertices: deformer.rig.vertices };
 }"""
 
 
@@ -111,7 +118,11 @@ def in_process(avatar_path: Path, weights: np.ndarray, layout: str, reps: int) -
     cols = {"rig": {"body_bytes": len(body), "message_bytes": sum(map(len, messages)), "messages": len(messages),
                     "gaussians": rig.gaussians, "of": assets.count, "vertices": rig.vertices, "faces": rig.faces,
                     "build_s": round(build_s, 3)}}
-    cols["client_python_ms"] = {"python (deform_rig, numpy)": median_us(lambda: client.deform(pick()), reps) / 1000}
+    reference = RigDeformer(rig, reference=True)
+    client.deform(pick())  # compile (numba, cached on disk)
+    cols["client_python_ms"] = {"python fast (numba)": median_us(lambda: client.deform(pick()), reps) / 1000,
+                                "python reference (deform_rig, numpy)":
+                                    median_us(lambda: reference.deform(pick()), reps) / 1000}
     state, _ = pipeline.run(weights[0])
     writer = ParamsWriter(assets)
     pos, rot, scale = state.position, state.rotation, state.scale
@@ -171,7 +182,8 @@ async def paced(url: str, encoding: str, weights: np.ndarray, layout: str, rate:
 
 
 def browser_client(http: str, weights: np.ndarray, layout: str) -> dict | str:
-    """rig.js in headless Chromium, on frames of a live params session: median ms per frame."""
+    """rig.js in headless Chromium, on frames of a live params session: median ms per frame of the fast
+    `RigDeformer` and of `deformRigReference` (same frames), their largest position difference (m)."""
     try:
         from playwright.sync_api import sync_playwright
     except ImportError:
@@ -186,7 +198,9 @@ def browser_client(http: str, weights: np.ndarray, layout: str) -> dict | str:
             r = page.evaluate(BROWSER_SCRIPT, [layout, weights.tolist()])
         finally:
             browser.close()
-    return {"ms_per_frame": round(float(np.median(r["ms"][3:])), 2), "setup_ms": round(r["setupMs"], 1),
+    return {"ms_per_frame": round(float(np.median(r["ms"][3:])), 2),
+            "reference_ms_per_frame": round(float(np.median(r["refMs"][3:])), 2), "max_position_diff_m": r["maxPos"],
+            "setup_ms": round(r["setupMs"], 1),
             "frames": len(r["ms"]), "gaussians": r["gaussians"], "vertices": r["vertices"]}
 
 
@@ -236,6 +250,7 @@ def plot(path: Path, report: dict) -> None:
     client = dict(report["client_python_ms"])
     if isinstance(report.get("client_browser"), dict):
         client["browser rig.js"] = report["client_browser"]["ms_per_frame"]
+        client["browser rig.js reference"] = report["client_browser"]["reference_ms_per_frame"]
     ax[1].barh(list(client), list(client.values()), color="tab:blue")
     ax[1].set_xlabel("ms per frame (median)")
     ax[1].set_title(f"client: deform {report['rig']['gaussians']} Gaussians")
@@ -296,8 +311,8 @@ def main(argv: list[str] | None = None) -> dict:
                                "avatar are sent once (rig.message_bytes)"]
     args.json.parent.mkdir(parents=True, exist_ok=True)
     args.json.write_text(json.dumps(report, indent=2) + "\n")
-    print(json.dumps({k: report[k] for k in ("rig", "bytes", "client_python_ms", "server_source_us",
-                                              "server_encode_us", "goal_met")}, indent=1))
+    print(json.dumps({k: report[k] for k in ("rig", "bytes", "client_python_ms", "client_browser", "server_source_us",
+                                              "server_encode_us", "goal_met") if k in report}, indent=1))
     if not args.no_plot:
         png = C.png_path(args.json)
         plot(png, report)

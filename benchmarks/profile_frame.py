@@ -48,7 +48,7 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
     from ofera_protocol import Frame
 
     client = await connect(url, layout=layout, encoding=args.encoding, sparse=args.sparse, delta=args.delta)
-    fast = FastFrameDecoder(client.conn.format) if args.client_decode == "fast" and not args.delta else None
+    fast = FastFrameDecoder(client.conn.format) if args.client_decode == "fast" else None  # delta frames too
     period = 1e6 / args.rate
     first = int(args.warmup * args.rate)
     total = first + args.frames

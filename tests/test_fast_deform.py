@@ -262,7 +262,8 @@ def test_auto_sessions_fall_back_to_one_thread_when_not_alone(head, subject) -> 
     rng = np.random.default_rng(12)
     fast = FastAvatar(random_avatar(head, "triangle", rng, sorted_faces=True), subject)
     activity = Activity(window_s=60.0)
-    a, b = (fast.session() for _ in range(2))
+    assert fast.session().parallel is False  # single-threaded unless asked (avatar.fast says why)
+    a, b = (fast.session(parallel=None) for _ in range(2))
     a.activity = b.activity = activity
     a.choice.record(True, 1)
     expr, rot = random_flame(rng)

@@ -68,3 +68,14 @@ def test_histogram_window_reads_a_metrics_page() -> None:
     assert w["count"] == 100 and w["mean"] == pytest.approx(2.25)
     assert w["p50"] == pytest.approx(2.0) and 4.0 < w["p99"] <= 5.0
     assert C.histogram_window(before, after, "absent")["count"] == 0
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(not C.CAPTURE.is_file(), reason=f"real capture not available ({C.CAPTURE} is absent: the shared "
+                    "data folder is not part of the repository)")
+def test_replay_speed_counts_what_the_replay_tool_answered(tmp_path) -> None:
+    out = tmp_path / "replay.json"
+    load("replay_speed").main(["--gaussians", SMALL, "--passes", "1", "--impl", "fast", "--json", str(out)])
+    r = check_outputs(out)["results"]["fast"]
+    assert r["sent"] == 180 and 0 < r["received"] <= 180 and r["answered"] == round(r["received"] / 180, 4)
+    assert r["meets_target"] == (r["answered"] >= 0.95) and r["cpu"]["client_cores"] > 0

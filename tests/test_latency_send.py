@@ -73,7 +73,8 @@ def test_frames_are_exact_timed_and_counted_per_stage(event_loop: str, monkeypat
 
 
 def test_event_loop_is_a_setting() -> None:
-    assert uvicorn_config(Settings()).loop == "asyncio"
+    assert uvicorn_config(Settings()).loop == "auto"  # uvloop when installed
+    assert uvicorn_config(Settings(event_loop="asyncio")).loop == "asyncio"
     assert uvicorn_config(Settings(event_loop="uvloop")).loop == "uvloop"
     with pytest.raises(ValidationError, match="event_loop"):
         Settings(event_loop="trio")

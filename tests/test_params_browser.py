@@ -85,34 +85,130 @@ def test_preview_streams_in_params_mode(browser, server) -> None:
         page.close()
 
 
-RIG_JS = """async ([body, params, count]) => {
+RIG_JS = """async ([body, params, count, impl]) => {
   const R = await import("/static/rig.js");
-  const d = new R.RigDeformer(R.decodeRig(new Uint8Array(body)));
+  const rig = R.decodeRig(new Uint8Array(body)), d = new R.RigDeformer(rig);
   const out = [];
   for (const y of params) {
     const P = new Float32Array(3 * count), Q = new Float32Array(4 * count), S = new Float32Array(3 * count);
-    d.apply(Float32Array.from(y), P, Q, S, "flame");
+    if (impl === "fast") d.apply(Float32Array.from(y), P, Q, S, "flame");
+    else R.deformRigReference(rig, Float32Array.from(y), P, Q, S, "flame");
     out.push({ position: Array.from(P), rotation: Array.from(Q), scale: Array.from(S) });
   }
   return out;
 }"""
 
+FAST_VS_REFERENCE_JS = """async ([layout, params]) => {
+  const P = await import("/static/protocol.js");
+  const R = await import("/static/rig.js");
+  const ws = new WebSocket(`ws://${location.host}/v1/stream`);
+  ws.binaryType = "arraybuffer";
+  const queue = []; let waiter = null;
+  ws.onmessage = (ev) => { if (waiter) { const w = waiter; waiter = null; w(ev.data); } else queue.push(ev.data); };
+  const next = () => queue.length ? Promise.resolve(queue.shift()) : new Promise((r) => { waiter = r; });
+  await new Promise((r) => { ws.onopen = r; });
+  ws.send(P.helloMessage({ layout, encoding: "params" }));
+  const welcome = P.decodeServerMessage(new Uint8Array(await next()));
+  const asm = new R.RigAssembler(welcome.rigBytes ?? null);
+  for (;;) {
+    const m = P.decodeServerMessage(new Uint8Array(await next()));
+    if (m.type === "rig" && asm.add(m)) break;
+  }
+  ws.close();
+  const rig = R.decodeRig(asm.result()), n = rig.count;
+  let t = performance.now();
+  const d = new R.RigDeformer(rig);
+  const setupMs = performance.now() - t;
+  const arrays = () => [new Float32Array(3 * n), new Float32Array(4 * n), new Float32Array(3 * n)];
+  const [fp, fq, fs] = arrays(), [rp, rq, rs] = arrays();
+  const fastMs = [], refMs = [];
+  let maxPos = 0, maxRot = 0, maxScale = 0;
+  for (const y of params.map((v) => Float32Array.from(v))) {
+    t = performance.now();
+    d.apply(y, fp, fq, fs, "flame");
+    fastMs.push(performance.now() - t);
+    t = performance.now();
+    R.deformRigReference(rig, y, rp, rq, rs, "flame");
+    refMs.push(performance.now() - t);
+    for (let m = 0; m < rig.gaussians; m++) {
+      const g = rig.index[m];
+      for (let c = 0; c < 3; c++) {
+        maxPos = Math.max(maxPos, Math.abs(fp[3 * g + c] - rp[3 * g + c]));
+        maxScale = Math.max(maxScale, Math.abs(fs[3 * g + c] - rs[3 * g + c]) / rs[3 * g + c]);
+      }
+      for (let c = 0; c < 4; c++) maxRot = Math.max(maxRot, Math.abs(fq[4 * g + c] - rq[4 * g + c]));
+    }
+  }
+  const median = (a) => a.slice().sort((x, y) => x - y)[a.length >> 1];
+  return { fastMs: median(fastMs), refMs: median(refMs), setupMs, frames: params.length, maxPos, maxRot, maxScale,
+    gaussians: rig.gaussians, vertices: rig.vertices, faces: rig.faces, usedVertices: d.usedVertices,
+    usedFaces: d.usedFaces };
+}"""
 
-def test_rig_js_matches_the_reference_on_a_barycentric_rig(browser, server) -> None:
+
+def _rig_js(browser, server: str, body: bytes, ys: list, count: int, impl: str) -> list[dict]:
+    """rig.js in a page of `server`: `impl` ("fast": RigDeformer, or "reference": deformRigReference) on each
+    params frame of `ys` -> per frame the session's position, rotation, scale arrays (count Gaussians)."""
+    page = open_page(browser, f"{server}/static/layouts.json", viewport=None, settle=False)
+    try:
+        return page.evaluate(RIG_JS, [list(body), [np.asarray(y).tolist() for y in ys], count, impl])
+    finally:
+        page.close()
+
+
+@pytest.mark.parametrize("impl", ["fast", "reference"])
+def test_rig_js_matches_the_golden_vectors(browser, server, impl) -> None:
+    """Both implementations of rig.js against rig_tiny_frames.json (PROTOCOL.md 13.7's bounds, and 1e-6 m)."""
+    import json
+
+    from ofera_protocol.codec import decode_server_message
+    from test_params_rig import VECTORS
+
+    body = decode_server_message((VECTORS / "rig_tiny.msgpack").read_bytes()).data.tobytes()
+    vec = json.loads((VECTORS / "rig_tiny_frames.json").read_text())
+    count = json.loads((VECTORS / "rig_tiny.json").read_text())["body"]["count"]
+    got = _rig_js(browser, server, body, [fr["params"] for fr in vec["frames"]], count, impl)
+    idx = np.array(vec["index"])
+    for fr, g in zip(vec["frames"], got, strict=True):
+        np.testing.assert_allclose(np.array(g["position"]).reshape(-1, 3)[idx], fr["position"], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(np.array(g["rotation"]).reshape(-1, 4)[idx], fr["rotation"], rtol=0, atol=1e-5)
+        np.testing.assert_allclose(np.array(g["scale"]).reshape(-1, 3)[idx], fr["scale"], rtol=1e-5)
+
+
+@pytest.mark.parametrize("impl", ["fast", "reference"])
+def test_rig_js_matches_the_reference_on_a_barycentric_rig(browser, server, impl) -> None:
     """rig.js's barycentric path (FATE-style avatars; the built-in avatar is triangle-bound) against deform_rig."""
     from ofera_protocol.rig import decode_rig, deform_rig
     from test_params_rig import barycentric_rig_and_frames
 
     body, ys, _ = barycentric_rig_and_frames(n=600, frames=2)
     rig = decode_rig(body)
-    page = open_page(browser, f"{server}/static/layouts.json", viewport=None, settle=False)
-    try:
-        got = page.evaluate(RIG_JS, [list(body), [y.tolist() for y in ys], rig.count])
-    finally:
-        page.close()
+    got = _rig_js(browser, server, body, ys, rig.count, impl)
     idx = rig.index.astype(np.int64)
     for y, g in zip(ys, got):
         p, q, s = deform_rig(rig, y)
         np.testing.assert_allclose(np.array(g["position"]).reshape(-1, 3)[idx], p, atol=1e-7)
         np.testing.assert_allclose(np.array(g["rotation"]).reshape(-1, 4)[idx], q, atol=1e-6)
         np.testing.assert_allclose(np.array(g["scale"]).reshape(-1, 3)[idx], s, rtol=1e-6)
+
+
+def test_rig_js_fast_matches_its_reference_on_the_built_in_rig(browser, server) -> None:
+    """The built-in avatar's rig (from a params session of `server`): RigDeformer vs deformRigReference on 60 random
+    FLAME frames in Chromium, within 1e-6 m, and both timed in the same run (printed; a loaded machine: only the
+    ratio is asserted)."""
+    from test_params_rig import _flame_values
+
+    rng = np.random.default_rng(7)
+    ys = [_flame_values(rng).tolist() for _ in range(60)]
+    page = open_page(browser, f"{server}/static/layouts.json", viewport=None, settle=False)
+    try:
+        r = page.evaluate(FAST_VS_REFERENCE_JS, ["arkit52", ys])
+    finally:
+        page.close()
+    print(f"\n[params rig.js, Chromium] {r['gaussians']} Gaussians, {r['usedVertices']} of {r['vertices']} vertices, "
+          f"{r['usedFaces']} of {r['faces']} faces, median of {r['frames']} frames: RigDeformer {r['fastMs']:.2f} "
+          f"ms/frame, deformRigReference {r['refMs']:.1f} ms/frame (setup {r['setupMs']:.0f} ms); largest "
+          f"difference: position {r['maxPos']:.1e} m, rotation {r['maxRot']:.1e}, scale {r['maxScale']:.1e}")
+    assert r["gaussians"] >= 50_000 and r["frames"] == 60
+    assert r["maxPos"] < 1e-6 and r["maxRot"] < 1e-5 and r["maxScale"] < 1e-5, r
+    assert r["fastMs"] * 3 < r["refMs"], r

@@ -27,15 +27,20 @@ still references it or any view of its arrays (CPython reference counts), so the
 hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
 nothing. States are read-only.
 
-Threads: ``session(parallel=None)`` (the default, "auto") may run the face frames and the triangle kernel
-with prange over numba's threads, only while (1) its session is the only one of the process that computed a
-frame in the last :data:`ACTIVITY` window (several sessions already keep every core busy), (2) the machine is
-not busy (1-minute load average below the thread count: other processes hold the cores), and (3) its own
-recent parallel frames were faster than its serial ones (:class:`ThreadChoice`: a parallel region waits for
-its slowest thread, so on a loaded core it can be ten times slower than one thread; the choice re-checks
-the other mode now and then). Otherwise single-threaded. ``parallel=True`` / ``False`` force either; the
-results are the same bits (every Gaussian and face is computed by the same code, whichever thread runs
-it). benchmarks/profile_frame.py and scaling.py measure both.
+Threads: single-threaded by default. ``session(parallel=None)`` ("auto") may run the face frames and the
+triangle kernel with prange over numba's threads, only while (1) its session is the only one of the process
+that computed a frame in the last :data:`ACTIVITY` window (several sessions already keep every core busy),
+(2) the machine is not busy (1-minute load average below the thread count: other processes hold the
+cores), and (3) its own recent parallel frames were faster than its serial ones (:class:`ThreadChoice`: a
+parallel region waits for its slowest thread, so on a loaded core it can be ten times slower than one
+thread; the choice re-checks the other mode now and then). Otherwise single-threaded. ``parallel=True``
+forces the threads; the results are the same bits (every Gaussian and face is computed by the same code,
+whichever thread runs it).
+Why not "auto" by default: on the 2-core machine, shared, at 72 Hz with the caches cold between frames, a
+lone session's deformation took p50 1.3 ms / p99 2.1 ms serial, 0.9 / 16 ms parallel and 1.6 / 10 ms auto
+(load average 0.9): a parallel region now and then waits a scheduler quantum for a worker thread whose core
+is busy, which costs the p99 more than the median gains. On a machine with idle cores, "auto" is the
+choice (benchmarks/profile_frame.py and scaling.py measure both).
 """
 
 from __future__ import annotations
@@ -273,21 +278,22 @@ class FastAvatar:
         """Gaussians deformed per frame."""
         return int(self.arrays.ids.size)
 
-    def session(self, pool_size: int = 8, parallel: bool | None = None) -> FastSession:
+    def session(self, pool_size: int = 8, parallel: bool | None = False) -> FastSession:
         """Per-stream buffers. ``parallel``: face frames and triangle deformation over numba's thread pool
-        (prange): True, False, or None (automatic: while the session is alone, see the module docstring)."""
+        (prange): False (default), True, or None (automatic: while the session is alone and the machine not
+        busy, see the module docstring)."""
         return FastSession(self, pool_size, parallel)
 
     def warm_up(self) -> None:
         """Compile (or load from the on-disk cache) every kernel now, not on the first frame."""
         if not self._warm:
+            # Serial kernels only: the parallel ones (and numba's thread pool) load on a session's first threaded frame.
+            s = self.session(pool_size=1)
             y = np.zeros(68, np.float32)
             y[50:] = [1, 0, 0, 0, 1, 0] * 3
-            for parallel in (False, True):
-                s = self.session(pool_size=1, parallel=parallel)
-                expr, rot = s.flame(y)
-                s.deform(s.head(expr[: self.lbs.n_expr], rot))
-                s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
+            expr, rot = s.flame(y)
+            s.deform(s.head(expr[: self.lbs.n_expr], rot))
+            s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
             self._warm = True
 
 
@@ -297,7 +303,7 @@ _EYE2 = np.broadcast_to(np.eye(3), (2, 3, 3))
 class FastSession:
     """Per-stream buffers of a :class:`FastAvatar`. Not thread-safe: one frame at a time."""
 
-    def __init__(self, fast: FastAvatar, pool_size: int = 8, parallel: bool | None = None,
+    def __init__(self, fast: FastAvatar, pool_size: int = 8, parallel: bool | None = False,
                  activity: Activity = ACTIVITY) -> None:
         self.fast = fast
         self.parallel = parallel  # None: automatic (use_threads of the sessions active in `activity`)
