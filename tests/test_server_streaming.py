@@ -40,7 +40,7 @@ def test_frame_is_bit_exact_with_offline_pipeline() -> None:
     assert frame.rotation.tobytes() == state.rotation.tobytes()
     assert frame.scale.tobytes() == state.scale.tobytes()
     assert set(timings) == {"layout", "bda", "epm", "head", "deform"}
-    assert {"decode", "queue", "map", "epm", "head", "deform", "total"} <= set(frame.timing)
+    assert {"decode", "queue", "map", "epm", "head", "deform", "encode", "total"} <= set(frame.timing)
     # the avatar message is the neutral avatar
     from ofera.streaming.registry import registry_for
 

@@ -12,14 +12,15 @@ from .config import Settings
 from .roles import CodecWriter, FrameEncoder
 
 
-def make_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, index: np.ndarray | None, fast: bool
-                ) -> FrameEncoder:
+def make_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, index: np.ndarray | None, fast: bool,
+                stamp_encode: bool = True) -> FrameEncoder:
     """The frame encoder of one wire format: numba kernels writing straight into the message buffer
-    (`encode_fast`, byte-identical to the codec) when `fast`, else the codec's reference encoder."""
+    (`encode_fast`, byte-identical to the codec) when `fast`, else the codec's reference encoder. `stamp_encode`
+    (fast only): each frame's `timing.encode` is its own encoding time (us), written into the header last."""
     if fast:
         from .encode_fast import frame_writer
 
-        return frame_writer(fmt, coords, gather, index)
+        return frame_writer(fmt, coords, gather, index, stamp_encode=stamp_encode)
     return CodecWriter(fmt, coords, gather, index)
 
 
