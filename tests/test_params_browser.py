@@ -85,14 +85,14 @@ def test_preview_streams_in_params_mode(browser, server) -> None:
         page.close()
 
 
-RIG_JS = """async ([body, params, count, impl]) => {
+RIG_JS = """async ([body, params, count, impl, coords]) => {
   const R = await import("/static/rig.js");
   const rig = R.decodeRig(new Uint8Array(body)), d = new R.RigDeformer(rig);
   const out = [];
   for (const y of params) {
     const P = new Float32Array(3 * count), Q = new Float32Array(4 * count), S = new Float32Array(3 * count);
-    if (impl === "fast") d.apply(Float32Array.from(y), P, Q, S, "flame");
-    else R.deformRigReference(rig, Float32Array.from(y), P, Q, S, "flame");
+    if (impl === "fast") d.apply(Float32Array.from(y), P, Q, S, coords);
+    else R.deformRigReference(rig, Float32Array.from(y), P, Q, S, coords);
     out.push({ position: Array.from(P), rotation: Array.from(Q), scale: Array.from(S) });
   }
   return out;
@@ -146,32 +146,36 @@ FAST_VS_REFERENCE_JS = """async ([layout, params]) => {
 }"""
 
 
-def _rig_js(browser, server: str, body: bytes, ys: list, count: int, impl: str) -> list[dict]:
+def _rig_js(browser, server: str, body: bytes, ys: list, count: int, impl: str, coords: str = "flame") -> list[dict]:
     """rig.js in a page of `server`: `impl` ("fast": RigDeformer, or "reference": deformRigReference) on each
-    params frame of `ys` -> per frame the session's position, rotation, scale arrays (count Gaussians)."""
+    params frame of `ys` -> per frame the session's position, rotation, scale arrays (count Gaussians, `coords`)."""
     page = open_page(browser, f"{server}/static/layouts.json", viewport=None, settle=False)
     try:
-        return page.evaluate(RIG_JS, [list(body), [np.asarray(y).tolist() for y in ys], count, impl])
+        return page.evaluate(RIG_JS, [list(body), [np.asarray(y).tolist() for y in ys], count, impl, coords])
     finally:
         page.close()
 
 
+@pytest.mark.parametrize("coords", ["flame", "unity"])
 @pytest.mark.parametrize("impl", ["fast", "reference"])
-def test_rig_js_matches_the_golden_vectors(browser, server, impl) -> None:
-    """Both implementations of rig.js against rig_tiny_frames.json (PROTOCOL.md 13.7's bounds, and 1e-6 m)."""
+def test_rig_js_matches_the_golden_vectors(browser, server, impl, coords) -> None:
+    """Both implementations of rig.js against rig_tiny_frames.json (PROTOCOL.md 13.7's bounds, and 1e-6 m), in
+    FLAME and (mirrored, section 8) Unity coordinates."""
     import json
 
+    from ofera_protocol import to_coords
     from ofera_protocol.codec import decode_server_message
     from test_params_rig import VECTORS
 
     body = decode_server_message((VECTORS / "rig_tiny.msgpack").read_bytes()).data.tobytes()
     vec = json.loads((VECTORS / "rig_tiny_frames.json").read_text())
     count = json.loads((VECTORS / "rig_tiny.json").read_text())["body"]["count"]
-    got = _rig_js(browser, server, body, [fr["params"] for fr in vec["frames"]], count, impl)
+    got = _rig_js(browser, server, body, [fr["params"] for fr in vec["frames"]], count, impl, coords)
     idx = np.array(vec["index"])
     for fr, g in zip(vec["frames"], got, strict=True):
-        np.testing.assert_allclose(np.array(g["position"]).reshape(-1, 3)[idx], fr["position"], rtol=0, atol=1e-6)
-        np.testing.assert_allclose(np.array(g["rotation"]).reshape(-1, 4)[idx], fr["rotation"], rtol=0, atol=1e-5)
+        position, rotation = to_coords(np.array(fr["position"]), np.array(fr["rotation"]), coords)
+        np.testing.assert_allclose(np.array(g["position"]).reshape(-1, 3)[idx], position, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(np.array(g["rotation"]).reshape(-1, 4)[idx], rotation, rtol=0, atol=1e-5)
         np.testing.assert_allclose(np.array(g["scale"]).reshape(-1, 3)[idx], fr["scale"], rtol=1e-5)
 
 

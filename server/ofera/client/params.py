@@ -1,5 +1,5 @@
 """Client-side deformation of a params session (PROTOCOL.md 13): the rig received at the handshake + each frame's
-68 FLAME values -> the Gaussians. By default the fast path (`rig_fast.FastRig`: numba, ~1 ms for the built-in
+68 FLAME values -> the Gaussians. By default the fast path (`rig_fast.FastRig`: numba, 1.5-2 ms for the built-in
 avatar's rig); `reference=True` uses the protocol's reference (`ofera_protocol.rig.deform_rig`, float64 numpy, the
 code the browser and C# clients port). A client library imports nothing of the server (tests/test_architecture.py).
 

@@ -233,7 +233,8 @@ export function deformRigReference(rig, params, position, rotation, scale, coord
     let pos;
     if (rig.binding === "triangle") { // R_f (local_position s_f) + c_f
       const lp = [0, 1, 2].map((i) => rig.localPosition[3 * m + i] * sf);
-      pos = [0, 1, 2].map((c) => R[3 * c] * lp[0] + R[3 * c + 1] * lp[1] + R[3 * c + 2] * lp[2] + (v0[c] + v1[c] + v2[c]) / 3);
+      pos = [0, 1, 2].map((c) => R[3 * c] * lp[0] + R[3 * c + 1] * lp[1] + R[3 * c + 2] * lp[2]
+        + (v0[c] + v1[c] + v2[c]) / 3);
     } else { // bary . (v0, v1, v2) + (e1 x e2) normal_offset
       const b = [0, 1, 2].map((i) => rig.bary[3 * m + i]), nrm = cross(e1, e2), k = rig.normalOffset[m];
       pos = [0, 1, 2].map((c) => b[0] * v0[c] + b[1] * v1[c] + b[2] * v2[c] + nrm[c] * k);
@@ -253,32 +254,54 @@ export function deformRigReference(rig, params, position, rotation, scale, coord
   return rig.index;
 }
 
-const FACE = 17; // per used face: R_f s_f (9, row-major) or v0 v1 v2 (9), then c_f or e1 x e2 (3), q_f (w x y z), s_f
+// numbers per Gaussian (in face order): its point p (local_position or bary), w (1 or normal_offset), its normalised
+// local rotation (w, x, y, z), local_scale
+const GAUSSIAN = 11;
 
 /**
  * The fast deformation of one rig (PROTOCOL.md 13.4; agrees with `deformRigReference` to ~1e-8 m): float32 bases,
- * float64 arithmetic, only the faces the Gaussians use and their vertices. ~1 ms for the built-in avatar's rig.
+ * float64 arithmetic, only the faces the Gaussians use and their vertices, the Gaussians grouped by face (each face's
+ * frame computed once, then applied to its Gaussians). 2-4 ms per frame for the built-in avatar's rig here (2 shared
+ * cores), most of it the 72,561 Gaussians of step 7.
  */
 export class RigDeformer {
   constructor(rig) {
     this.rig = rig;
     const S = rig.vertices, E = rig.exprDims, P = rig.poseRows.length, M = rig.gaussians;
     const faceSlot = new Int32Array(rig.faces).fill(-1), vertSlot = new Int32Array(S).fill(-1);
-    const faces = [], verts = [];
-    this.gaussianFace = new Int32Array(M); // the Gaussian's used face
-    this.index = Int32Array.from(rig.index); // int32 loads are cheaper than uint32 ones in V8's optimised loops
+    const faces = [], verts = [], used = new Int32Array(M); // used: the Gaussian's used face
     for (let m = 0; m < M; m++) {
       const f = rig.gaussianFace[m];
       if (faceSlot[f] < 0) { faceSlot[f] = faces.length; faces.push(f); }
-      this.gaussianFace[m] = faceSlot[f];
+      used[m] = faceSlot[f];
     }
-    this.faceVerts = new Int32Array(3 * faces.length); // the used face's corners, used-vertex ids
-    for (let u = 0; u < faces.length; u++) {
+    const F = faces.length;
+    this.faceVerts = new Int32Array(3 * F); // the used face's corners, used-vertex ids
+    for (let u = 0; u < F; u++) {
       for (let c = 0; c < 3; c++) {
         const s = rig.face[3 * faces[u] + c];
         if (vertSlot[s] < 0) { vertSlot[s] = verts.length; verts.push(s); }
         this.faceVerts[3 * u + c] = vertSlot[s];
       }
+    }
+    // the Gaussians grouped by used face: face u's are rows faceStart[u] .. faceStart[u + 1] - 1 of index / gaussian
+    this.faceStart = new Int32Array(F + 1);
+    for (let m = 0; m < M; m++) this.faceStart[used[m] + 1]++;
+    for (let u = 0; u < F; u++) this.faceStart[u + 1] += this.faceStart[u];
+    const next = this.faceStart.slice(0, F), order = new Int32Array(M);
+    for (let m = 0; m < M; m++) order[next[used[m]]++] = m;
+    const tri = rig.binding === "triangle", point = tri ? rig.localPosition : rig.bary;
+    this.index = new Int32Array(M); // session Gaussian id, in face order
+    this.gaussian = new Float64Array(GAUSSIAN * M);
+    for (let j = 0; j < M; j++) {
+      const m = order[j], o = GAUSSIAN * j, lq = rig.localRotation.subarray(4 * m, 4 * m + 4);
+      const n = Math.max(Math.sqrt(lq[0] * lq[0] + lq[1] * lq[1] + lq[2] * lq[2] + lq[3] * lq[3]), 1e-12);
+      this.index[j] = rig.index[m];
+      this.gaussian.set(point.subarray(3 * m, 3 * m + 3), o);
+      this.gaussian[o + 3] = tri ? 1 : rig.normalOffset[m];
+      this.gaussian[o + 4] = lq[3] / n; this.gaussian[o + 5] = lq[0] / n;
+      this.gaussian[o + 6] = lq[1] / n; this.gaussian[o + 7] = lq[2] / n;
+      this.gaussian.set(rig.localScale.subarray(3 * m, 3 * m + 3), o + 8);
     }
     const V = verts.length, K = E + P;
     this.K = K;
@@ -294,21 +317,13 @@ export class RigDeformer {
       this.weights[4 * u] = w[0] + w[1];
       this.weights[4 * u + 1] = w[2]; this.weights[4 * u + 2] = w[3]; this.weights[4 * u + 3] = w[4];
     }
-    this.localRotation = new Float64Array(4 * M); // normalised, (w, x, y, z)
-    for (let m = 0; m < M; m++) {
-      const x = rig.localRotation[4 * m], y = rig.localRotation[4 * m + 1], z = rig.localRotation[4 * m + 2];
-      const w = rig.localRotation[4 * m + 3], n = Math.max(Math.sqrt(x * x + y * y + z * z + w * w), 1e-12);
-      this.localRotation[4 * m] = w / n; this.localRotation[4 * m + 1] = x / n;
-      this.localRotation[4 * m + 2] = y / n; this.localRotation[4 * m + 3] = z / n;
-    }
     this.coef = new Float64Array(K);
     this.a = new Float64Array(JOINTS * 12);
     this.a2 = this.a.subarray(24); this.a3 = this.a.subarray(36); this.a4 = this.a.subarray(48);
     this.rot = new Float64Array(9);
     this.verts = new Float64Array(3 * V);
-    this.face = new Float64Array(FACE * faces.length);
     this.usedVertices = V;
-    this.usedFaces = faces.length;
+    this.usedFaces = F;
   }
 
   /** Steps 1-4 into this.a (A_k, 5 x 12) and this.coef (ψ, then c_p). */
@@ -342,32 +357,44 @@ export class RigDeformer {
     this.transforms(params);
     const V = this.usedVertices, K = this.K, B = this.basis, T0 = this.template, W = this.weights;
     const coef = this.coef, a2 = this.a2, a3 = this.a3, a4 = this.a4, out = this.verts;
+    const K2 = K - (K % 2);
     let o = 0;
     for (let u = 0; u < V; u++) {
-      let x = T0[3 * u], y = T0[3 * u + 1], z = T0[3 * u + 2];
-      for (let c = 0; c < K; c++, o += 3) {
-        const w = coef[c];
+      let x = T0[3 * u], y = T0[3 * u + 1], z = T0[3 * u + 2], x1 = 0, y1 = 0, z1 = 0; // two sums: more ILP
+      let c = 0;
+      for (; c < K2; c += 2, o += 6) {
+        const w = coef[c], w1 = coef[c + 1];
         x += B[o] * w; y += B[o + 1] * w; z += B[o + 2] * w;
+        x1 += B[o + 3] * w1; y1 += B[o + 4] * w1; z1 += B[o + 5] * w1;
       }
+      if (c < K) { const w = coef[c]; x += B[o] * w; y += B[o + 1] * w; z += B[o + 2] * w; o += 3; }
+      x += x1; y += y1; z += z1;
       const wi = W[4 * u], w2 = W[4 * u + 1], w3 = W[4 * u + 2], w4 = W[4 * u + 3];
       for (let i = 0; i < 3; i++) {
         const b = 4 * i;
         const t0 = w2 * a2[b] + w3 * a3[b] + w4 * a4[b], t1 = w2 * a2[b + 1] + w3 * a3[b + 1] + w4 * a4[b + 1];
-        const t2 = w2 * a2[b + 2] + w3 * a3[b + 2] + w4 * a4[b + 2], t3 = w2 * a2[b + 3] + w3 * a3[b + 3] + w4 * a4[b + 3];
+        const t2 = w2 * a2[b + 2] + w3 * a3[b + 2] + w4 * a4[b + 2];
+        const t3 = w2 * a2[b + 3] + w3 * a3[b + 3] + w4 * a4[b + 3];
         out[3 * u + i] = t0 * x + t1 * y + t2 * z + t3 + wi * (i === 0 ? x : i === 1 ? y : z);
       }
     }
     return out;
   }
 
-  /** Step 6 and quat(R_f) of step 7, once per used face, into this.face (FACE numbers each). */
-  frames() {
-    const v = this.verts, fv = this.faceVerts, F = this.face, tri = this.rig.binding === "triangle";
-    for (let u = 0, o = 0; u < this.usedFaces; u++, o += FACE) {
+  /**
+   * Steps 6-8: per used face its frame (step 6) and q_f = quat(R_f), then its Gaussians' position (3, m), rotation
+   * (x, y, z, w) and scale (3, m) written at their session id into the session arrays, mirrored for `unity` (mx = -1).
+   * A Gaussian's position is X p + t w with, per face, X = R_f s_f and t = c_f (`triangle`: p = local_position, w = 1)
+   * or X = (v0 v1 v2) as columns and t = e1 x e2 (`barycentric`: p = bary, w = normal_offset).
+   */
+  gaussians(position, rotation, scale, mx) {
+    const v = this.verts, fv = this.faceVerts, start = this.faceStart, G = this.gaussian, index = this.index;
+    const tri = this.rig.binding === "triangle";
+    for (let u = 0, F = this.usedFaces; u < F; u++) {
       const i0 = 3 * fv[3 * u], i1 = 3 * fv[3 * u + 1], i2 = 3 * fv[3 * u + 2];
-      const v0x = v[i0], v0y = v[i0 + 1], v0z = v[i0 + 2];
-      const e1x = v[i1] - v0x, e1y = v[i1 + 1] - v0y, e1z = v[i1 + 2] - v0z;
-      const e2x = v[i2] - v0x, e2y = v[i2 + 1] - v0y, e2z = v[i2 + 2] - v0z;
+      const v0x = v[i0], v0y = v[i0 + 1], v0z = v[i0 + 2], v1x = v[i1], v1y = v[i1 + 1], v1z = v[i1 + 2];
+      const v2x = v[i2], v2y = v[i2 + 1], v2z = v[i2 + 2];
+      const e1x = v1x - v0x, e1y = v1y - v0y, e1z = v1z - v0z, e2x = v2x - v0x, e2y = v2y - v0y, e2z = v2z - v0z;
       const l1 = Math.sqrt(Math.max(e1x * e1x + e1y * e1y + e1z * e1z, 1e-20));
       const a0x = e1x / l1, a0y = e1y / l1, a0z = e1z / l1;
       const nx = a0y * e2z - a0z * e2y, ny = a0z * e2x - a0x * e2z, nz = a0x * e2y - a0y * e2x;
@@ -375,65 +402,37 @@ export class RigDeformer {
       const a1x = nx / ln, a1y = ny / ln, a1z = nz / ln;
       const a2x = a0y * a1z - a0z * a1y, a2y = a0z * a1x - a0x * a1z, a2z = a0x * a1y - a0y * a1x;
       const sf = (l1 + Math.abs(a2x * e2x + a2y * e2y + a2z * e2z)) / 2;
-      if (tri) { // R_f s_f (row-major: R_f's columns are a0 a1 a2) and c_f
-        F[o] = a0x * sf; F[o + 1] = a1x * sf; F[o + 2] = a2x * sf;
-        F[o + 3] = a0y * sf; F[o + 4] = a1y * sf; F[o + 5] = a2y * sf;
-        F[o + 6] = a0z * sf; F[o + 7] = a1z * sf; F[o + 8] = a2z * sf;
-        F[o + 9] = (v0x + v[i1] + v[i2]) / 3; F[o + 10] = (v0y + v[i1 + 1] + v[i2 + 1]) / 3;
-        F[o + 11] = (v0z + v[i1 + 2] + v[i2 + 2]) / 3;
-      } else { // v0 v1 v2 and e1 x e2
-        F[o] = v0x; F[o + 1] = v0y; F[o + 2] = v0z; F[o + 3] = v[i1]; F[o + 4] = v[i1 + 1]; F[o + 5] = v[i1 + 2];
-        F[o + 6] = v[i2]; F[o + 7] = v[i2 + 1]; F[o + 8] = v[i2 + 2];
-        F[o + 9] = e1y * e2z - e1z * e2y; F[o + 10] = e1z * e2x - e1x * e2z; F[o + 11] = e1x * e2y - e1y * e2x;
-      }
+      // quat(R_f): R00 = a0x, R01 = a1x, R02 = a2x, R10 = a0y, R11 = a1y, R12 = a2y, R20 = a0z, R21 = a1z, R22 = a2z
       const tw = 1 + a0x + a1y + a2z, tx = 1 + a0x - a1y - a2z, ty = 1 - a0x + a1y - a2z, tz = 1 - a0x - a1y + a2z;
-      let qw, qx, qy, qz; // R00 = a0x, R01 = a1x, R02 = a2x, R10 = a0y, R11 = a1y, R12 = a2y, R20 = a0z, R21 = a1z, R22 = a2z
+      let qw, qx, qy, qz;
       if (tw >= tx && tw >= ty && tw >= tz) { qw = tw; qx = a1z - a2y; qy = a2x - a0z; qz = a0y - a1x; }
       else if (tx >= ty && tx >= tz) { qw = a1z - a2y; qx = tx; qy = a0y + a1x; qz = a2x + a0z; }
       else if (ty >= tz) { qw = a2x - a0z; qx = a0y + a1x; qy = ty; qz = a1z + a2y; }
       else { qw = a0y - a1x; qx = a2x + a0z; qy = a1z + a2y; qz = tz; }
-      const n = (qw < 0 ? -1 : 1) / Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz);
-      F[o + 12] = qw * n; F[o + 13] = qx * n; F[o + 14] = qy * n; F[o + 15] = qz * n; F[o + 16] = sf;
-    }
-  }
-
-  /** Step 7's position of a `triangle` rig's Gaussians (R_f s_f local + c_f), then rotation and scale. */
-  triangleGaussians(position, rotation, scale, mx) {
-    const F = this.face, gf = this.gaussianFace, LP = this.rig.localPosition, index = this.index;
-    for (let m = 0, M = gf.length; m < M; m++) {
-      const o = FACE * gf[m], g = index[m], p0 = LP[3 * m], p1 = LP[3 * m + 1], p2 = LP[3 * m + 2];
-      position[3 * g] = mx * (F[o] * p0 + F[o + 1] * p1 + F[o + 2] * p2 + F[o + 9]);
-      position[3 * g + 1] = F[o + 3] * p0 + F[o + 4] * p1 + F[o + 5] * p2 + F[o + 10];
-      position[3 * g + 2] = F[o + 6] * p0 + F[o + 7] * p1 + F[o + 8] * p2 + F[o + 11];
-    }
-    this.rotationsAndScales(rotation, scale, mx);
-  }
-
-  /** Step 7's position of a `barycentric` rig's Gaussians (bary . (v0, v1, v2) + (e1 x e2) offset), then the rest. */
-  barycentricGaussians(position, rotation, scale, mx) {
-    const F = this.face, gf = this.gaussianFace, B = this.rig.bary, K = this.rig.normalOffset, index = this.index;
-    for (let m = 0, M = gf.length; m < M; m++) {
-      const o = FACE * gf[m], g = index[m], b0 = B[3 * m], b1 = B[3 * m + 1], b2 = B[3 * m + 2], k = K[m];
-      position[3 * g] = mx * (b0 * F[o] + b1 * F[o + 3] + b2 * F[o + 6] + F[o + 9] * k);
-      position[3 * g + 1] = b0 * F[o + 1] + b1 * F[o + 4] + b2 * F[o + 7] + F[o + 10] * k;
-      position[3 * g + 2] = b0 * F[o + 2] + b1 * F[o + 5] + b2 * F[o + 8] + F[o + 11] * k;
-    }
-    this.rotationsAndScales(rotation, scale, mx);
-  }
-
-  /** Step 7's rotation (normalize(q_f (x) local rotation), written (x, y, z, w)) and scale (local_scale s_f). */
-  rotationsAndScales(rotation, scale, mx) {
-    const F = this.face, gf = this.gaussianFace, LQ = this.localRotation, LS = this.rig.localScale;
-    const index = this.index;
-    for (let m = 0, M = gf.length; m < M; m++) {
-      const o = FACE * gf[m], g = index[m];
-      const fw = F[o + 12], fx = F[o + 13], fy = F[o + 14], fz = F[o + 15], sf = F[o + 16];
-      const lw = LQ[4 * m], lx = LQ[4 * m + 1], ly = LQ[4 * m + 2], lz = LQ[4 * m + 3];
-      const qw = fw * lw - fx * lx - fy * ly - fz * lz, qx = fw * lx + fx * lw + fy * lz - fz * ly;
-      const qy = fw * ly - fx * lz + fy * lw + fz * lx, qz = fw * lz + fx * ly - fy * lx + fz * lw;
-      const n = 1 / Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz);
-      rotation[4 * g] = qx * n; rotation[4 * g + 1] = mx * qy * n; rotation[4 * g + 2] = mx * qz * n; rotation[4 * g + 3] = qw * n;
-      scale[3 * g] = LS[3 * m] * sf; scale[3 * g + 1] = LS[3 * m + 1] * sf; scale[3 * g + 2] = LS[3 * m + 2] * sf;
+      const qn = (qw < 0 ? -1 : 1) / Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz);
+      const fw = qw * qn, fx = qx * qn, fy = qy * qn, fz = qz * qn;
+      let x00, x01, x02, x10, x11, x12, x20, x21, x22, tx0, tx1, tx2;
+      if (tri) {
+        x00 = a0x * sf; x01 = a1x * sf; x02 = a2x * sf; x10 = a0y * sf; x11 = a1y * sf; x12 = a2y * sf;
+        x20 = a0z * sf; x21 = a1z * sf; x22 = a2z * sf;
+        tx0 = (v0x + v1x + v2x) / 3; tx1 = (v0y + v1y + v2y) / 3; tx2 = (v0z + v1z + v2z) / 3;
+      } else {
+        x00 = v0x; x01 = v1x; x02 = v2x; x10 = v0y; x11 = v1y; x12 = v2y; x20 = v0z; x21 = v1z; x22 = v2z;
+        tx0 = e1y * e2z - e1z * e2y; tx1 = e1z * e2x - e1x * e2z; tx2 = e1x * e2y - e1y * e2x;
+      }
+      for (let j = start[u], o = GAUSSIAN * j, end = start[u + 1]; j < end; j++, o += GAUSSIAN) {
+        const g = index[j], p0 = G[o], p1 = G[o + 1], p2 = G[o + 2], w = G[o + 3];
+        position[3 * g] = mx * (x00 * p0 + x01 * p1 + x02 * p2 + tx0 * w);
+        position[3 * g + 1] = x10 * p0 + x11 * p1 + x12 * p2 + tx1 * w;
+        position[3 * g + 2] = x20 * p0 + x21 * p1 + x22 * p2 + tx2 * w;
+        const lw = G[o + 4], lx = G[o + 5], ly = G[o + 6], lz = G[o + 7];
+        const rw = fw * lw - fx * lx - fy * ly - fz * lz, rx = fw * lx + fx * lw + fy * lz - fz * ly;
+        const ry = fw * ly - fx * lz + fy * lw + fz * lx, rz = fw * lz + fx * ly - fy * lx + fz * lw;
+        const rn = 1 / Math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz);
+        rotation[4 * g] = rx * rn; rotation[4 * g + 1] = mx * ry * rn; rotation[4 * g + 2] = mx * rz * rn;
+        rotation[4 * g + 3] = rw * rn;
+        scale[3 * g] = G[o + 8] * sf; scale[3 * g + 1] = G[o + 9] * sf; scale[3 * g + 2] = G[o + 10] * sf;
+      }
     }
   }
 
@@ -443,10 +442,7 @@ export class RigDeformer {
    */
   apply(params, position, rotation, scale, coords = "flame") {
     this.vertices(params);
-    this.frames();
-    const r = this.rig, mx = coords === "unity" ? -1 : 1;
-    if (r.binding === "triangle") this.triangleGaussians(position, rotation, scale, mx);
-    else this.barycentricGaussians(position, rotation, scale, mx);
-    return r.index;
+    this.gaussians(position, rotation, scale, coords === "unity" ? -1 : 1);
+    return this.rig.index;
   }
 }
