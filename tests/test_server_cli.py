@@ -18,8 +18,11 @@ from typer.testing import CliRunner
 def test_serve_help_lists_the_options() -> None:
     out = CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"})
     assert out.exit_code == 0
-    for opt in ("--host", "--port", "--avatars", "--token", "--devices", "--max-sessions", "--bs-rate"):
+    for opt in ("--host", "--port", "--avatars", "--token", "--devices", "--max-sessions", "--bs-rate", "--redis",
+                "--room-members", "--max-rooms"):
         assert opt in out.output
+    text = " ".join(out.output.split())  # the environment hints are shown (not eaten as rich markup)
+    assert "[env OFERA_PORT; default 8000]" in text and "OFERA_REDIS_URL" in text
 
 
 def test_serve_refuses_a_missing_avatars_dir() -> None:

@@ -9,8 +9,9 @@ from . import mapping as mapping_cmd
 from . import serve as serve_cmd
 from .train import mia_app
 
+# rich_markup_mode None: help texts are shown as written ("[env OFERA_PORT; default 8000]" is not rich markup).
 app = typer.Typer(help="OFERA server: blendshape-driven Gaussian head avatars.", no_args_is_help=True,
-                  pretty_exceptions_enable=False)
+                  pretty_exceptions_enable=False, rich_markup_mode=None)
 app.add_typer(head.app, name="head")
 app.add_typer(avatar.app, name="avatar")
 app.add_typer(mapping_cmd.bda_app, name="bda")
