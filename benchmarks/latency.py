@@ -106,20 +106,12 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
 
 def _frame_header(data: bytes) -> tuple[int | None, int, dict]:
     """seq, t, timing of a frame message, read without touching (or copying) its arrays."""
-    import io
+    from ofera_protocol import read_frame_header
 
-    import msgpack
-
-    u = msgpack.Unpacker(io.BytesIO(data), raw=False, read_size=1024)
-    fields: dict = {}
-    for _ in range(u.read_map_header()):
-        key = u.unpack()
-        fields[key] = u.unpack()
-        if key == "timing":
-            break
-    if fields.get("type") != "frame":
+    head = read_frame_header(data)
+    if head is None:
         return None, 0, {}
-    return fields["seq"], fields["t"], fields.get("timing", {})
+    return head.seq, head.t, head.timing or {}
 
 
 def summarise(run: dict) -> dict:

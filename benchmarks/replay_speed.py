@@ -8,12 +8,18 @@ process and interpreter, not this one). At --speed 4 the capture's 60 fps become
 so a server answers all of them only when a whole frame (compute, encode, send) fits in that period; newest-wins
 drops the rest (PROTOCOL.md 9). Reports the replay summary (answered fraction, latency percentiles), the CPU
 the replay client and the server used, and the machine's load average. Target: answered >= 95 %.
+
+``--decode header`` (the replay tool's default) reads only each frame's seq, t and timing; ``full`` decodes and
+checks every frame's arrays (``ofera replay --full-decode``); ``both`` runs the two side by side on one server:
+
+    python benchmarks/replay_speed.py --gaussians 0 --encoding f32 --impl fast --decode both
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -25,14 +31,16 @@ import _common as C  # noqa: E402
 TARGET = 0.95
 
 
-def replay(url: str, args) -> tuple[dict, float, float]:
-    """(the replay tool's JSON summary, its CPU seconds, wall seconds)."""
+def replay(url: str, args, decode: str = "header") -> tuple[dict, float, float]:
+    """(the replay tool's JSON summary, its CPU seconds, wall seconds); `decode` "full" adds --full-decode."""
     cmd = [sys.executable, "-c", "from ofera.cli.main import main; main()", "replay", str(C.CAPTURE),
            "--url", url.removesuffix("/v1/stream"),
            "--speed", str(args.speed), "--loop", "--passes", str(args.passes), "--encoding", args.encoding,
            "--json", "-", "--quiet"]
     if args.delta:
         cmd.append("--delta")
+    if decode == "full":
+        cmd.append("--full-decode")
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     cpu = 0.0
@@ -51,12 +59,14 @@ def replay(url: str, args) -> tuple[dict, float, float]:
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--gaussians", type=int, default=100_000)
+    ap.add_argument("--gaussians", type=int, default=100_000, help="0: the built-in default avatar")
     ap.add_argument("--speed", type=float, default=4.0)
     ap.add_argument("--passes", type=int, default=3, help="times the 180-frame capture is sent")
     ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13"])
     ap.add_argument("--delta", action="store_true")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
+    ap.add_argument("--decode", default="header", choices=["header", "full", "both"],
+                    help="what the replay client decodes of each frame (both: full, then header, one server)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"])
     ap.add_argument("--json", type=Path, default=C.RESULTS / "replay_speed.json")
@@ -65,23 +75,29 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"the capture {C.CAPTURE} is missing (the shared data folder; $OFERA_CAPTURE names it)")
     avatars, notes = C.avatars_dir(args.gaussians or None)
     impls = list(C.IMPLS) if args.impl == "both" else [args.impl]
+    decodes = ["full", "header"] if args.decode == "both" else [args.decode]
     results = {}
     for impl in impls:
         with C.ServerProcess(avatars, impl=impl, threads=args.threads,
                              extra={"event_loop": args.event_loop}) as server:
-            s0 = C.cpu_seconds(server.proc.pid)
-            summary, client_cpu, wall = replay(server.url, args)
-            server_cpu = C.cpu_seconds(server.proc.pid) - s0
-        results[impl] = {"answered": summary["answered"], "sent": summary["sent"], "received": summary["received"],
-                         "latency_ms": summary["latency_ms"], "meets_target": summary["answered"] >= TARGET,
-                         "cpu": {"client_cores": round(client_cpu / wall, 3),
-                                 "server_cores": round(server_cpu / wall, 3), "wall_s": round(wall, 2)},
-                         "summary": summary}
-        print(f"[replay x{args.speed:g}] {impl}: answered {summary['answered']:.1%} of {summary['sent']} bs, latency "
-              f"{summary['latency_ms']}, cores client {results[impl]['cpu']['client_cores']} server "
-              f"{results[impl]['cpu']['server_cores']}", flush=True)
+            for decode in decodes:
+                name = impl if len(decodes) == 1 else f"{impl}/{decode}"
+                s0 = C.cpu_seconds(server.proc.pid)
+                summary, client_cpu, wall = replay(server.url, args, decode)
+                server_cpu = C.cpu_seconds(server.proc.pid) - s0
+                load = [round(v, 2) for v in os.getloadavg()]
+                results[name] = {"decode": decode, "answered": summary["answered"], "sent": summary["sent"],
+                                 "received": summary["received"], "latency_ms": summary["latency_ms"],
+                                 "meets_target": summary["answered"] >= TARGET,
+                                 "cpu": {"client_cores": round(client_cpu / wall, 3),
+                                         "server_cores": round(server_cpu / wall, 3), "wall_s": round(wall, 2)},
+                                 "loadavg_after": load, "summary": summary}
+                print(f"[replay x{args.speed:g}] {name}: answered {summary['answered']:.1%} of {summary['sent']} bs, "
+                      f"latency {summary['latency_ms']}, cores client {results[name]['cpu']['client_cores']} server "
+                      f"{results[name]['cpu']['server_cores']}, load average {load}", flush=True)
     report = {"benchmark": "replay_speed", "gaussians": args.gaussians, "speed": args.speed, "passes": args.passes,
-              "encoding": args.encoding, "delta": args.delta, "capture": str(C.CAPTURE), "target_answered": TARGET,
+              "encoding": args.encoding, "delta": args.delta, "decode": args.decode, "capture": str(C.CAPTURE),
+              "target_answered": TARGET,
               "results": results, "machine": C.machine(), "notes": notes}
     out = C.write_json(args.json, report)
     plt = C.pyplot()

@@ -52,7 +52,15 @@ HEADER_KEYS = frozenset({"type", "member", "seq", "t", "timing", "code", "messag
 
 
 def read_header(data: bytes) -> dict:
-    """The leading small fields of a server message (type, member, seq, t, timing...), its arrays left unread."""
+    """The leading small fields of a server message (type, member, seq, t, timing...), its arrays left unread: a
+    frame's from the protocol's reader (read_frame_header), another message's up to its first array."""
+    from ofera_protocol import read_frame_header
+
+    head = read_frame_header(data)
+    if head is not None:
+        fields = {"type": "frame", "member": head.member, "seq": head.seq, "t": head.t, "timing": head.timing,
+                  "n": head.n}
+        return {k: v for k, v in fields.items() if v is not None}
     u = msgpack.Unpacker(io.BytesIO(data), raw=False, read_size=512)
     fields: dict = {}
     for _ in range(u.read_map_header()):

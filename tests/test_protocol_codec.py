@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from ofera_protocol import (  # noqa: E402
     ErrorMessage,
     Frame,
     FrameFormat,
+    FrameHeader,
     Hello,
     Ping,
     Pong,
@@ -35,9 +37,11 @@ from ofera_protocol import (  # noqa: E402
     decode_client_message,
     decode_server_message,
     encode,
+    read_frame_header,
 )
 from ofera_protocol.codec import pack_map  # noqa: E402
 from ofera_protocol.errors import ERRORS, Fatality, close_code  # noqa: E402
+from ofera_protocol.messages import ParamsFormat, ParamsFrame  # noqa: E402
 
 FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -485,3 +489,113 @@ def test_fuzz_structured_maps(t: str, d: dict) -> None:
     except (OverflowError, ValueError):
         return
     _only_protocol_errors(data)
+
+
+# ----------------------------------------------------------------------------- header-only reading
+
+VECTOR_DIR = Path(__file__).resolve().parents[1] / "protocol" / "vectors"
+FRAME_VECTORS = sorted(p.stem for p in VECTOR_DIR.glob("*frame*.msgpack") if not p.stem.startswith("invalid_"))
+
+
+def _vector_format(d: dict) -> FrameFormat | ParamsFormat:
+    if d["encoding"] == "params":
+        return ParamsFormat()
+    q = d["quant"]
+    quant = None if q is None else Quant(*(np.array(q[k], np.float32) for k in ("pos_min", "pos_max", "log_scale")))
+    return FrameFormat(d["encoding"], d["count"], d["sparse"], quant, delta=d.get("delta", False))
+
+
+def test_frame_vectors_cover_members_deltas_and_params() -> None:
+    assert {"frame_q13_member", "frame_f16_sparse_member", "frame_f16_delta", "frame_q13_key",
+            "params_frame", "params_frame_stamped", "frame_f32"} <= set(FRAME_VECTORS)
+
+
+@pytest.mark.parametrize("name", FRAME_VECTORS)
+def test_read_frame_header_matches_vector_and_full_decode(name: str) -> None:
+    data = (VECTOR_DIR / f"{name}.msgpack").read_bytes()
+    spec = json.loads((VECTOR_DIR / f"{name}.json").read_text(encoding="utf-8"))
+    head = read_frame_header(data)
+    fields = spec["fields"]
+    assert head == FrameHeader(seq=fields.get("seq"), t=fields.get("t"), timing=fields.get("timing"), size=len(data),
+                               n=fields.get("n"), key=fields.get("key"), member=fields.get("member"))
+    full = decode_server_message(data, _vector_format(spec["format"]))
+    assert (head.seq, head.t, head.timing, head.member) == (full.seq, full.t, full.timing,
+                                                            getattr(full, "member", None))
+    if not isinstance(full, ParamsFrame):
+        assert head.n == full.n and head.key == (full.key if isinstance(full, Frame) else False)
+    assert read_frame_header(memoryview(bytearray(data))) == head
+
+
+@pytest.mark.parametrize("name", ["welcome", "welcome_room", "avatar_chunk0", "avatar_member", "join", "leave",
+                                  "error_fatal", "pong", "rig_tiny"])
+def test_read_frame_header_is_none_for_other_server_messages(name: str) -> None:
+    assert read_frame_header((VECTOR_DIR / f"{name}.msgpack").read_bytes()) is None
+
+
+@pytest.mark.parametrize("name", ["invalid_truncated", "invalid_trailing_bytes", "invalid_not_a_map",
+                                  "invalid_non_string_key", "invalid_deep_nesting", "invalid_huge_bin",
+                                  "invalid_missing_type", "invalid_unknown_type", "invalid_params_seq_without_t"])
+def test_read_frame_header_refuses_what_the_codec_refuses(name: str) -> None:
+    spec = json.loads((VECTOR_DIR / f"{name}.json").read_text(encoding="utf-8"))
+    raises(spec["expect_error"]["code"], read_frame_header, (VECTOR_DIR / f"{name}.msgpack").read_bytes())
+
+
+def test_read_frame_header_checks_small_fields_not_arrays() -> None:
+    ok = {"type": "frame", "seq": 1, "t": 2, "timing": {"total": 3}, "n": 1, "position": b"\0" * 3}
+    assert read_frame_header(pack_map(ok)) == FrameHeader(1, 2, {"total": 3}, len(pack_map(ok)), n=1)
+    raises("bad_field", read_frame_header, pack_map({**ok, "seq": -1}))
+    raises("bad_field", read_frame_header, pack_map({**ok, "t": "now"}))
+    raises("bad_field", read_frame_header, pack_map({**ok, "timing": {"total": -1}}))
+    raises("bad_field", read_frame_header, pack_map({k: v for k, v in ok.items() if k != "n"}))
+    raises("bad_field", read_frame_header, pack_map({**ok, "key": 1}))
+    raises("bad_field", read_frame_header, pack_map({**ok, "member": ""}))
+    raises("malformed", read_frame_header, pack_map({**ok, "x": msgpack.ExtType(1, b"ab")}))
+    raises("malformed", read_frame_header, "frame")
+    raises("message_too_large", read_frame_header, pack_map(ok), 10)
+    for name in ("invalid_frame_nan", "invalid_frame_length", "invalid_delta_count"):  # bad arrays: not read
+        assert read_frame_header((VECTOR_DIR / f"{name}.msgpack").read_bytes()) is not None
+
+
+@FAST
+@given(st.sampled_from(ENCODINGS), st.integers(0, 6), st.booleans(), seqs, int64s,
+       st.dictionaries(st.text(min_size=1, max_size=10), st.integers(0, 2**63 - 1), max_size=8),
+       st.none() | ids, st.data())
+def test_read_frame_header_agrees_with_full_decodes(enc, count, fast, seq, t, timing, member, data) -> None:
+    fmt = FrameFormat(enc, count, quant=QUANT if enc == "q13" else None)
+    rng = np.random.default_rng(seq % 1000)
+    pos, rot, scale = (rng.uniform(0.01, 0.1, (count, k)).astype(np.float32) for k in (3, 4, 3))
+    if fast:
+        from ofera_protocol.fast_encodings import FrameWriter
+
+        wire = bytes(FrameWriter(fmt).encode(seq, t, timing, pos, rot, scale, member=member))
+    else:
+        wire = encode(Frame(seq, t, pos, rot, scale, timing=timing, member=member), fmt)
+    full = decode_server_message(wire, fmt)
+    head = read_frame_header(wire)
+    assert head == FrameHeader(full.seq, full.t, full.timing, len(wire), n=full.n, member=full.member)
+
+
+def test_read_frame_header_leaves_arrays_uncopied() -> None:
+    import tracemalloc
+
+    n = 115_600
+    fmt = FrameFormat("f32", n)
+    wire = encode(Frame(7, 8, np.zeros((n, 3), np.float32), np.zeros((n, 4), np.float32),
+                        np.zeros((n, 3), np.float32), timing={"total": 1}), fmt)
+    assert len(wire) > 4_000_000
+    tracemalloc.start()
+    head = read_frame_header(wire)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert head is not None and (head.seq, head.n, head.size) == (7, n, len(wire)) and peak < 64_000
+
+
+@pytest.mark.parametrize("avatar", ["absent", None])
+def test_a_room_publisher_must_name_its_avatar_nil_is_absent(avatar) -> None:
+    """PROTOCOL.md 12.1: publishing in a room needs `avatar`; a nil value counts as absent (section 2)."""
+    m = {"type": "hello", "protocol": 1, "layout": "arkit52", "room": "lab"}
+    if avatar != "absent":
+        m["avatar"] = avatar
+    with pytest.raises(ProtocolError) as e:
+        decode_client_message(msgpack.packb(m))
+    assert e.value.code == "bad_field" and "avatar" in e.value.message

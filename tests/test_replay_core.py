@@ -10,7 +10,7 @@ import pytest
 from ofera.mapping.layouts import get_layout
 from ofera.replay import FrameRecorder, Replayer, ReplayStats, percentiles_ms, stream_url
 from ofera.sources import FaceLog
-from ofera_protocol import Frame
+from ofera_protocol import Frame, FrameHeader
 
 
 def synthetic_log(seconds: float = 3.0, fps: float = 60.0, layout: str = "arkit52") -> FaceLog:
@@ -180,6 +180,21 @@ def test_recorder_npz(tmp_path):
     np.testing.assert_array_equal(z["weights"], log.weights[[0, 1, 3]])
     np.testing.assert_allclose(z["log_time"], log.times[[0, 1, 3]])
     assert z["position"].shape == (3, n, 3) and str(z["layout"]) == "arkit52"
+
+
+def test_recorder_takes_frame_headers_without_positions(tmp_path):
+    log = synthetic_log(0.5)
+    rec = FrameRecorder("arkit52", log.weights, log.times)
+    for seq in (0, 2):
+        rec.add(FrameHeader(seq=seq, t=1000 * seq, timing={"map": 10 + seq}, size=300, n=8), 1000 * seq + 1500)
+    z = np.load(rec.save(tmp_path / "rec"))
+    np.testing.assert_array_equal(z["seq"], [0, 2])
+    np.testing.assert_array_equal(z["count"], [8, 8])
+    np.testing.assert_allclose(z["latency_ms"], 1.5)
+    np.testing.assert_array_equal(z["timing_us"][:, 0], [10, 12])
+    with pytest.raises(ValueError, match="needs decoded frames"):
+        FrameRecorder("arkit52", log.weights, log.times, positions=True).add(
+            FrameHeader(seq=0, t=0, timing={}, size=300, n=8), 10)
 
 
 def test_stream_url():

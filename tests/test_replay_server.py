@@ -233,6 +233,33 @@ def test_record_received_frames(server, logs, tmp_path):
     assert z["position"].shape == (f, int(z["count"][0]), 3) and np.all(np.isfinite(z["position"]))
 
 
+@pytest.mark.parametrize("extra, header_only", [((), True), (("--full-decode",), False),
+                                                 (("--record", "REC", "--record-positions"), False),
+                                                 (("--record", "REC"), True),
+                                                 (("--delta", "--encoding", "f16"), False)])
+def test_frames_are_read_header_only_unless_arrays_are_needed(server, logs, tmp_path, monkeypatch, extra,
+                                                               header_only):
+    import ofera.replay
+
+    seen = []
+    real = ofera.replay.replay_through
+
+    async def spy(replayer, url, options, *args, **kwargs):
+        seen.append(options.header_only)
+        return await real(replayer, url, options, *args, **kwargs)
+
+    monkeypatch.setattr(ofera.replay, "replay_through", spy)
+    path, _, n = logs["arkit52"]
+    extra = tuple(str(tmp_path / "rec.npz") if a == "REC" else a for a in extra)
+    code, text, summary, _ = run_replay(str(path), "--url", server.url, "--speed", "2", *extra)
+    assert code == 0, text
+    assert seen == [header_only]
+    assert summary["sent"] == n and summary["errors"] == 0 and summary["last_seq_answered"] == n - 1
+    if "--record" in extra:
+        z = np.load(tmp_path / "rec.npz")
+        assert len(z["seq"]) == summary["received"] and z["count"][0] > 0 and ("position" in z) == (not header_only)
+
+
 def test_loop_passes(server, logs):
     path, _, n = logs["arkit52"]
     code, text, summary, _ = run_replay(str(path), "--url", server.url, "--speed", "4", "--loop", "--passes", "3")

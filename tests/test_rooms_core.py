@@ -15,7 +15,7 @@ from ofera.streaming import Settings
 from ofera.streaming.bus import ExpressionValues, MemberInfo
 from ofera.streaming.core import Close, Compute, Count, KeyFrame, Send, SessionCore, Start, room_token
 from ofera.streaming.metrics import Metrics
-from ofera.streaming.roles import PendingBs, Source
+from ofera.streaming.roles import PendingBs, SessionFatal, Source
 from ofera.streaming.rooms import Member, Rooms, RoomViewer
 from ofera_protocol import (
     Avatar,
@@ -156,7 +156,8 @@ N = 6
 class FakePipeline:
     """Stands in for Pipeline: values = the first weight everywhere; Gaussians x = values[0]. Counts its work."""
 
-    def __init__(self) -> None:
+    def __init__(self, n: int = N) -> None:
+        self.n = n
         self.mapped = self.deformed = 0
         self.gate = threading.Event()
         self.gate.set()
@@ -168,9 +169,9 @@ class FakePipeline:
 
     def deform_values(self, values):
         self.deformed += 1
-        pos = np.full((N, 3), values[0], np.float32)
-        rot = np.tile(np.float32([0, 0, 0, 1]), (N, 1))
-        return SimpleNamespace(position=pos, rotation=rot, scale=np.full((N, 3), 0.01, np.float32)), {"deform": 2}
+        pos = np.full((self.n, 3), values[0], np.float32)
+        rot = np.tile(np.float32([0, 0, 0, 1]), (self.n, 1))
+        return SimpleNamespace(position=pos, rotation=rot, scale=np.full((self.n, 3), 0.01, np.float32)), {"deform": 2}
 
     def run(self, w, conf=None):
         self.values, mapped = self.map(w)
@@ -179,15 +180,15 @@ class FakePipeline:
 
 
 class FakeAssets:
-    """Stands in for AvatarAssets: a 6-Gaussian avatar, its selections and quantisation."""
+    """Stands in for AvatarAssets: an n-Gaussian avatar (6 by default), its selections and quantisation."""
 
-    def __init__(self, aid: str) -> None:
-        self.id, self.count, self.expression, self.sh_degree = aid, N, "flame68", 0
+    def __init__(self, aid: str, n: int = N) -> None:
+        self.id, self.count, self.expression, self.sh_degree = aid, n, "flame68", 0
         rng = np.random.default_rng(1)
-        self.avatar = Avatar(opacity=np.full(N, 0.5, np.float32), sh=np.zeros((N, 1, 3), np.float32),
-                             position=rng.normal(0, 0.05, (N, 3)).astype(np.float32),
-                             rotation=np.tile(np.float32([0, 0, 0, 1]), (N, 1)),
-                             scale=np.full((N, 3), 0.01, np.float32))
+        self.avatar = Avatar(opacity=np.full(n, 0.5, np.float32), sh=np.zeros((n, 1, 3), np.float32),
+                             position=rng.normal(0, 0.05, (n, 3)).astype(np.float32),
+                             rotation=np.tile(np.float32([0, 0, 0, 1]), (n, 1)),
+                             scale=np.full((n, 3), 0.01, np.float32))
         self.pipelines: list[FakePipeline] = []
 
     def wire_avatar(self, coords, size=None):
@@ -198,17 +199,34 @@ class FakeAssets:
                                           np.full((1, 3), -0.5, np.float32)]), self.avatar.scale)
 
     def selection(self, sparse, size):
-        return (None, None) if not sparse else (np.arange(0, N, 2), np.arange(0, N, 2, dtype=np.uint32))
+        n = self.count
+        return (None, None) if not sparse else (np.arange(0, n, 2), np.arange(0, n, 2, dtype=np.uint32))
 
     def pipeline(self, layout, *args):
-        p = FakePipeline()
+        p = FakePipeline(self.count)
         self.pipelines.append(p)
         return p
 
 
+class FakeArkitAssets(FakeAssets):
+    """An ARKit-driven avatar (51 morph weights): it has no rig (params viewers cannot deform it)."""
+
+    def __init__(self, aid: str) -> None:
+        super().__init__(aid)
+        self.expression, self.subject, self._cache = "arkit51", None, {}
+        self.wire, self.avatar = self.avatar, SimpleNamespace(expression="arkit51", name=aid)  # what build_rig reads
+
+    def wire_avatar(self, coords, size=None):
+        return self.wire
+
+    def quant(self, coords, size=None):
+        return make_quant(self.wire.position, self.wire.scale)
+
+
 class FakeRegistry:
     def __init__(self) -> None:
-        self.assets = {"anna": FakeAssets("anna"), "ben": FakeAssets("ben")}
+        self.assets = {"anna": FakeAssets("anna"), "ben": FakeAssets("ben"), "big": FakeAssets("big", 60),
+                       "kim": FakeArkitAssets("kim")}
 
     def resolve(self, aid):
         return aid if aid in self.assets or aid == "broken" else None
@@ -485,10 +503,10 @@ def test_the_bus_carries_values_and_remote_members_are_deformed_once() -> None:
         await until(lambda: ("leave", "lab", "m-a", "bye") in bus.events)
         assert "lab" not in w.rooms.rooms
 
-    in_world(body)
+    in_world(body, room_members=5)  # 3 local, 2 remote members
 
 
-def test_a_remote_member_without_local_viewers_costs_no_deformation() -> None:
+def test_a_remote_member_whose_one_viewer_stalled_costs_no_deformation() -> None:
     async def body(w: World) -> None:
         w.rooms.bus = FakeBus()
         a = w.join("m-a", avatar=None)
@@ -502,6 +520,210 @@ def test_a_remote_member_without_local_viewers_costs_no_deformation() -> None:
         assert remote.deformed <= 2
 
     in_world(body)
+
+
+def test_a_remote_member_without_local_viewers_costs_no_deformation() -> None:
+    async def body(w: World) -> None:
+        w.rooms.bus = FakeBus()
+        p = w.join("m-p", avatar=None, encoding="params")  # an ARKit avatar has no rig: no slot, no viewer of it
+        w.rooms.remote_joined("lab", MemberInfo("m-k", "kim", "srv-2", True))
+        await until(lambda: "m-k" in p.client.members)
+        remote = w.registry.assets["kim"].pipelines[-1]
+        for i in range(1, 10):
+            w.rooms.remote_values(ExpressionValues("lab", "m-k", i, i, np.full(51, 0.1, np.float32)))
+            await asyncio.sleep(0.005)
+        assert remote.deformed == 0 and not p.frames
+
+    in_world(body)
+
+
+def _sample(w: World, name: str, **labels: str) -> float:
+    return w.metrics.registry.get_sample_value(name, labels) or 0.0
+
+
+def test_bad_remote_values_are_dropped_and_no_viewer_session_ends() -> None:
+    """Values that do not fit the member's avatar (length, magnitude) are dropped and counted; the viewers go on."""
+
+    async def body(w: World) -> None:
+        w.rooms.bus = FakeBus()
+        v = w.join("m-v", avatar=None, encoding="f16")
+        a = w.join("m-a", avatar="anna", encoding="f16")
+        w.rooms.remote_joined("lab", MemberInfo("m-r", "ben", "srv-2", True))
+        await until(lambda: "m-r" in v.client.formats and "m-r" in a.client.formats)
+        w.rooms.remote_values(ExpressionValues("lab", "m-r", 1, 1, np.full(51, 0.1, np.float32)))  # a FLAME avatar
+        w.rooms.remote_values(ExpressionValues("lab", "m-r", 2, 2, np.full(68, 1e6, np.float32)))  # f16 overflows
+        w.rooms.remote_values(ExpressionValues("lab", "m-r", 3, 3, np.full(68, 0.2, np.float32)))
+        await until(lambda: v.by("m-r") and a.by("m-r"))
+        assert [f.seq for f in v.by("m-r")] == [3] and [f.seq for f in a.by("m-r")] == [3]
+        assert _sample(w, "ofera_bus_malformed_total") == 2
+        assert not any(t.done() for p in (v, a) for t in p.tasks)
+
+    in_world(body)
+
+
+def test_a_frame_that_fails_to_encode_is_dropped_for_its_viewer_only(caplog) -> None:
+    from ofera.streaming.member_wire import MemberWire
+    from ofera.streaming.rooms import PendingValues
+
+    class FlakyWriter:
+        needs_state = False
+
+        def encode_values(self, seq, t, timing, values, member):
+            if values[0] > 0.5:
+                raise ValueError("not encodable")
+            return encode(ErrorMessage("values", f"{member}:{seq}", False))
+
+    async def body(w: World) -> None:
+        a = w.join("m-a", avatar="anna")
+        v = w.join("m-v", avatar=None)
+        await until(lambda: "m-a" in v.client.formats)
+        v.viewer.slots["m-a"].wire = MemberWire("m-a", [], FlakyWriter(), ("flaky",), N)
+        v.control.clear()
+        for seq, x in ((1, 0.9), (2, 0.9), (3, 0.25)):
+            a.bs(seq, x)
+            await until(lambda seq=seq: a.pipeline.mapped == seq)
+            await asyncio.sleep(0.02)
+        await until(lambda: any(getattr(m, "message", "") == "m-a:3" for m in v.control))
+        assert not any(t.done() for t in v.tasks + a.tasks)
+        assert _sample(w, "ofera_room_events_total", event="bad_frame") == 2
+        assert len([r for r in caplog.records if "encoding frame" in r.getMessage()]) == 1  # rate-limited
+
+        w.rooms.remote_joined("lab", MemberInfo("m-r", "ben", "srv-2", True))  # a remote member's deform fails
+        await until(lambda: "m-r" in v.client.formats)
+        src = w.rooms.rooms["lab"].members["m-r"].source
+        for seq in (1, 2, 3):
+            src._failed(PendingValues(ExpressionValues("lab", "m-r", seq, 0, np.zeros(68, np.float32)), 0),
+                        RuntimeError("deform failed"))
+        assert len([r for r in caplog.records if "deforming frame" in r.getMessage()]) == 1
+
+    in_world(body)
+
+
+def test_remote_members_beyond_room_members_wait_for_a_place() -> None:
+    async def body(w: World) -> None:
+        a = w.join("m-a", avatar=None)
+        for i in range(10):
+            w.rooms.remote_joined("lab", MemberInfo(f"m-r{i}", "", "srv-2", False))
+        r = w.rooms.rooms["lab"]
+        await until(lambda: len(a.client.members) == 3)
+        await asyncio.sleep(0.05)
+        assert len(r.members) == 4 and set(a.client.members) == {"m-r0", "m-r1", "m-r2"}
+        assert _sample(w, "ofera_room_events_total", event="over_limit") == 7
+        w.rooms.remote_left("lab", "m-r4", "bye")  # a waiting member leaves: never shown
+        w.rooms.remote_left("lab", "m-r0", "bye")  # a place: the first waiting member takes it
+        await until(lambda: "m-r3" in a.client.members)
+        assert "m-r0" not in a.client.members and len(r.members) == 4 and list(r.waiting) == [f"m-r{i}" for i in
+                                                                                              range(5, 10)]
+        w.rooms.bus_state(False)  # remote members are gone: the bus replays them when it is back
+        assert not r.waiting and len(r.members) == 1
+
+    in_world(body, room_members=4)
+
+
+def test_a_stalled_viewer_queues_nothing_for_members_that_came_and_went() -> None:
+    async def body(w: World) -> None:
+        a = w.join("m-a", avatar="anna")
+        v = w.join("m-v", avatar=None)
+        await until(lambda: "m-a" in v.client.formats)
+        v.blocked.clear()  # v stops reading: a frame of m-a stays in flight
+        a.bs(1, 0.1)
+        await until(lambda: v.viewer.sends == 1)
+        for i in range(50):
+            p = w.join(f"m-x{i}", avatar="ben")
+            await asyncio.sleep(0.002 * (i % 3))
+            w.rooms.leave_local("lab", p.member.id, "bye")
+            p.stop()
+        await asyncio.sleep(0.1)
+        assert len(v.viewer.control) == 0 and v.viewer.control_bytes == 0
+        w.rooms.remote_joined("lab", MemberInfo("m-w", "", "srv-2", False))  # a join that stays
+        await until(lambda: len(v.viewer.control) == 1)
+        v.blocked.set()
+        await until(lambda: "m-w" in v.client.members)
+        assert not [m for m in v.control if isinstance(m, (Join, Leave)) and m.member.startswith("m-x")]
+
+    in_world(body, room_members=4)
+
+
+def test_a_viewer_whose_control_queue_overflows_ends_with_server_full() -> None:
+    async def body(w: World) -> None:
+        a = w.join("m-a", avatar="anna")
+        v = w.join("m-v", avatar=None)
+        await until(lambda: "m-a" in v.client.formats)
+        assert v.viewer.control_limit == 1 << 20  # the setting
+        v.viewer.control_limit = 1500  # this viewer's only (a's announcements come in bursts too)
+        v.blocked.clear()
+        a.bs(1, 0.1)
+        await until(lambda: v.viewer.sends == 1)  # stuck on the socket
+        for i in range(5):  # ~500 bytes of join and avatar each (remote: no viewers of their own here)
+            w.rooms.remote_joined("lab", MemberInfo(f"m-x{i}", "ben", "srv-2", True))
+        await until(lambda: v.tasks[0].done())
+        err = v.tasks[0].exception()
+        assert isinstance(err, SessionFatal) and err.err.code == E.SERVER_FULL and err.err.fatal
+        assert "room_control_bytes" in err.err.message and not v.viewer.control
+        assert _sample(w, "ofera_room_events_total", event="overflow") == 1
+        assert not a.tasks[0].done()  # nobody else is affected
+
+    in_world(body, room_members=8, room_control_bytes=1 << 20)
+
+
+def test_a_large_member_is_not_starved_by_smaller_ones_under_room_send_bytes() -> None:
+    async def body(w: World) -> None:
+        big = w.join("m-b", avatar="big")
+        s1 = w.join("m-s1", avatar="anna")
+        s2 = w.join("m-s2", avatar="ben")
+        v = w.join("m-v", avatar=None)
+        await until(lambda: {"m-b", "m-s1", "m-s2"} <= set(v.client.formats))
+        for p in (big, s1, s2):
+            p.bs(1, 0.1)
+            await until(lambda p=p: v.by(p.member.id))
+        small, large = v.viewer.slots["m-s1"].size, v.viewer.slots["m-b"].size
+        assert large > small + 1
+        v.viewer.limit = 2 * small + 1  # two small frames fit in flight; a small one and the large one do not
+        gates: list[asyncio.Future] = []
+        send = v.viewer.send
+
+        async def held(data) -> None:
+            gate = asyncio.get_running_loop().create_future()
+            gates.append(gate)
+            await gate
+            await send(data)
+
+        v.viewer.send = held
+        s1.bs(2, 0.2)
+        await until(lambda: len(gates) == 1)
+        for seq in range(3, 23):  # every member has a new frame all the time; one send completes per round
+            for p in (big, s1, s2):
+                p.bs(seq, 0.1)
+            await asyncio.sleep(0.01)
+            next(g for g in gates if not g.done()).set_result(None)
+            await asyncio.sleep(0.01)
+        assert len(v.by("m-b")) >= 4, [len(v.by(m)) for m in ("m-b", "m-s1", "m-s2")]
+        for g in gates:
+            if not g.done():
+                g.set_result(None)
+
+    in_world(body)
+
+
+def test_a_params_viewer_sees_a_member_without_rig_as_a_member_without_avatar(caplog) -> None:
+    async def body(w: World) -> None:
+        k = w.join("m-k", avatar="kim")  # ARKit-driven: no rig
+        p1 = w.join("m-p1", avatar=None, encoding="params")
+        p2 = w.join("m-p2", avatar=None, encoding="params")
+        f = w.join("m-f", avatar=None)
+        await until(lambda: "m-k" in f.client.formats and "m-k" in p1.client.members and "m-k" in p2.client.members)
+        for p in (p1, p2):
+            assert p.client.members["m-k"].join == Join(member="m-k", publish=False) and "m-k" not in p.client.formats
+        k.bs(1, 0.3)
+        await until(lambda: f.by("m-k"))
+        await asyncio.sleep(0.05)
+        assert not p1.frames and not p2.frames
+        rig_logs = [r for r in caplog.records if "has no rig" in r.getMessage()]
+        assert len(rig_logs) == 1 and rig_logs[0].exc_info is None
+        w.rooms.leave_local("lab", "m-k", "bye")
+        await until(lambda: Leave("m-k", "bye") in p1.control)
+
+    in_world(body, room_members=5)
 
 
 # ============================================================================= the protocol additions

@@ -16,6 +16,7 @@ from .codec import (
     encode_frame,
     frame_format,
     member_format,
+    read_frame_header,
 )
 from .connection import ClientConnection, ClientState, ServerConnection, ServerState
 from .constants import (
@@ -39,6 +40,7 @@ from .messages import (
     ClientMessage,
     ErrorMessage,
     Frame,
+    FrameHeader,
     Hello,
     Join,
     Leave,
@@ -54,10 +56,10 @@ __all__ = [
     "BYTES_PER_GAUSSIAN", "CLOSE_NORMAL", "COORDS", "ENCODINGS", "ENDPOINT", "ERRORS", "LAYOUTS",
     "MAX_CLIENT_MESSAGE", "MAX_SERVER_MESSAGE", "PROTOCOL_VERSION",
     "Avatar", "AvatarAssembler", "AvatarChunk", "AvatarInfo", "Blendshapes", "Bye", "ClientConnection",
-    "ClientMessage", "ClientState", "ConnectionUsageError", "ErrorMessage", "Frame", "FrameFormat", "GaussianState",
-    "Hello", "Join", "Leave", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
+    "ClientMessage", "ClientState", "ConnectionUsageError", "ErrorMessage", "Frame", "FrameFormat", "FrameHeader",
+    "GaussianState", "Hello", "Join", "Leave", "Message", "Ping", "Pong", "ProtocolError", "Quant", "ServerConnection",
     "ServerMessage", "ServerState", "Welcome",
     "close_code", "decode_arrays", "decode_client_message", "decode_server_message", "encode",
     "encode_arrays", "encode_avatar_chunk", "encode_frame", "frame_format", "make_quant", "member_format",
-    "mirror_x_position", "mirror_x_rotation", "mirror_x_sh", "split_avatar", "to_coords",
+    "mirror_x_position", "mirror_x_rotation", "mirror_x_sh", "read_frame_header", "split_avatar", "to_coords",
 ]

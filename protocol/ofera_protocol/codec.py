@@ -8,6 +8,7 @@ arrays are copied once (into the returned bytes) after their encoding.
 from __future__ import annotations
 
 import re
+import struct
 from collections.abc import Mapping
 from typing import Any
 
@@ -59,6 +60,7 @@ from .messages import (
     DeltaFrame,
     ErrorMessage,
     Frame,
+    FrameHeader,
     Hello,
     Join,
     Leave,
@@ -373,7 +375,7 @@ def decode_hello(m: dict[str, Any]) -> Hello:
                             f"speaks protocol {PROTOCOL_VERSION}")
     room = decode_room(m, w)
     publish = F.get_bool(m, "publish", w, default=True)
-    if room is not None and publish and "avatar" not in m:
+    if room is not None and publish and m.get("avatar") is None:  # nil is absent (section 2)
         raise ProtocolError(BAD_FIELD, "hello: field 'avatar' is required to publish in a room (or send "
                             "'publish': false to watch)")
     watching = room is not None and not publish  # a watcher sends no bs: its layout is optional
@@ -650,6 +652,115 @@ def decode_server_message(data: bytes | bytearray | memoryview, fmt: FrameFormat
                             max_len=MAX_STR_LEN, min_len=0), fatal=F.get_bool(m, "fatal", w),
                             seq=F.get_int(m, "seq", w, lo=0, default=None))
     return Pong(t=F.get_int(m, "t", "pong"))
+
+
+# ============================================================================= header-only reading
+
+_SCALARS = {0xc0: None, 0xc2: False, 0xc3: True}
+_FIXED = {0xcc: ">B", 0xcd: ">H", 0xce: ">I", 0xcf: ">Q", 0xd0: ">b", 0xd1: ">h", 0xd2: ">i", 0xd3: ">q",
+          0xca: ">f", 0xcb: ">d"}
+_SIZED = {0xd9: (1, "str"), 0xda: (2, "str"), 0xdb: (4, "str"), 0xc4: (1, "bin"), 0xc5: (2, "bin"),
+          0xc6: (4, "bin"), 0xdc: (2, "array"), 0xdd: (4, "array"), 0xde: (2, "map"), 0xdf: (4, "map")}
+
+
+def _truncated() -> ProtocolError:
+    return ProtocolError(MALFORMED, "not a valid msgpack message: truncated")
+
+
+def _skim(buf: memoryview, pos: int, depth: int) -> tuple[Any, int]:
+    """One msgpack value at `pos` -> (value, end). A `bin` comes back as a memoryview of `buf` (neither copied nor
+    read); the limits are those of unpack_message."""
+    if pos >= len(buf):
+        raise _truncated()
+    b = buf[pos]
+    pos += 1
+    if b < 0x80:
+        return b, pos
+    if b >= 0xe0:
+        return b - 0x100, pos
+    if b in _SCALARS:
+        return _SCALARS[b], pos
+    if b in _FIXED:
+        fmt = _FIXED[b]
+        if pos + struct.calcsize(fmt) > len(buf):
+            raise _truncated()
+        return struct.unpack_from(fmt, buf, pos)[0], pos + struct.calcsize(fmt)
+    if 0xa0 <= b <= 0xbf:
+        n, kind = b & 0x1f, "str"
+    elif b <= 0x8f:
+        n, kind = b & 0x0f, "map"
+    elif b <= 0x9f:
+        n, kind = b & 0x0f, "array"
+    elif b in _SIZED:
+        width, kind = _SIZED[b]
+        if pos + width > len(buf):
+            raise _truncated()
+        n, pos = int.from_bytes(buf[pos:pos + width], "big"), pos + width
+    else:
+        raise ProtocolError(MALFORMED, f"not a valid msgpack message: type byte 0x{b:02x} (ext or reserved)")
+    if kind in ("str", "bin"):
+        if kind == "str" and n > MAX_STR_LEN:
+            raise ProtocolError(MALFORMED, f"not a valid msgpack message: a str of {n} bytes exceeds {MAX_STR_LEN}")
+        if pos + n > len(buf):
+            raise _truncated()
+        if kind == "bin":
+            return buf[pos:pos + n], pos + n
+        try:
+            return str(buf[pos:pos + n], "utf-8"), pos + n
+        except UnicodeDecodeError as e:
+            raise ProtocolError(MALFORMED, f"not a valid msgpack message: UnicodeDecodeError: {e}") from None
+    if n > MAX_CONTAINER_LEN:
+        raise ProtocolError(MALFORMED, f"not a valid msgpack message: a {kind} of {n} entries exceeds "
+                            f"{MAX_CONTAINER_LEN}")
+    if depth > MAX_DEPTH:
+        raise ProtocolError(MALFORMED, f"containers nested deeper than {MAX_DEPTH} levels")
+    if kind == "array":
+        items = []
+        for _ in range(n):
+            v, pos = _skim(buf, pos, depth + 1)
+            items.append(v)
+        return items, pos
+    out: dict[str, Any] = {}
+    for _ in range(n):
+        k, pos = _skim(buf, pos, depth + 1)
+        if type(k) is not str:
+            raise ProtocolError(MALFORMED, f"map key {k!r} is not a string")
+        out[k], pos = _skim(buf, pos, depth + 1)
+    return out, pos
+
+
+def read_frame_header(data: bytes | bytearray | memoryview, max_size: int = MAX_SERVER_MESSAGE
+                      ) -> FrameHeader | None:
+    """The FrameHeader of a `frame` (seq, t, timing, n, key, member, size), None for another server message.
+
+    Reads the msgpack structure only: `bin` payloads (the arrays) are skipped by their length, never read, copied
+    or checked, whatever their place in the map; the small fields are checked as decode_server_message checks
+    them (so is the type of a non-frame message). Raises ProtocolError (malformed input, bad fields)."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError(MALFORMED, f"expected bytes, got {type(data).__name__}")
+    buf = memoryview(data).cast("B")
+    if buf.nbytes > max_size:
+        raise ProtocolError(MESSAGE_TOO_LARGE, f"message of {buf.nbytes} bytes exceeds the limit of {max_size}")
+    m, end = _skim(buf, 0, 1)
+    if end != buf.nbytes:
+        raise ProtocolError(MALFORMED, f"not a valid msgpack message: {buf.nbytes - end} bytes after the message")
+    if not isinstance(m, dict):
+        raise ProtocolError(MALFORMED, f"message must be a msgpack map, got {F._type_name(m)}")
+    if _message_type(m, SERVER_TYPES, "server") != "frame":
+        return None
+    w = "frame"
+    member = F.get_str(m, "member", w, default=None)
+    if "params" in m:  # a params frame (PROTOCOL.md 13): seq and t together or neither, timing only with them
+        seq, t = F.get_int(m, "seq", w, lo=0, default=None), F.get_int(m, "t", w, default=None)
+        if (seq is None) != (t is None):
+            raise ProtocolError(BAD_FIELD, "frame: a params frame carries 'seq' and 't' together or neither")
+        if m.get("timing") is not None and seq is None:
+            raise ProtocolError(BAD_FIELD, "frame: 'timing' on a params frame without 'seq' and 't'")
+        timing = decode_timing(m) if m.get("timing") is not None else None
+        return FrameHeader(seq=seq, t=t, timing=timing, size=buf.nbytes, member=member)
+    return FrameHeader(seq=F.get_int(m, "seq", w, lo=0), t=F.get_int(m, "t", w), timing=decode_timing(m),
+                       size=buf.nbytes, n=F.get_int(m, "n", w, lo=0, hi=UINT32_MAX),
+                       key=F.get_bool(m, "key", w, default=None), member=member)
 
 
 # ============================================================================= params sessions (PROTOCOL.md 13)

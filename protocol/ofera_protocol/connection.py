@@ -23,6 +23,7 @@ from .codec import (
     encode_frame,
     frame_format,
     member_format,
+    read_frame_header,
 )
 from .constants import (
     COORDS,
@@ -54,6 +55,7 @@ from .messages import (
     DeltaFrame,
     ErrorMessage,
     Frame,
+    FrameHeader,
     Hello,
     Join,
     Leave,
@@ -386,13 +388,52 @@ class ClientConnection:
             msg = decode_server_message(data, self.format, self.max_message_size, members)
             return self._advance(msg)
         except ProtocolError as e:
-            if self.delta is not None and self.state is ClientState.STREAMING:
-                self.resync_needed = True  # whatever failed may have been a delta frame
-            if self.state is not ClientState.STREAMING:
-                e = e.as_fatal()
-            if e.fatal:
-                self.state = ClientState.CLOSED
-            raise e from None
+            raise self._failed(e) from None
+
+    def _failed(self, e: ProtocolError) -> ProtocolError:
+        """The error a failed receive raises (fatal before the stream starts), the state updated."""
+        if self.delta is not None and self.state is ClientState.STREAMING:
+            self.resync_needed = True  # whatever failed may have been a delta frame
+        if self.state is not ClientState.STREAMING:
+            e = e.as_fatal()
+        if e.fatal:
+            self.state = ClientState.CLOSED
+        return e
+
+    def receive_header(self, data: bytes | bytearray | memoryview) -> ServerMessage | FrameHeader:
+        """As `receive`, but a frame comes back as its FrameHeader (codec.read_frame_header): its arrays are neither
+        decoded nor checked. The frame is still checked against the state (streaming; in a room, of a member joined
+        with a complete avatar) and counted (`RoomMember.frames`); what its arrays carry is not kept, so
+        `track_gaussians`, delta and params sessions (whose state the arrays build) raise ConnectionUsageError."""
+        if self.state is ClientState.CLOSED:
+            raise ConnectionUsageError("receive_header() on a closed connection")
+        hello = self.sent_hello
+        if self.track_gaussians or (hello is not None and (hello.delta or hello.encoding == PARAMS)):
+            raise ConnectionUsageError("receive_header() leaves the arrays of frames unread: it cannot keep Gaussians "
+                                       "(track_gaussians) nor follow a delta or params session")
+        try:
+            head = read_frame_header(data, self.max_message_size)
+            if head is not None:
+                self._advance_header(head)
+        except ProtocolError as e:
+            raise self._failed(e) from None
+        return self.receive(data) if head is None else head
+
+    def _advance_header(self, head: FrameHeader) -> None:
+        """The checks and counts `_advance` does for a frame, on its header (same errors as `receive`)."""
+        room = self.welcome is not None and self.welcome.room is not None
+        if room and head.member is not None:
+            if head.member not in self.formats:
+                raise ProtocolError(NOT_READY, f"frame of member {head.member[:64]!r} before its join and avatar",
+                                    False)
+        elif self.format is None:
+            raise ProtocolError(NOT_READY, "frame before welcome: the session's format is unknown")
+        if self.state is not ClientState.STREAMING:
+            raise ProtocolError(NOT_READY, f"frame before the avatar was complete (state {self.state.value})")
+        if head.member is not None:
+            if not room:
+                raise ProtocolError(NOT_READY, "frame with a member outside a room session")
+            self.members[head.member].frames += 1
 
     def receive_text(self, text: str) -> None:
         self.state = ClientState.CLOSED

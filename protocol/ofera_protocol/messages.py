@@ -303,6 +303,24 @@ class ParamsFrame(_ArrayEq):
 
 
 ClientMessage = Hello | Blendshapes | Ping | Bye | Resync
+@dataclass
+class FrameHeader:
+    """The small fields of a `frame` (codec.read_frame_header), its arrays neither decoded nor checked.
+
+    `size`: the message's bytes. `n`: Gaussians carried (None for a params frame, PROTOCOL.md 13); `key`: delta
+    sessions only (PROTOCOL.md 7.1); `member`: rooms only. `seq`, `t` and `timing` are None only on an unstamped
+    params frame (`timing` also on a stamped one that carries none)."""
+
+    TYPE: ClassVar[str] = "frame"
+    seq: int | None
+    t: int | None
+    timing: dict[str, int] | None
+    size: int
+    n: int | None = None
+    key: bool | None = None
+    member: str | None = None
+
+
 ServerMessage = Welcome | AvatarChunk | Frame | DeltaFrame | ErrorMessage | Pong | Join | Leave | RigChunk | ParamsFrame
 Message = ClientMessage | ServerMessage
 

@@ -178,6 +178,10 @@ def replay(
     room_token: Annotated[str | None, typer.Option("--room-token", help="With --room: the room's token, if the "
                                                    "server has a room secret.")] = None,
     seconds: Annotated[float | None, typer.Option("--seconds", help="With --watch: how long to watch.")] = None,
+    full_decode: Annotated[bool, typer.Option("--full-decode", help="Decode and check every frame's arrays. "
+                                              "Default: read only each frame's seq, t and timing (a light load "
+                                              "generator), unless --record-positions or --delta need the "
+                                              "arrays.")] = False,
 ) -> None:
     """Send a recorded face log to a server at its recorded pace and measure the frames that come back.
 
@@ -192,10 +196,10 @@ def replay(
     if watch or room is not None:
         _room_checks(log, room, watch, delta, seconds)
     if watch:
-        _watch(log, url, room, encoding, token, room_token, json_out, seconds, quiet)
+        _watch(log, url, room, encoding, token, room_token, json_out, seconds, quiet, full_decode)
         return
     _replay(log, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar, encoding,
-            token, max_lag, drain, quiet, delta, room, self_view, room_token)
+            token, max_lag, drain, quiet, delta, room, self_view, room_token, full_decode)
 
 
 @user_errors()
@@ -211,7 +215,7 @@ def _room_checks(log, room, watch, delta, seconds) -> None:
 
 
 @user_errors()
-def _watch(log_path, url, room, encoding, token, room_token, json_out, seconds, quiet) -> None:
+def _watch(log_path, url, room, encoding, token, room_token, json_out, seconds, quiet, full_decode=False) -> None:
     from ofera.replay import LinkOptions, stream_url, watch_through
 
     _check_encoding(encoding)
@@ -222,7 +226,7 @@ def _watch(log_path, url, room, encoding, token, room_token, json_out, seconds, 
         log, _ = read_facelog_report(log_path, "auto", None)
         seconds = float(log.duration)
     options = LinkOptions(layout="arkit52", encoding=encoding, token=token, room=room, publish=False,
-                          room_token=room_token)
+                          room_token=room_token, header_only=not full_decode)
     console = _err_console()
     console.print(f"watching room {room!r} at {target}" + (f" for {seconds:g} s" if seconds else " until Ctrl-C"))
     stop = asyncio.Event()
@@ -246,7 +250,8 @@ def _watch(log_path, url, room, encoding, token, room_token, json_out, seconds, 
 
 @user_errors()
 def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_positions, json_out, avatar,
-            encoding, token, max_lag, drain, quiet, delta=False, room=None, self_view=False, room_token=None) -> None:
+            encoding, token, max_lag, drain, quiet, delta=False, room=None, self_view=False, room_token=None,
+            full_decode=False) -> None:
     from ofera.replay import FrameRecorder, LinkOptions, Replayer, replay_through, stream_url
     from ofera.sources import read_facelog_report
 
@@ -265,7 +270,8 @@ def _replay(log_path, url, speed, loop, passes, layout, fps, record, record_posi
                         max_passes=passes if loop else 1)
     recorder = FrameRecorder(log.layout.name, log.weights, replayer.times, record_positions) if record else None
     options = LinkOptions(layout=log.layout.name, avatar=avatar, encoding=encoding, token=token, delta=delta,
-                          track=record_positions, room=room, self_view=self_view, room_token=room_token)
+                          track=record_positions, room=room, self_view=self_view, room_token=room_token,
+                          header_only=not (full_decode or record_positions or delta))
     console = _err_console()
     console.print(f"replaying {log_path} ({len(log)} frames, {log.duration:.2f} s, layout {log.layout.name}) "
                   f"to {target} at x{speed:g}{' in a loop' if loop else ''}")

@@ -10,6 +10,9 @@ Rooms (PROTOCOL.md 12): `connect(url, room="lab", avatar="default")` joins a roo
 `publish=False` watches only (`watch(url, "lab")`). Every member's frames come through `recv_frame` with
 `frame.member`; `client.members` holds who is there (their join, avatar, Gaussians with `track=True`),
 `client.member_latency` per-member latency, `client.joins` / `client.leaves` the membership events seen.
+
+Load generators: `connect(url, header_only=True)` returns every frame as a FrameHeader (seq, t, timing, n, member,
+size), its arrays neither decoded nor checked (`codec.read_frame_header`).
 """
 
 from __future__ import annotations
@@ -25,8 +28,10 @@ from ofera_protocol import (
     Avatar,
     ClientConnection,
     ClientState,
+    ConnectionUsageError,
     ErrorMessage,
     Frame,
+    FrameHeader,
     Join,
     Leave,
     Pong,
@@ -72,9 +77,11 @@ class ServerError(Exception):
 class Client:
     """One open session (use `connect`). Not safe for concurrent receivers: one task reads."""
 
-    def __init__(self, ws: WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar | None) -> None:
+    def __init__(self, ws: WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar | None,
+                 header_only: bool = False) -> None:
         self.ws = ws
         self.conn = conn
+        self.header_only = header_only  # frames come as FrameHeader (connect(header_only=True))
         self.welcome = welcome
         self.avatar = avatar  # None in a room session: every avatar comes with a join (`members`)
         self.latency = LatencyStats()
@@ -144,9 +151,10 @@ class Client:
 
     # ------------------------------------------------------------------ receiving
 
-    async def recv(self, timeout: float | None = None) -> ServerMessage:
-        """The next server message (Frame, ErrorMessage or Pong), decoded. Frames update `latency`.
-        Raises ServerError when the connection closes, TimeoutError on timeout."""
+    async def recv(self, timeout: float | None = None) -> ServerMessage | FrameHeader:
+        """The next server message (Frame, ErrorMessage or Pong), decoded; with `header_only` a frame is its
+        FrameHeader. Frames update `latency`. Raises ServerError when the connection closes, TimeoutError on
+        timeout."""
         try:
             data = await asyncio.wait_for(self.ws.recv(), timeout)
         except ConnectionClosed as e:
@@ -157,12 +165,12 @@ class Client:
             raise ServerError("text_frame", "the server sent a text message", True)
         self.last_bytes = len(data)
         try:
-            msg = self.conn.receive(data)
+            msg = self.conn.receive_header(data) if self.header_only else self.conn.receive(data)
         except ProtocolError:
             if self.conn.resync_needed:  # a delta frame was lost: the server must send a key frame
                 await self.resync()
             raise
-        if isinstance(msg, Frame):
+        if isinstance(msg, (Frame, FrameHeader)):  # a header is never a params frame's (connect refuses those)
             self.frames_received += 1
             self.latency.add(now_us() - msg.t)
             if msg.member is not None:
@@ -196,13 +204,13 @@ class Client:
             deformer = self._member_deformers[msg.member] = RigDeformer(m.rig)
         deformer.apply(msg.params, m.gaussians, self.welcome.coords)
 
-    async def recv_frame(self, timeout: float | None = None) -> Frame | ParamsFrame:
-        """The next frame (a params session's: a ParamsFrame). Non-fatal errors are kept in `errors`; a fatal one
-        raises ServerError. Rooms: joins, avatar chunks and leaves are taken in passing (`members`, `joins`,
-        `leaves`); `timeout` applies to each message."""
+    async def recv_frame(self, timeout: float | None = None) -> Frame | ParamsFrame | FrameHeader:
+        """The next frame (a params session's: a ParamsFrame; with `header_only`: a FrameHeader). Non-fatal errors
+        are kept in `errors`; a fatal one raises ServerError. Rooms: joins, avatar chunks and leaves are taken in
+        passing (`members`, `joins`, `leaves`); `timeout` applies to each message."""
         while True:
             msg = await self.recv(timeout)
-            if isinstance(msg, (Frame, ParamsFrame)):
+            if isinstance(msg, (Frame, ParamsFrame, FrameHeader)):
                 return msg
             if isinstance(msg, ErrorMessage):
                 if msg.fatal:
@@ -254,7 +262,7 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
                   sparse: bool = False, max_gaussians: int | None = None, open_timeout: float = 60.0,
                   max_size: int = MAX_SERVER_MESSAGE, max_queue: int = 2, delta: bool = False,
                   track: bool = False, room: str | None = None, publish: bool = True, self_view: bool = False,
-                  room_token: str | None = None) -> Client:
+                  room_token: str | None = None, header_only: bool = False) -> Client:
     """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused.
 
     `delta`: ask for key/delta frames (f16, q13; PROTOCOL.md 7.1): delta frames are returned as sparse-like
@@ -268,7 +276,16 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
 
     `room` joins that room (PROTOCOL.md 12): `publish` False watches only, `self_view` also receives one's own
     avatar, `room_token` answers a server with a room secret. The handshake ends at welcome (avatars follow with
-    each join)."""
+    each join).
+
+    `header_only` (load generators): frames come back as FrameHeader, their arrays neither decoded nor checked
+    (`ClientConnection.receive_header`); with `track`, `delta` or `encoding="params"`, which need the arrays, it
+    raises ConnectionUsageError before connecting."""
+    if header_only:
+        for asked, what in ((track, "track=True"), (delta, "delta=True"), (encoding == "params", 'encoding="params"')):
+            if asked:
+                raise ConnectionUsageError(f"header_only=True leaves the arrays of frames undecoded: {what} needs "
+                                           "them (use header_only=False)")
     ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
                           ping_interval=None, max_queue=max_queue)
     conn = ClientConnection(max_message_size=max_size, track_gaussians=track)
@@ -281,7 +298,7 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
         await ws.close()
         raise
     assert conn.avatar is not None or room is not None
-    return Client(ws, conn, welcome, conn.avatar)
+    return Client(ws, conn, welcome, conn.avatar, header_only)
 
 
 async def watch(url: str, room: str, **kwargs: object) -> Client:

@@ -1,10 +1,10 @@
 """A session with an OFERA server as the replay and ingest tools use it, on `ofera.client`.
 
 `open_link(url, options)` performs the handshake (hello -> welcome -> avatar) and returns a `Link`:
-`send(seq, t_us, w)` sends one `bs`, `events()` yields every `Frame` and `ErrorMessage` the server
-sends (a frame the codec cannot decode is yielded as a non-fatal error), `close()` says bye. Anything
-that prevents the session (refused hello, nothing listening, timeout) raises `LinkError` with a
-message that says what to do.
+`send(seq, t_us, w)` sends one `bs`, `events()` yields every `Frame` (a `FrameHeader` with
+`LinkOptions.header_only`) and `ErrorMessage` the server sends (a frame the codec cannot decode is
+yielded as a non-fatal error), `close()` says bye. Anything that prevents the session (refused hello,
+nothing listening, timeout) raises `LinkError` with a message that says what to do.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 
 import numpy as np
-from ofera_protocol import ConnectionUsageError, ErrorMessage, Frame, ProtocolError
+from ofera_protocol import ConnectionUsageError, ErrorMessage, Frame, FrameHeader, ProtocolError
 
 from ofera.client import Client, ServerError, connect, stream_url
 
@@ -43,6 +43,7 @@ class LinkOptions:
     publish: bool = True  # rooms: False watches only
     self_view: bool = False  # rooms: also receive one's own avatar
     room_token: str | None = None  # rooms: the room's token, if the server asks for one
+    header_only: bool = False  # frames as FrameHeader, arrays undecoded (not with delta or track; client.connect)
 
 
 class Link:
@@ -70,7 +71,7 @@ class Link:
         """One `bs`; `conf`: optional (2,) [lower, upper] face confidence in [0, 1]."""
         await self.client.send_bs(w, seq=seq, t=t_us, conf=conf)
 
-    async def events(self) -> AsyncIterator[Frame | ErrorMessage]:
+    async def events(self) -> AsyncIterator[Frame | FrameHeader | ErrorMessage]:
         """Frames and errors until the connection closes; a fatal error is yielded last."""
         while True:
             try:
@@ -88,7 +89,7 @@ class Link:
                 else:
                     yield ErrorMessage(e.code, e.message, True)
                 return
-            if isinstance(msg, (Frame, ErrorMessage)):
+            if isinstance(msg, (Frame, FrameHeader, ErrorMessage)):
                 yield msg
                 if isinstance(msg, ErrorMessage) and msg.fatal:
                     return
@@ -108,7 +109,8 @@ async def open_link(url: str, options: LinkOptions) -> Link:
         client = await connect(target, layout=options.layout, avatar=options.avatar, encoding=options.encoding,
                                token=options.token, device=options.device, open_timeout=options.open_timeout,
                                delta=options.delta, track=options.track, room=options.room,
-                               publish=options.publish, self_view=options.self_view, room_token=options.room_token)
+                               publish=options.publish, self_view=options.self_view, room_token=options.room_token,
+                               header_only=options.header_only)
     except ServerError as e:
         if e.code == "closed":
             raise LinkError(f"the server closed the connection during the handshake: {e}") from None

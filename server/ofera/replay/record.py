@@ -21,7 +21,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from ofera_protocol import Frame
+from ofera_protocol import Frame, FrameHeader
 
 
 class FrameRecorder:
@@ -43,9 +43,12 @@ class FrameRecorder:
     def __len__(self) -> int:
         return len(self.seq)
 
-    def add(self, frame: Frame, recv_us: int, state: object | None = None) -> None:
-        """One received frame; `state` (a GaussianState: the client's reconstruction) is what `position` records
-        for frames that carry only some Gaussians (sparse and delta frames)."""
+    def add(self, frame: Frame | FrameHeader, recv_us: int, state: object | None = None) -> None:
+        """One received frame (a FrameHeader is enough without `positions`); `state` (a GaussianState: the client's
+        reconstruction) is what `position` records for frames that carry only some Gaussians (sparse and delta
+        frames)."""
+        if self.positions and isinstance(frame, FrameHeader):
+            raise ValueError("recording positions needs decoded frames, not headers (LinkOptions.header_only)")
         self.seq.append(int(frame.seq))
         self.key.append(-1 if frame.key is None else int(frame.key))
         self.t_us.append(int(frame.t))

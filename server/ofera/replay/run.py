@@ -8,7 +8,7 @@ import contextlib
 import time
 from collections.abc import Callable
 
-from ofera_protocol import ErrorMessage, Frame
+from ofera_protocol import ErrorMessage, Frame, FrameHeader
 
 from ofera.replay.core import Replayer, ReplayStats
 from ofera.replay.link import Link, LinkError, LinkOptions, open_link
@@ -22,15 +22,15 @@ def now_us() -> int:
 async def receive_loop(
     link: Link,
     stats: ReplayStats,
-    on_frame: Callable[[Frame, int], None] | None = None,
+    on_frame: Callable[[Frame | FrameHeader, int], None] | None = None,
     on_fatal: Callable[[], None] | None = None,
 ) -> None:
     """Count every frame and error the server sends until the session ends. A fatal error, or the
     server closing the connection, calls `on_fatal` (the sender stops)."""
     async for msg in link.events():
-        if isinstance(msg, Frame) and msg.member is not None and msg.member != link.member:
+        if isinstance(msg, (Frame, FrameHeader)) and msg.member is not None and msg.member != link.member:
             stats.on_member_frame(msg.member, now_us(), msg.t)  # rooms: another member's frame
-        elif isinstance(msg, Frame):
+        elif isinstance(msg, (Frame, FrameHeader)):
             t = now_us()
             stats.on_frame(t, msg.t, msg.seq)
             if on_frame is not None:
@@ -68,7 +68,7 @@ async def replay_through(
 
     answered = asyncio.Event()
 
-    def on_frame(frame: Frame, t: int) -> None:
+    def on_frame(frame: Frame | FrameHeader, t: int) -> None:
         if recorder is not None:
             recorder.add(frame, t, link.client.gaussians)
         answered.set()

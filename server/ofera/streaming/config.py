@@ -9,6 +9,12 @@ from ofera_protocol.constants import MAX_CLIENT_MESSAGE
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+ROOM_CONTROL_BYTES = 256 * 1024 * 1024
+"""Default `room_control_bytes`: a newcomer to a full room (16 members) of 115,600-Gaussian avatars (the built-in
+one: 6.5 MB of avatar messages each, sh degree 0) queues about 104 MB at once; 256 MiB leaves room for larger ones.
+The avatar bytes are shared by every viewer of a wire format: the bound counts them per viewer, memory does not."""
+
+
 
 class Settings(BaseSettings):
     """Everything the streaming server can be told. Environment: ``OFERA_<NAME>`` (e.g. ``OFERA_PORT``)."""
@@ -66,6 +72,10 @@ class Settings(BaseSettings):
     room_send_bytes: int = Field(32 * 1024 * 1024, ge=1, description="Rooms: most bytes of frames in flight per "
                                  "connection (frames of several members sent concurrently up to this; beyond it "
                                  "they wait, newest wins).")
+    room_control_bytes: int = Field(ROOM_CONTROL_BYTES, ge=1, description="Rooms: most bytes of join, avatar "
+                                    "and leave messages queued per connection (one member's always may); beyond it "
+                                    "the connection reads too slowly: its session ends with a fatal server_full "
+                                    "(PROTOCOL.md 12.6). Keep it above room_members x the largest avatar's bytes.")
     room_secret: str | None = Field(None, description="Rooms: if set, every room hello must carry room_token = hex "
                                     "HMAC-SHA256(room_secret, room name) (PROTOCOL.md 12.1).")
     redis_url: str | None = Field(
