@@ -106,30 +106,23 @@ class ReplayGroup(TyperGroup):
     def format_help(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         self.commands[PLAY].format_help(ctx, formatter)  # usage `ofera replay [OPTIONS] LOG` (PlayCommand)
         rows = [(name, cmd.get_short_help_str(limit=70)) for name, cmd in self.commands.items() if not cmd.hidden]
-        try:
-            from rich.console import Console
-            from rich.panel import Panel
-            from rich.table import Table
-        except ImportError:  # plain click help: the commands after the options
-            with formatter.section("Commands"):
-                formatter.write_dl(rows)
-            return
-        table = Table.grid(padding=(0, 2))
-        for name, text in rows:
-            table.add_row(f"[bold cyan]{name}[/]", text)
-        Console().print(Panel(table, title="Commands", title_align="left", border_style="dim"))
+        with formatter.section("Commands"):  # plain click help, like every command's (cli.main: no rich markup)
+            formatter.write_dl(rows)
 
 
 class PlayCommand(TyperCommand):
     """The hidden `play` command: its usage line is `ofera replay [OPTIONS] LOG`, how it is invoked."""
 
     def get_usage(self, ctx: click.Context) -> str:
+        formatter = ctx.make_formatter()
+        self.format_usage(ctx, formatter)
+        return formatter.getvalue().rstrip("\n")
+
+    def format_usage(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         path = ctx.command_path
         if ctx.info_name == PLAY and ctx.parent is not None:
             path = ctx.parent.command_path
-        formatter = ctx.make_formatter()
         formatter.write_usage(path, " ".join(self.collect_usage_pieces(ctx)))
-        return formatter.getvalue().rstrip("\n")
 
 
 replay_app = typer.Typer(cls=ReplayGroup, context_settings={"help_option_names": list(HELP_OPTIONS)},
