@@ -41,6 +41,26 @@ SHARED_DATA = Path(os.environ.get("OFERA_SHARED_DATA") or ROOT.parent / "shared"
 CAPTURE = Path(os.environ.get("OFERA_CAPTURE") or SHARED_DATA / "livelink_dao.gesichter")
 AVATAR_ID = "bench"
 IMPLS = ("fast", "reference")
+PARAMS_SESSION_JS = """\
+  const P = await import("/static/protocol.js");
+  const R = await import("/static/rig.js");
+  const ws = new WebSocket(`ws://${location.host}/v1/stream`);
+  ws.binaryType = "arraybuffer";
+  const queue = []; let waiter = null;
+  ws.onmessage = (ev) => { if (waiter) { const w = waiter; waiter = null; w(ev.data); } else queue.push(ev.data); };
+  const next = () => queue.length ? Promise.resolve(queue.shift()) : new Promise((r) => { waiter = r; });
+  await new Promise((r) => { ws.onopen = r; });
+  ws.send(P.helloMessage({ layout, encoding: "params" }));
+  const welcome = P.decodeServerMessage(new Uint8Array(await next()));
+  const asm = new R.RigAssembler(welcome.rigBytes ?? null);
+  for (;;) {
+    const m = P.decodeServerMessage(new Uint8Array(await next()));
+    if (m.type === "rig" && asm.add(m)) break;
+  }
+"""
+"""JavaScript, the start of an async function of ``layout`` run in a page of the server: a params session
+(``ws``, ``next()`` its next message, ``welcome``) whose rig ``asm`` has come in whole (``P``: protocol.js, ``R``:
+rig.js). Shared by benchmarks/params.py and tests/test_params_browser.py."""
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -186,6 +206,22 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_healthz(proc: subprocess.Popen, port: int, timeout: float) -> bool:
+    """Wait for the server process ``proc`` to answer ``http://127.0.0.1:<port>/healthz`` with 200: True when it
+    does, False when ``proc`` exits first or ``timeout`` seconds pass (``proc.poll()`` tells which)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            return False
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=2) as r:
+                if r.status == 200:
+                    return True
+        except OSError:
+            time.sleep(0.2)
+    return False
+
+
 @dataclass
 class ServerProcess:
     """``ofera`` server in a subprocess serving the ``bench`` avatar as the default."""
@@ -212,16 +248,10 @@ class ServerProcess:
         env = None if self.pythonpath is None else {**os.environ, "PYTHONPATH": self.pythonpath}
         self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "serve", json.dumps(settings),
                                       self.impl], stdout=self.log, stderr=subprocess.STDOUT, env=env)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"benchmark server exited ({self.proc.returncode}):\n{self.output()}")
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/healthz", timeout=2) as r:
-                    if r.status == 200:
-                        return self
-            except OSError:
-                time.sleep(0.2)
+        if wait_healthz(self.proc, self.port, timeout):
+            return self
+        if self.proc.poll() is not None:
+            raise RuntimeError(f"benchmark server exited ({self.proc.returncode}):\n{self.output()}")
         self.stop()
         raise RuntimeError(f"benchmark server did not come up in {timeout:.0f} s:\n{self.output()}")
 
@@ -378,6 +408,17 @@ async def paced_session(client, weights: np.ndarray, start_us: float, period_us:
     except asyncio.TimeoutError:
         recv_task.cancel()
     return now_us()
+
+
+def largest_ok(results: dict) -> int:
+    """The largest K of ``results`` (K -> a run with ``passes``) such that every K' <= K passed (a later pass after
+    a failure is noise); 0 when the smallest fails."""
+    best = 0
+    for k in sorted(results):
+        if not results[k]["passes"]:
+            break
+        best = k
+    return best
 
 
 def drop_latencies(scheduled_us: dict[int, float], arrivals: list[tuple[int, float]],

@@ -197,16 +197,6 @@ def passes(r: dict, budget: float, max_drop: float) -> bool:
     return r["drop_fraction"] <= max_drop and r["p99_ms"] is not None and r["p99_ms"] < budget
 
 
-def largest_ok(results: dict) -> int:
-    """The largest K such that every K' <= K passed (a later pass after a failure is noise)."""
-    best = 0
-    for k in sorted(results):
-        if not results[k]["passes"]:
-            break
-        best = k
-    return best
-
-
 def plot(path: Path, runs: dict, budget: float, max_drop: float, title: str) -> None:
     plt = C.pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(17, 4.5))
@@ -280,7 +270,7 @@ def main(argv: list[str] | None = None) -> dict:
         "budget_ms": args.budget_ms,
         "max_drop": args.max_drop,
         "per_k": {str(k): {kk: v for kk, v in r.items() if not kk.startswith("_")} for k, r in fast.items()},
-        "max_sessions_within_budget": largest_ok(fast),
+        "max_sessions_within_budget": C.largest_ok(fast),
         "target_sessions": 8,
         "definitions": {"latency": "frame received (header read) - scheduled send time of its bs, loopback; a "
                                    "dropped bs counts with the arrival of the first later frame",
@@ -294,7 +284,7 @@ def main(argv: list[str] | None = None) -> dict:
         ref = runs["reference"]
         report["reference"] = {"per_k": {str(k): {kk: v for kk, v in r.items() if not kk.startswith("_")}
                                          for k, r in ref.items()},
-                               "max_sessions_within_budget": largest_ok(ref)}
+                               "max_sessions_within_budget": C.largest_ok(ref)}
         report["ratios_p99"] = {str(k): C.ratio(fast[k]["p99_ms"], ref[k]["p99_ms"]) for k in ref if k in fast}
     rows = []
     for impl, res in runs.items():

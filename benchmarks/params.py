@@ -38,23 +38,7 @@ import _common as C  # noqa: E402
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--no-sandbox", "--no-first-run"]
-BROWSER_SCRIPT = """async ([layout, weights]) => {
-  const P = await import("/static/protocol.js");
-  const R = await import("/static/rig.js");
-  const ws = new WebSocket(`ws://${location.host}/v1/stream`);
-  ws.binaryType = "arraybuffer";
-  const queue = []; let waiter = null;
-  ws.onmessage = (ev) => { if (waiter) { const w = waiter; waiter = null; w(ev.data); } else queue.push(ev.data); };
-  const next = () => queue.length ? Promise.resolve(queue.shift()) : new Promise((r) => { waiter = r; });
-  await new Promise((r) => { ws.onopen = r; });
-  ws.send(P.helloMessage({ layout, encoding: "params" }));
-  const welcome = P.decodeServerMessage(new Uint8Array(await next()));
-  const n = welcome.avatar.count;
-  const asm = new R.RigAssembler(welcome.rigBytes ?? null);
-  for (;;) {
-    const m = P.decodeServerMessage(new Uint8Array(await next()));
-    if (m.type === "rig" && asm.add(m)) break;
-  }
+BROWSER_SCRIPT = "async ([layout, weights]) => {\n" + C.PARAMS_SESSION_JS + """  const n = welcome.avatar.count;
   const t0 = performance.now();
   const deformer = new R.RigDeformer(R.decodeRig(asm.result()));
   const setupMs = performance.now() - t0;

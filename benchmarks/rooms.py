@@ -359,15 +359,6 @@ def sweep(avatars: Path, servers: int, encodings: list[str], ks: list[int], weig
     return out
 
 
-def largest_ok(res: dict) -> int:
-    best = 0
-    for k in sorted(res):
-        if not res[k]["passes"]:
-            break
-        best = k
-    return best
-
-
 def plot(path: Path, runs: dict, budget: float, max_drop: float, title: str) -> None:
     plt = C.pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(13, 4.5))
@@ -440,7 +431,7 @@ def main(argv: list[str] | None = None) -> dict:
                                if floor["p50"] else None}
     summary = {}
     for (mode, enc), res in runs.items():
-        summary[f"{enc}, {mode}"] = {"largest_passing_k": largest_ok(res)}
+        summary[f"{enc}, {mode}"] = {"largest_passing_k": C.largest_ok(res)}
     redis_adds = {}
     for (mode, enc), res in runs.items():
         one = runs.get(("one server", enc))

@@ -103,6 +103,18 @@ def wait_settled(page, after_seq: int) -> None:
     wait(page, f"__ofera.settled && __ofera.drawnSeq > {after_seq}")
 
 
+def drag_across(page, selector: str) -> tuple[float, float]:
+    """The orbit gesture: press at the centre of `selector`'s box, drag 150 px right and 20 px down, release; the
+    centre, for a double click that brings the view back."""
+    box = page.locator(selector).bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    page.mouse.move(x + 150, y + 20, steps=5)
+    page.mouse.up()
+    return x, y
+
+
 def canvas_pixels(page) -> np.ndarray:
     """The canvas's own pixels (its drawing buffer is preserved), without the text drawn over it."""
     from PIL import Image

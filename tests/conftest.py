@@ -12,6 +12,14 @@ SHARED_DATA = Path(os.environ.get("OFERA_SHARED_DATA") or Path(__file__).resolve
 """Real captures made by others (not in the repository): ``$OFERA_SHARED_DATA``, else ``../shared/data``."""
 
 
+def skip_or_fail(missing: str, what: str) -> None:
+    """Skip the test for a missing tool (`missing`: which, and how to install it); fail instead when CI is set (CI
+    installs the tools: .ci/run), saying that `what` cannot run in CI."""
+    if os.environ.get("CI"):
+        pytest.fail(f"{what} cannot run in CI: {missing}")
+    pytest.skip(missing)
+
+
 @pytest.fixture(scope="session")
 def head():
     from ofera.head import default_head
@@ -41,9 +49,7 @@ def browser() -> Iterator:
     """Headless Chromium (the system's, through playwright) for the browser tests; skips (fails in CI) without it."""
     missing = _browser_missing()
     if missing:
-        if os.environ.get("CI"):
-            pytest.fail(f"browser test cannot run in CI: {missing}")
-        pytest.skip(missing)
+        skip_or_fail(missing, "browser test")
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:

@@ -4,7 +4,6 @@ port. Without the redis-server binary the tests skip (and fail when CI is set: .
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 import socket
 import subprocess
@@ -12,7 +11,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 
-import pytest
+from conftest import skip_or_fail
 
 REDIS_SERVER = "redis-server"
 
@@ -82,9 +81,7 @@ def require_redis() -> None:
     """Skip without redis-server; fail instead when CI is set."""
     missing = redis_missing()
     if missing:
-        if os.environ.get("CI"):
-            pytest.fail(f"Redis test cannot run in CI: {missing}")
-        pytest.skip(missing)
+        skip_or_fail(missing, "Redis test")
 
 
 @contextlib.contextmanager

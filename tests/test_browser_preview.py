@@ -20,6 +20,7 @@ import pytest
 from browser_support import (
     STATE,
     canvas_pixels,
+    drag_across,
     foreground,
     ofera_serve,
     open_page,
@@ -150,12 +151,7 @@ def test_reduced_stream_forced_and_automatic(browser, server) -> None:
 def check_camera_and_presets(page) -> None:
     """Orbit camera: drag rotates, the wheel zooms, a double click goes back; a preset button sends its shape."""
     home = canvas_pixels(page)
-    box = page.locator("#canvas").bounding_box()
-    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-    page.mouse.move(x, y)
-    page.mouse.down()
-    page.mouse.move(x + 150, y + 20, steps=5)
-    page.mouse.up()
+    x, y = drag_across(page, "#canvas")
     wait(page, "__ofera.settled")
     turned = canvas_pixels(page)
     assert (np.abs(turned - home).max(axis=2) > 40).mean() > 0.05, "dragging did not turn the view"

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from browser_support import canvas_pixels, foreground, ofera_serve, open_page, page_errors, wait
+from browser_support import canvas_pixels, drag_across, foreground, ofera_serve, open_page, page_errors, wait
 
 ROOT = Path(__file__).resolve().parents[1]
 VECTORS = ROOT / "protocol" / "vectors"
@@ -237,12 +237,7 @@ def test_room_field_joins_and_leaves(browser, server) -> None:
         home = _tile_pixels(page, me)
         assert foreground(home).mean() > 0.05, "one's own tile shows no avatar"
         # the tiles' orbit camera: a drag turns the view, a double click brings it back
-        box = page.locator(f".tile[data-member='{me}'] canvas").bounding_box()
-        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
-        page.mouse.move(x, y)
-        page.mouse.down()
-        page.mouse.move(x + 150, y + 20, steps=5)
-        page.mouse.up()
+        x, y = drag_across(page, f".tile[data-member='{me}'] canvas")
         wait(page, "__ofera.room.settled")
         assert (np.abs(_tile_pixels(page, me) - home).max(axis=2) > 40).mean() > 0.05, "dragging did not turn the tile"
         page.mouse.dblclick(x, y)

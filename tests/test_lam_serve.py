@@ -5,9 +5,6 @@ written here, and on the real statue in ../shared/data when present)."""
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import lam_fixtures as L
@@ -18,7 +15,7 @@ from ofera.mapping.layouts import ARKIT52_NAMES
 from ofera.streaming import Settings, offline_pipeline
 from ofera.streaming.registry import AvatarRegistry
 from ofera.streaming.server import ServerThread
-from test_server_support import SMALL, main_server, run
+from test_server_support import SMALL, main_server, private_cache, run
 
 STATUE = Path(__file__).resolve().parents[2] / "shared" / "data" / "lam_statue.zip"
 
@@ -27,27 +24,19 @@ STATUE = Path(__file__).resolve().parents[2] / "shared" / "data" / "lam_statue.z
 def env():
     """An avatars directory (face.zip, broken.zip, statue.zip -> the real one if present), a private cache,
     and a server on it."""
-    root = Path(tempfile.mkdtemp(prefix="ofera-lam-"))
-    old = os.environ.get("OFERA_CACHE")
-    os.environ["OFERA_CACHE"] = str(root / "cache")
-    avatars = root / "avatars"
-    avatars.mkdir()
-    L.make_zip(avatars / "face.zip", junk=True, extra_json=True)
-    (avatars / "broken.zip").write_bytes(b"PK\x03\x04 not really a zip")
-    if STATUE.is_file():
-        (avatars / "statue.zip").symlink_to(STATUE)
-    settings = Settings(host="127.0.0.1", port=0, avatars=avatars, default_avatar="face", log_level="warning",
-                        compute_threads=2, hello_timeout=5.0)
-    server = ServerThread(settings).start()
-    try:
-        yield settings, server, root
-    finally:
-        server.stop()
-        if old is None:
-            os.environ.pop("OFERA_CACHE", None)
-        else:
-            os.environ["OFERA_CACHE"] = old
-        shutil.rmtree(root, ignore_errors=True)
+    with private_cache("ofera-lam-") as root:
+        avatars = root / "avatars"
+        L.make_zip(avatars / "face.zip", junk=True, extra_json=True)
+        (avatars / "broken.zip").write_bytes(b"PK\x03\x04 not really a zip")
+        if STATUE.is_file():
+            (avatars / "statue.zip").symlink_to(STATUE)
+        settings = Settings(host="127.0.0.1", port=0, avatars=avatars, default_avatar="face", log_level="warning",
+                            compute_threads=2, hello_timeout=5.0)
+        server = ServerThread(settings).start()
+        try:
+            yield settings, server, root
+        finally:
+            server.stop()
 
 
 def arkit52(**named: float) -> np.ndarray:

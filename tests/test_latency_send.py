@@ -60,6 +60,8 @@ def test_frames_are_exact_timed_and_counted_per_stage(event_loop: str, monkeypat
         big = run(stream(server.url, w, 3, encoding="f32"))  # 2000 Gaussians x 40 B: the no-copy path
         small = run(stream(server.url, w, 2, encoding="q13", sparse=True, max_gaussians=200))  # joined to its header
         text = httpx.get(f"{server.http_url}/metrics", timeout=10).text
+        loop = httpx.get(f"{server.http_url}/healthz", timeout=10).json()["event_loop"]
+    assert loop.startswith("uvloop.") == (event_loop == "uvloop"), loop  # the server ran the loop asked for
     state, _ = offline_pipeline("default", "arkit52", w, settings=settings())
     assert sum(n > SMALL_MESSAGE for n in sizes) >= 3 and sum(n <= SMALL_MESSAGE for n in sizes) >= 2  # both ways
     for frame in big:

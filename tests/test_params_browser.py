@@ -7,6 +7,7 @@ Needs /usr/bin/chromium and the `playwright` package (conftest.py's `browser` fi
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,6 +20,11 @@ CAPTURE = SHARED_DATA / "livelink_dao.gesichter"
 pytestmark = pytest.mark.timeout(900)
 
 COMPARE = (Path(__file__).resolve().parent / "params_compare.js").read_text()
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+try:
+    from _common import PARAMS_SESSION_JS  # the one definition, shared with benchmarks/params.py
+finally:
+    sys.path.remove(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 
 
@@ -98,23 +104,7 @@ RIG_JS = """async ([body, params, count, impl, coords]) => {
   return out;
 }"""
 
-FAST_VS_REFERENCE_JS = """async ([layout, params]) => {
-  const P = await import("/static/protocol.js");
-  const R = await import("/static/rig.js");
-  const ws = new WebSocket(`ws://${location.host}/v1/stream`);
-  ws.binaryType = "arraybuffer";
-  const queue = []; let waiter = null;
-  ws.onmessage = (ev) => { if (waiter) { const w = waiter; waiter = null; w(ev.data); } else queue.push(ev.data); };
-  const next = () => queue.length ? Promise.resolve(queue.shift()) : new Promise((r) => { waiter = r; });
-  await new Promise((r) => { ws.onopen = r; });
-  ws.send(P.helloMessage({ layout, encoding: "params" }));
-  const welcome = P.decodeServerMessage(new Uint8Array(await next()));
-  const asm = new R.RigAssembler(welcome.rigBytes ?? null);
-  for (;;) {
-    const m = P.decodeServerMessage(new Uint8Array(await next()));
-    if (m.type === "rig" && asm.add(m)) break;
-  }
-  ws.close();
+FAST_VS_REFERENCE_JS = "async ([layout, params]) => {\n" + PARAMS_SESSION_JS + """  ws.close();
   const rig = R.decodeRig(asm.result()), n = rig.count;
   let t = performance.now();
   const d = new R.RigDeformer(rig);

@@ -5,11 +5,7 @@ an ARKit-driven avatar; and the writer's stamping and checks."""
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
 import time
-from pathlib import Path
 
 import lam_fixtures as L
 import numpy as np
@@ -20,7 +16,7 @@ from ofera.streaming.params import ParamsWriter
 from ofera.streaming.server import ServerThread
 from ofera_protocol.codec import decode_server_message
 from ofera_protocol.messages import ParamsFormat, ParamsFrame
-from test_server_support import SMALL, make_small_avatar, run, settings
+from test_server_support import SMALL, make_small_avatar, private_cache, run, settings
 
 CAPTURE = SHARED_DATA / "livelink_dao.gesichter"
 TOLERANCE_M = 5e-5  # the issue's 0.05 mm
@@ -30,23 +26,15 @@ pytestmark = pytest.mark.timeout(900)
 @pytest.fixture(scope="module")
 def server():
     """The built-in default avatar (`default`, 115,600 Gaussians), the small one, and a LAM zip (`face`)."""
-    root = Path(tempfile.mkdtemp(prefix="ofera-params-"))
-    old = os.environ.get("OFERA_CACHE")
-    os.environ["OFERA_CACHE"] = str(root / "cache")
-    avatars = root / "avatars"
-    avatars.mkdir()
-    make_small_avatar(avatars / f"{SMALL}.npz")
-    L.make_zip(avatars / "face.zip")
-    srv = ServerThread(settings(avatars=avatars, default_avatar="default")).start()
-    try:
-        yield srv
-    finally:
-        srv.stop()
-        if old is None:
-            os.environ.pop("OFERA_CACHE", None)
-        else:
-            os.environ["OFERA_CACHE"] = old
-        shutil.rmtree(root, ignore_errors=True)
+    with private_cache("ofera-params-") as root:
+        avatars = root / "avatars"
+        make_small_avatar(avatars / f"{SMALL}.npz")
+        L.make_zip(avatars / "face.zip")
+        srv = ServerThread(settings(avatars=avatars, default_avatar="default")).start()
+        try:
+            yield srv
+        finally:
+            srv.stop()
 
 
 def rotation_error(a: np.ndarray, b: np.ndarray) -> float:

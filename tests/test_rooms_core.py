@@ -561,9 +561,12 @@ def test_bad_remote_values_are_dropped_and_no_viewer_session_ends() -> None:
     in_world(body)
 
 
-def test_a_frame_that_fails_to_encode_is_dropped_for_its_viewer_only(caplog) -> None:
+def test_a_frame_that_fails_to_encode_is_dropped_for_its_viewer_only(caplog, monkeypatch) -> None:
+    from ofera.streaming import rooms
     from ofera.streaming.member_wire import MemberWire
-    from ofera.streaming.rooms import PendingValues
+    from ofera.streaming.rooms import LogLimit, PendingValues
+
+    monkeypatch.setattr(rooms, "limited", LogLimit(rooms.log))  # no record held back by an earlier test
 
     class FlakyWriter:
         needs_state = False
@@ -667,40 +670,57 @@ def test_a_viewer_whose_control_queue_overflows_ends_with_server_full() -> None:
 
 
 def test_a_large_member_is_not_starved_by_smaller_ones_under_room_send_bytes() -> None:
+    """Head of line: a member whose frame does not fit in room_send_bytes now goes next once it fits; smaller
+    members' frames do not overtake it."""
+    from ofera.streaming.roles import ComputedFrame
+
+    def frame(member: str, seq: int) -> ComputedFrame:
+        n = 60 if member == "m-b" else N
+        state = SimpleNamespace(position=np.full((n, 3), 0.1, np.float32), scale=np.full((n, 3), 0.01, np.float32),
+                                rotation=np.tile(np.float32([0, 0, 0, 1]), (n, 1)))
+        return ComputedFrame(seq, seq, state, {}, 0, None, member)
+
     async def body(w: World) -> None:
-        big = w.join("m-b", avatar="big")
-        s1 = w.join("m-s1", avatar="anna")
-        s2 = w.join("m-s2", avatar="ben")
+        peers = [w.join(m, avatar=a) for m, a in (("m-b", "big"), ("m-s1", "anna"), ("m-s2", "ben"))]
         v = w.join("m-v", avatar=None)
         await until(lambda: {"m-b", "m-s1", "m-s2"} <= set(v.client.formats))
-        for p in (big, s1, s2):
+        for p in peers:
             p.bs(1, 0.1)
             await until(lambda p=p: v.by(p.member.id))
-        small, large = v.viewer.slots["m-s1"].size, v.viewer.slots["m-b"].size
+        viewer = v.viewer
+        viewer.slots = {m: viewer.slots[m] for m in ("m-b", "m-s1", "m-s2")}  # this round-robin order
+        small, large = viewer.slots["m-s1"].size, viewer.slots["m-b"].size
         assert large > small + 1
-        v.viewer.limit = 2 * small + 1  # two small frames fit in flight; a small one and the large one do not
+        viewer.limit = 2 * small + 1  # two small frames fit in flight; a small one and the large one do not
+        viewer._turn = 0
         gates: list[asyncio.Future] = []
-        send = v.viewer.send
+        sizes: list[int] = []
+        send = viewer.send
 
         async def held(data) -> None:
             gate = asyncio.get_running_loop().create_future()
             gates.append(gate)
+            sizes.append(len(data))
             await gate
             await send(data)
 
-        v.viewer.send = held
-        s1.bs(2, 0.2)
+        viewer.send = held
+        viewer.slots["m-s1"].offer(frame("m-s1", 2))
         await until(lambda: len(gates) == 1)
-        for seq in range(3, 23):  # every member has a new frame all the time; one send completes per round
-            for p in (big, s1, s2):
-                p.bs(seq, 0.1)
-            await asyncio.sleep(0.01)
+        viewer.slots["m-b"].offer(frame("m-b", 2))
+        viewer.slots["m-s2"].offer(frame("m-s2", 2))
+        await until(lambda: len(gates) == 2)  # m-s2 fits next to m-s1; m-b does not
+        for seq in range(3, 9):  # one send completes, one small member has a new frame, in turn
             next(g for g in gates if not g.done()).set_result(None)
-            await asyncio.sleep(0.01)
-        assert len(v.by("m-b")) >= 4, [len(v.by(m)) for m in ("m-b", "m-s1", "m-s2")]
+            await asyncio.sleep(0.02)
+            member = "m-s1" if seq % 2 else "m-s2"
+            viewer.slots[member].offer(frame(member, seq))
+            await asyncio.sleep(0.02)
+        assert max(sizes) > 2 * small, sizes  # m-b was sent while the small ones kept coming
         for g in gates:
             if not g.done():
                 g.set_result(None)
+        await until(lambda: v.by("m-b")[-1].seq == 2)
 
     in_world(body)
 

@@ -143,6 +143,30 @@ def test_rooms_are_separate_and_a_late_server_sees_who_is_there(redis_server: Re
     asyncio.run(main())
 
 
+def test_the_remote_members_of_a_room_are_bounded(redis_server: RedisServer) -> None:
+    """Beyond max_remote, remote members are not reported; once one leaves, a reconcile reports the next."""
+
+    async def main() -> None:
+        a, b = bus(redis_server.url, "A", max_remote=2), bus(redis_server.url, "B")
+        ra, rb = Recorder(), Recorder()
+        await a.start(ra)
+        await b.start(rb)
+        await a.join(ROOM, ALICE)
+        others = [MemberInfo(f"m{i}", "", "B", False) for i in range(4)]
+        for info in others:
+            await b.join(ROOM, info)
+        await ra.wait(lambda: len(ra.of("joined")) == 2)
+        await asyncio.sleep(3 * a.heartbeat_s)  # reconciliations find the others: still ignored
+        assert [e[2].member for e in ra.of("joined")] == ["m0", "m1"] and metric(a, "ofera_bus_remote_members") == 2
+        await b.leave(ROOM, "m0", "bye")
+        await ra.wait(lambda: len(ra.of("joined")) == 3)  # a place: the next heartbeat reports one more
+        assert ra.of("joined")[-1][2].member in ("m2", "m3") and metric(a, "ofera_bus_remote_members") == 2
+        await b.close()
+        await a.close()
+
+    asyncio.run(main())
+
+
 def test_publish_is_newest_wins_and_never_waits(redis_server: RedisServer) -> None:
     async def main() -> None:
         a, b = bus(redis_server.url, "A"), bus(redis_server.url, "B")

@@ -10,8 +10,8 @@ import signal
 import subprocess
 import sys
 import time
-import urllib.request
 from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,6 +20,12 @@ from ofera.streaming import offline_pipeline
 from ofera_protocol import Frame, Join, Leave
 from redis_support import RedisServer, free_port, running_redis
 from test_server_support import SMALL, avatars_dir, run, settings
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+try:
+    from _common import wait_healthz  # the one definition, shared with the benchmarks' server processes
+finally:
+    sys.path.remove(str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 pytestmark = pytest.mark.timeout(300)
 ROOM = "two-processes"
@@ -41,16 +47,10 @@ class ServeProcess:
         return f"ws://127.0.0.1:{self.port}/v1/stream"
 
     def wait_ready(self, timeout: float = 180.0) -> ServeProcess:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"ofera serve exited {self.proc.returncode}: {self.proc.stdout.read().decode()}")
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/healthz", timeout=2) as r:
-                    if r.status == 200:
-                        return self
-            except OSError:
-                time.sleep(0.2)
+        if wait_healthz(self.proc, self.port, timeout):
+            return self
+        if self.proc.poll() is not None:
+            raise RuntimeError(f"ofera serve exited {self.proc.returncode}: {self.proc.stdout.read().decode()}")
         raise RuntimeError("ofera serve did not answer /healthz in time")
 
     def kill(self) -> None:

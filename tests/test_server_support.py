@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import asyncio
 import atexit
+import contextlib
 import dataclasses
 import functools
+import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -53,6 +56,24 @@ def _tempdir(prefix: str) -> Path:
     d = Path(tempfile.mkdtemp(prefix=prefix))
     atexit.register(shutil.rmtree, d, True)
     return d
+
+
+@contextlib.contextmanager
+def private_cache(prefix: str) -> Iterator[Path]:
+    """A temporary folder `root` holding an empty `root/avatars`, with $OFERA_CACHE at `root/cache` until the end of
+    the block; then $OFERA_CACHE is as it was and `root` is removed."""
+    root = Path(tempfile.mkdtemp(prefix=prefix))
+    old = os.environ.get("OFERA_CACHE")
+    os.environ["OFERA_CACHE"] = str(root / "cache")
+    (root / "avatars").mkdir()
+    try:
+        yield root
+    finally:
+        if old is None:
+            os.environ.pop("OFERA_CACHE", None)
+        else:
+            os.environ["OFERA_CACHE"] = old
+        shutil.rmtree(root, ignore_errors=True)
 
 
 @functools.cache

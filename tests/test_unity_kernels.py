@@ -279,18 +279,24 @@ def make_perm(rng: np.random.Generator) -> np.ndarray:
 CASES = [(enc, sparse, mirror) for enc in ("f32", "f16", "q13") for sparse in (False, True) for mirror in (False, True)]
 
 
-@pytest.mark.parametrize("kernel", KERNELS)
-def test_kernel_compiles_for_unity_and_tests(kernel, tmp_path):
-    """Both variants compile: byte-address buffers (what Unity binds) and structured (what the tests run)."""
-    spv = _compile(UPLOAD, kernel, tmp_path, defines=())
+def check_compiles_for_unity(path: Path, kernel: str, tmp_path: Path) -> None:
+    """`kernel` of `path` compiles as Unity binds it (byte-address buffers: valid SPIR-V, checked by spirv-val when
+    installed) and in the test variant (TEST_DEFINES), each with `kernel` as its entry point."""
+    spv = _compile(path, kernel, tmp_path, defines=())
     assert _entry(spv) == kernel
-    assert _entry(_compile(UPLOAD, kernel, tmp_path)) == kernel
+    assert _entry(_compile(path, kernel, tmp_path)) == kernel
     val = shutil.which("spirv-val")
     if val:
         out = tmp_path / "k.spv"
         out.write_bytes(spv)
         proc = subprocess.run([val, "--target-env", "vulkan1.1", str(out)], capture_output=True, text=True)
         assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_kernel_compiles_for_unity_and_tests(kernel, tmp_path):
+    """Both variants compile: byte-address buffers (what Unity binds) and structured (what the tests run)."""
+    check_compiles_for_unity(UPLOAD, kernel, tmp_path)
 
 
 def test_hide_writes_nan_positions_and_zero_scales(device, spirv):
@@ -375,20 +381,26 @@ def test_q13_tables_match_the_codec():
 TOOL = ROOT / "unity_client_stub" / "Tests" / "GpuReference.cs"
 
 
-@pytest.fixture(scope="module")
-def csharp_tool(tmp_path_factory):
+def build_csharp_tool(tool: Path, out_dir: Path) -> Path:
+    """`tool` (a .cs in unity_client_stub/Tests) compiled with the C# core (Runtime/Core) by mcs: `<stem>.exe` in
+    `out_dir`. Skips without mcs and mono (fails in CI)."""
     missing = [t for t in ("mcs", "mono") if shutil.which(t) is None]
     if missing:
         reason = f"{' and '.join(missing)} not found (apt-get install -y mono-mcs mono-runtime)"
         if os.environ.get("CI"):
             pytest.fail(f"CI is set but {reason}")
         pytest.skip(reason)
-    out = tmp_path_factory.mktemp("cs") / "GpuReference.exe"
-    core = sorted((ROOT / "unity_client_stub" / "Runtime" / "Core").glob("*.cs"))
-    cmd = ["mcs", "-langversion:7.2", "-nologo", "-warn:4", "-r:System.dll", f"-out:{out}", str(TOOL), *map(str, core)]
+    out = out_dir / f"{tool.stem}.exe"
+    core = sorted((tool.parents[1] / "Runtime" / "Core").glob("*.cs"))
+    cmd = ["mcs", "-langversion:7.2", "-nologo", "-warn:4", "-r:System.dll", f"-out:{out}", str(tool), *map(str, core)]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     return out
+
+
+@pytest.fixture(scope="module")
+def csharp_tool(tmp_path_factory):
+    return build_csharp_tool(TOOL, tmp_path_factory.mktemp("cs"))
 
 
 def _run_tool(tool: Path, work: Path, welcome: bytes, frames: list[bytes], perm: np.ndarray, m: int, mirror: bool):

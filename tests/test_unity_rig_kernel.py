@@ -12,12 +12,21 @@ without glslangValidator or a Vulkan adapter (CI installs both and fails instead
 
 from __future__ import annotations
 
-import os
-
 import msgpack
 import numpy as np
 import pytest
-from test_unity_kernels import NAN_BITS, SHADERS, UNMATCHED, _compile, _entry, device, hidden, ugs_pack_rotation
+from test_unity_kernels import (
+    NAN_BITS,
+    SHADERS,
+    UNMATCHED,
+    _compile,
+    _entry,
+    build_csharp_tool,
+    check_compiles_for_unity,
+    device,
+    hidden,
+    ugs_pack_rotation,
+)
 
 RIG = SHADERS / "OferaRigDeform.compute"
 KERNELS = ("CSOferaRigPose", "CSOferaRigVertices", "CSOferaRigFaces", "CSOferaRigGaussians")
@@ -146,18 +155,7 @@ def random_params(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
 @pytest.mark.parametrize("kernel", KERNELS)
 def test_rig_kernel_compiles_for_unity(kernel, tmp_path):
     """As Unity binds it (byte-address splat buffers), valid SPIR-V; and the test variant."""
-    import shutil
-    import subprocess
-
-    spv = _compile(RIG, kernel, tmp_path, defines=())
-    assert _entry(spv) == kernel
-    assert _entry(_compile(RIG, kernel, tmp_path)) == kernel
-    val = shutil.which("spirv-val")
-    if val:
-        out = tmp_path / "k.spv"
-        out.write_bytes(spv)
-        proc = subprocess.run([val, "--target-env", "vulkan1.1", str(out)], capture_output=True, text=True)
-        assert proc.returncode == 0, proc.stdout + proc.stderr
+    check_compiles_for_unity(RIG, kernel, tmp_path)
 
 
 VECTORS = SHADERS.parents[3] / "protocol" / "vectors"
@@ -244,21 +242,7 @@ TOOL = SHADERS.parents[2] / "Tests" / "RigGpuReference.cs"
 
 @pytest.fixture(scope="module")
 def csharp_rig_tool(tmp_path_factory):
-    import shutil
-    import subprocess
-
-    missing = [t for t in ("mcs", "mono") if shutil.which(t) is None]
-    if missing:
-        reason = f"{' and '.join(missing)} not found (apt-get install -y mono-mcs mono-runtime)"
-        if os.environ.get("CI"):
-            pytest.fail(f"CI is set but {reason}")
-        pytest.skip(reason)
-    out = tmp_path_factory.mktemp("cs") / "RigGpuReference.exe"
-    core = sorted((SHADERS.parents[2] / "Runtime" / "Core").glob("*.cs"))
-    cmd = ["mcs", "-langversion:7.2", "-nologo", "-warn:4", "-r:System.dll", f"-out:{out}", str(TOOL), *map(str, core)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    return out
+    return build_csharp_tool(TOOL, tmp_path_factory.mktemp("cs"))
 
 
 @pytest.mark.parametrize("kind", ["triangle", "barycentric"])

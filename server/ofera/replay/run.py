@@ -59,11 +59,8 @@ async def replay_through(
     server refused or broke the session (a refused handshake is reported the same way)."""
     stats = replayer.stats
     stats.started = time.monotonic()
-    try:
-        link = await open_link(url, options)
-    except LinkError as e:
-        stats.on_error(str(e), fatal=True)
-        stats.finished = time.monotonic()
+    link = await _open(url, options, stats)
+    if link is None:
         return stats
 
     answered = asyncio.Event()
@@ -101,11 +98,7 @@ async def replay_through(
     finally:
         if tick is not None:
             tick.cancel()
-        await link.close()
-        receiver.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await receiver
-        stats.finished = time.monotonic()
+        await _close(link, receiver, stats)
         room_events(stats, link)
         if on_tick is not None:
             on_tick(replayer)
@@ -119,11 +112,8 @@ async def watch_through(url: str, options: LinkOptions, seconds: float | None, s
     stats = ReplayStats()
     stats.started = time.monotonic()
     options = LinkOptions(**{**vars(options), "publish": False})
-    try:
-        link = await open_link(url, options)
-    except LinkError as e:
-        stats.on_error(str(e), fatal=True)
-        stats.finished = time.monotonic()
+    link = await _open(url, options, stats)
+    if link is None:
         return stats
     stop = stop or asyncio.Event()
     receiver = asyncio.create_task(receive_loop(link, stats, on_fatal=stop.set))
@@ -136,13 +126,29 @@ async def watch_through(url: str, options: LinkOptions, seconds: float | None, s
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(stop.wait(), left)
     finally:
-        await link.close()
-        receiver.cancel()
-        with contextlib.suppress(asyncio.CancelledError, Exception):
-            await receiver
-        stats.finished = time.monotonic()
+        await _close(link, receiver, stats)
     room_events(stats, link)
     return stats
+
+
+async def _open(url: str, options: LinkOptions, stats: ReplayStats) -> Link | None:
+    """The session's link; None when the server refused or could not be reached (`stats` then has the fatal error
+    and its finish time)."""
+    try:
+        return await open_link(url, options)
+    except LinkError as e:
+        stats.on_error(str(e), fatal=True)
+        stats.finished = time.monotonic()
+        return None
+
+
+async def _close(link: Link, receiver: asyncio.Task, stats: ReplayStats) -> None:
+    """Close the session, stop its receive loop, and stamp the stats' finish time."""
+    await link.close()
+    receiver.cancel()
+    with contextlib.suppress(asyncio.CancelledError, Exception):
+        await receiver
+    stats.finished = time.monotonic()
 
 
 def room_events(stats: ReplayStats, link: Link) -> None:

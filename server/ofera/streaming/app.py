@@ -131,10 +131,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get("/healthz")
     async def healthz() -> JSONResponse:
+        loop = type(asyncio.get_running_loop())  # event_loop: e.g. "uvloop.Loop" (the event_loop setting's choice)
         return JSONResponse({"status": "ok", "version": __version__, "protocol": PROTOCOL_VERSION,
                              "sessions": hub.active, "max_sessions": settings.max_sessions,
                              "rooms": len(hub.rooms.rooms) if hub.rooms is not None else 0,
-                             "tasks": len(asyncio.all_tasks())})
+                             "tasks": len(asyncio.all_tasks()), "event_loop": f"{loop.__module__}.{loop.__qualname__}"})
 
     @app.get("/metrics")
     async def metrics() -> Response:

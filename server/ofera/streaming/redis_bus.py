@@ -54,6 +54,11 @@ _MAX_TEXT = 256  # longest avatar id, server id or reason accepted from another 
 _U32 = 1 << 32
 _I64 = 1 << 63
 
+MAX_REMOTE_MEMBERS = 1024
+"""Most remote members of one room reported to the listener (`RedisBus.max_remote`): the hash and the channel are
+open to every server of the Redis; more are ignored (logged once while the room is full) until one leaves. Keep it
+above the servers' `room_members` (the listener applies that limit itself)."""
+
 LOST_REASON = "server_lost"  # remote_left reason: the member's server stopped heart-beating
 CLOSED_REASON = "server_closed"  # leave reason for members still present when this server closes its bus
 
@@ -165,7 +170,7 @@ class RedisBus:
 
     def __init__(self, url: str, metrics: Metrics | None = None, server_id: str | None = None, *,
                  prefix: str = "ofera", ttl_s: float = 2.0, heartbeat_s: float = 0.4, timeout_s: float = 2.0,
-                 backoff_s: tuple[float, float] = (0.1, 2.0)) -> None:
+                 backoff_s: tuple[float, float] = (0.1, 2.0), max_remote: int = MAX_REMOTE_MEMBERS) -> None:
         if not 0 < heartbeat_s < ttl_s:
             raise ValueError(f"heartbeat_s ({heartbeat_s}) must be positive and below ttl_s ({ttl_s})")
         self.url = url
@@ -176,6 +181,7 @@ class RedisBus:
         self.heartbeat_s = heartbeat_s
         self.timeout_s = timeout_s
         self.backoff_s = backoff_s
+        self.max_remote = max_remote
         self._listener: BusListener | None = None
         self._link: _Link | None = None  # None while Redis is lost (or before start / after close)
         self._reconnect: asyncio.Task | None = None
@@ -183,6 +189,7 @@ class RedisBus:
         self._closed = False
         self._local: dict[str, dict[str, MemberInfo]] = {}  # room -> this server's members there
         self._remote: dict[str, dict[str, MemberInfo]] = {}  # room -> remote members reported to the listener
+        self._full: set[str] = set()  # rooms whose remote members reached max_remote (logged)
         self._events: dict[str, int] = {}  # room -> membership events seen (a reconcile racing one is skipped)
         self._pending: dict[tuple[str, str], bytes] = {}  # (room, member) -> newest packed values, not yet sent
         self._withdraw: dict[tuple[str, str], str] = {}  # (room, member) -> reason: left while Redis was lost
@@ -509,7 +516,14 @@ class RedisBus:
                 self._remote_left(room, d["m"], d["r"])
 
     def _remote_joined(self, room: str, info: MemberInfo) -> None:
-        self._remote.setdefault(room, {})[info.member] = info
+        members = self._remote.setdefault(room, {})
+        if info.member not in members and len(members) >= self.max_remote:
+            if room not in self._full:  # a reconcile offers it again once a member left
+                self._full.add(room)
+                log.warning("rooms bus: room %s has %d remote members (max_remote): member %s of server %s and "
+                            "others are ignored until one leaves", room, len(members), info.member, info.server)
+            return
+        members[info.member] = info
         self.metrics.bus_remote_members.inc()
         self._call(self._listener.remote_joined, room, info)
 
@@ -517,6 +531,7 @@ class RedisBus:
         members = self._remote.get(room, {})
         if members.pop(member, None) is None:
             return
+        self._full.discard(room)
         if not members:
             del self._remote[room]
         self.metrics.bus_remote_members.dec()
@@ -526,6 +541,7 @@ class RedisBus:
         """Drop `room`'s remote members without telling the listener (the room is gone here, or the bus is)."""
         self.metrics.bus_remote_members.dec(len(self._remote.pop(room, {})))
         self._events.pop(room, None)
+        self._full.discard(room)
 
     # --- helpers ----------------------------------------------------------------------------------------------
     def _pack(self, **fields: object) -> bytes:
@@ -559,4 +575,5 @@ async def _drop(link: _Link) -> None:
         await link.client.aclose()
 
 
-__all__ = ["RedisBus", "check_redis", "decode_message", "redact", "VALUE_SIZES", "LOST_REASON", "CLOSED_REASON"]
+__all__ = ["RedisBus", "check_redis", "decode_message", "redact", "VALUE_SIZES", "MAX_REMOTE_MEMBERS", "LOST_REASON",
+           "CLOSED_REASON"]

@@ -1,9 +1,10 @@
 """Rooms (PROTOCOL.md 12): members who meet, each publishing member's frames watched by every other one.
 
 - `RoomViewer`: one connection's view of a room: one slot per member it watches (newest wins per member), a
-  queue of control messages (`join`, avatar chunks, `leave`), and one sender that encodes a member's frame only
-  when it is about to be sent (through the frame's shared cache: once per wire format) and keeps at most
-  `room_send_bytes` of frames in flight on the socket.
+  queue of control messages (`join`, avatar chunks, `leave`; at most `room_control_bytes`, else the session ends),
+  and one sender that encodes a member's frame only when it is about to be sent (through the frame's shared cache:
+  once per wire format; a frame that fails is dropped) and keeps at most `room_send_bytes` of frames in flight on
+  the socket (head of line: a frame that does not fit goes next once it does).
 - `Room`: the members of one room (local ones, connected here, and remote ones, on other servers through the
   bus), with subscribe / unsubscribe between their Sources and the local members' RoomViewers. Each member's
   avatar is prepared once per wire format (`wire.MemberWire`) for all viewers of that format.
@@ -21,17 +22,19 @@ import logging
 import secrets
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Hashable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from ofera_protocol import Hello, ProtocolError, ServerConnection, encode
 from ofera_protocol import errors as E
 from ofera_protocol.messages import Join, Leave
 
+from ..avatar.rig import RigError
 from .bus import BusListener, ExpressionValues, MemberInfo, RoomBus
-from .config import Settings
+from .config import ROOM_CONTROL_BYTES, Settings
 from .member_wire import MemberWire, prepare_member_wire, wire_key
 from .metrics import Metrics
 from .pipeline import AvatarAssets
@@ -43,6 +46,42 @@ log = logging.getLogger("ofera.streaming.rooms")
 
 BYE, CLOSED, STALE = "bye", "closed", "stale"
 """`leave.reason`s of this server: the member sent bye; its connection closed; the bus was lost (12.5)."""
+
+VALUES_LENGTH = {"flame68": 68, "arkit51": 51}
+"""Length of a remote member's expression values by its avatar's `expression` (bus.ExpressionValues)."""
+VALUE_LIMIT = 100.0
+"""Largest |value| accepted in a remote member's expression values; a frame beyond it is dropped (counted in
+`ofera_bus_malformed_total`). Ten times what real frames reach (the EPM's FLAME expression coefficients are O(1-10),
+its 6D rotation entries within +-1, ARKit weights within [0, 1]), and far below values whose deformed Gaussians
+could overflow a viewer's wire format (f16: +-65504)."""
+WAITING_LIMIT = 1024
+"""Most remote members of one room kept waiting (beyond `room_members`) for a place; more are ignored."""
+
+
+class LogLimit:
+    """Logs at most one record per key every `interval_s` seconds; the next one says how many were held back.
+    Event-loop only."""
+
+    def __init__(self, logger: logging.Logger, interval_s: float = 10.0) -> None:
+        self.logger, self.interval_s = logger, interval_s
+        self._last: dict[Hashable, tuple[float, int]] = {}  # key -> (time of its last record, records held back)
+
+    def __call__(self, key: Hashable, level: int, msg: str, *args: object) -> None:
+        now = time.monotonic()
+        last = self._last.get(key)
+        if last is not None and now - last[0] < self.interval_s:
+            self._last[key] = (last[0], last[1] + 1)
+            return
+        if len(self._last) >= 4096:  # keys of members long gone
+            self._last = {k: v for k, v in self._last.items() if now - v[0] < self.interval_s}
+        self._last[key] = (now, 0)
+        if last is not None and last[1]:
+            msg, args = msg + " (and %d more like it since the last report)", (*args, last[1])
+        self.logger.log(level, msg, *args)
+
+
+limited = LogLimit(log)
+"""The rooms' rate-limited log (per key: a member's bad frames, a room's ignored members)."""
 
 
 def new_member_id() -> str:
@@ -82,20 +121,27 @@ class MemberSlot:
 class RoomViewer:
     """Frames and control messages of one connection in a room. `run` sends until the connection fails."""
 
-    def __init__(self, send: SendBytes, executor: Executor, metrics: Metrics, limit_bytes: int) -> None:
+    def __init__(self, send: SendBytes, executor: Executor, metrics: Metrics, limit_bytes: int,
+                 control_bytes: int = ROOM_CONTROL_BYTES) -> None:
         self.send = send
         self.executor = executor
         self.metrics = metrics
         self.limit = limit_bytes
+        self.control_limit = control_bytes  # room_control_bytes (Rooms.join_local sets the server's setting)
         self.slots: dict[str, MemberSlot] = {}
         self.joined: set[str] = set()  # members whose join this viewer was sent (or queued)
-        self.control: deque[bytes] = deque()
+        # (member, message) for its join, avatar and rig messages; (None, message) for a leave
+        self.control: deque[tuple[str | None, bytes]] = deque()
+        self.control_bytes = 0  # bytes of the messages in `control`
+        self._unsent: set[str] = set()  # members whose join is still in `control`
         self.inflight = 0
         self.sent = 0
         self.skipped = 0
         self._event = asyncio.Event()
         self._sending: set[asyncio.Task] = set()
         self._error: BaseException | None = None
+        self._fatal: SessionFatal | None = None  # the control queue overflowed: run() ends with it
+        self._task: asyncio.Task | None = None  # run()'s
         self._turn = 0
 
     def ready(self) -> None:
@@ -111,8 +157,35 @@ class RoomViewer:
     def announce(self, member: str, messages: list[bytes]) -> None:
         """Queue `member`'s join (and avatar messages): sent before any of its frames."""
         self.joined.add(member)
-        self.control.extend(messages)
+        self._unsent.add(member)
+        self._queue(member, messages)
+
+    def _queue(self, owner: str | None, messages: list[bytes]) -> None:
+        """Queue control messages. Beyond `control_limit` bytes queued (one announcement always may) the viewer
+        fails: its session ends with a fatal `server_full` (PROTOCOL.md 12.6)."""
+        if self._fatal is not None:
+            return
+        n = sum(len(m) for m in messages)
+        if self.control and self.control_bytes + n > self.control_limit:
+            self._overflow(n)
+            return
+        self.control.extend((owner, m) for m in messages)
+        self.control_bytes += n
         self.ready()
+
+    def _overflow(self, n: int) -> None:
+        log.warning("a room viewer reads too slowly: %d bytes of join, avatar and leave messages queued, %d more "
+                    "would exceed room_control_bytes (%d): its session ends", self.control_bytes, n,
+                    self.control_limit)
+        self.metrics.room_events.labels("overflow").inc()
+        self._fatal = SessionFatal(ProtocolError(
+            E.SERVER_FULL, f"this connection reads too slowly: the room's join, avatar and leave messages waiting for "
+            f"it exceed the server's limit (room_control_bytes, {self.control_limit} bytes)", True))
+        self.control.clear()
+        self.control_bytes = 0
+        self._unsent.clear()
+        if self._task is not None:
+            self._task.cancel()  # run() may wait on a socket that never drains: it raises _fatal instead
 
     def add(self, wire: MemberWire, wake: Callable[[], None]) -> MemberSlot:
         """Watch `wire.member`: its join and avatar go out first, then its frames (`slot.offer`)."""
@@ -121,24 +194,29 @@ class RoomViewer:
         return slot
 
     def remove(self, member: str, reason: str) -> MemberSlot | None:
-        """Stop watching `member` (its unsent frame is dropped); a `leave` follows if its join was sent."""
+        """Stop watching `member`: its unsent frame and its queued join, avatar and rig messages are dropped; a
+        `leave` follows if its join was sent."""
         slot = self.slots.pop(member, None)
         if member in self.joined:
             self.joined.discard(member)
-            self.control.append(encode(Leave(member=member, reason=reason)))
-            self.ready()
+            if any(owner == member for owner, _ in self.control):
+                self.control = deque(c for c in self.control if c[0] != member)
+                self.control_bytes = sum(len(m) for _, m in self.control)
+            if member in self._unsent:
+                self._unsent.discard(member)  # the client never heard of it: no leave
+            else:
+                self._queue(None, [encode(Leave(member=member, reason=reason))])
         return slot
 
     # ------------------------------------------------------------------ sending
 
-    def _next(self) -> MemberSlot | None:
-        """The next member (round robin) with a frame to send and none on its way."""
+    def _next(self) -> tuple[int, MemberSlot] | None:
+        """The next member (round robin from `_turn`) with a frame to send and none on its way, and its turn."""
         slots = list(self.slots.values())
         for i in range(len(slots)):
-            slot = slots[(self._turn + i) % len(slots)]
-            if slot.full and not slot.busy:
-                self._turn = (self._turn + i + 1) % len(slots)
-                return slot
+            turn = (self._turn + i) % len(slots)
+            if slots[turn].full and not slots[turn].busy:
+                return turn, slots[turn]
         return None
 
     def _encode(self, wire: MemberWire, frame: ComputedFrame) -> Any:
@@ -171,34 +249,48 @@ class RoomViewer:
             raise self._error
 
     async def run(self) -> None:
+        """Send until the connection fails (its exception) or the control queue overflows (SessionFatal)."""
         loop = asyncio.get_running_loop()
+        self._task = asyncio.current_task()
         try:
             while True:
+                if self._fatal is not None:
+                    raise self._fatal
                 if self._error is not None:
                     raise self._error
                 if self.control:
                     await self._drain()
                     while self.control:
-                        data = self.control.popleft()
+                        owner, data = self.control.popleft()
+                        self.control_bytes -= len(data)
+                        if owner is not None:
+                            self._unsent.discard(owner)  # a member's first message is its join: it goes out now
                         await self.send(data)
                         self.metrics.bytes_out.inc(len(data))
                     continue
-                slot = self._next()
-                if slot is None or (self.inflight and self.inflight + slot.size > self.limit):
+                picked = self._next()
+                if picked is None:
                     self._event.clear()
                     await self._event.wait()
                     continue
+                turn, slot = picked
+                if self.inflight and self.inflight + slot.size > self.limit:
+                    self._turn = turn  # head of line: this member goes next, once its frame fits
+                    self._event.clear()
+                    await self._event.wait()
+                    continue
+                self._turn = turn + 1
                 frame = slot.take()
                 data = frame.cached(slot.wire.key)  # another viewer of this format encoded it: no thread hop
                 if data is None:
                     slot.busy = True
                     try:
                         data = await loop.run_in_executor(self.executor, self._encode, slot.wire, frame)
-                    except Exception as exc:
-                        log.exception("encoding frame %d of member %s failed", frame.seq, slot.wire.member)
-                        raise SessionFatal(ProtocolError(E.INTERNAL, f"the server failed encoding frame {frame.seq} "
-                                                         f"of member {slot.wire.member}: {type(exc).__name__}",
-                                                         True)) from exc
+                    except Exception as exc:  # noqa: BLE001 - one member's bad frame: dropped, the viewer goes on
+                        self.metrics.room_events.labels("bad_frame").inc()
+                        limited(("encode", slot.wire.member), logging.ERROR, "encoding frame %d of member %s failed "
+                                "(%s: %s): the frame is dropped", frame.seq, slot.wire.member, type(exc).__name__, exc)
+                        continue
                     finally:
                         slot.busy = False
                     if self.slots.get(slot.wire.member) is not slot:
@@ -209,9 +301,18 @@ class RoomViewer:
                 task = asyncio.create_task(self._send_frame(slot, data, frame))
                 self._sending.add(task)
                 task.add_done_callback(self._sending.discard)
+        except asyncio.CancelledError:
+            if self._fatal is None:
+                raise
+            task = asyncio.current_task()
+            assert task is not None
+            task.uncancel()  # our own cancel (_overflow): end with its error instead
+            raise self._fatal from None
         finally:
+            self._task = None
             for task in list(self._sending):
                 task.cancel()
+
 
 
 @dataclass
@@ -251,8 +352,10 @@ class Room:
         self.name = name
         self.rooms = rooms
         self.members: dict[str, Member] = {}
+        self.waiting: dict[str, MemberInfo] = {}  # remote members beyond room_members, in arrival order
         self._wires: dict[tuple, asyncio.Future[MemberWire]] = {}
         self._tasks: set[asyncio.Task] = set()
+        self._unrigged: set[str] = set()  # members whose avatar has no rig (logged once)
 
     @property
     def local_count(self) -> int:
@@ -291,6 +394,7 @@ class Room:
             member.task.cancel()
         for key in [k for k in self._wires if k[0] == member_id]:
             del self._wires[key]
+        self._unrigged.discard(member_id)
         return member
 
     def subscribe(self, viewer: Member, target: Member) -> None:
@@ -310,6 +414,10 @@ class Room:
     async def _subscribe(self, viewer: Member, target: Member) -> None:
         try:
             wire = await self._wire(target, viewer)
+        except RigError as exc:  # a params viewer of an avatar without a rig: it sees a member without avatar
+            if self.members.get(target.id) is target and self.members.get(viewer.id) is viewer:
+                self._unrig(viewer, target, exc)
+            return
         except Exception:
             log.exception("room %s: preparing member %s for member %s failed", self.name, target.id, viewer.id)
             return
@@ -323,13 +431,25 @@ class Room:
         target.source.subscribers.append(slot.offer)
         target.source.wake()
 
+    def _unrig(self, viewer: Member, target: Member, exc: RigError) -> None:
+        """PROTOCOL.md 13.6: a params viewer is sent a `join` without avatar (as for a watch-only member) for a
+        publishing member whose avatar has no rig, and none of its frames."""
+        assert viewer.viewer is not None
+        if target.id not in self._unrigged:
+            self._unrigged.add(target.id)
+            log.warning("room %s: member %s has no rig (%s): params viewers see it without avatar or frames",
+                        self.name, target.id, exc)
+        if target.id not in viewer.viewer.joined:
+            viewer.viewer.announce(target.id, [encode(Join(member=target.id, publish=False))])
+
     def _wire(self, target: Member, viewer: Member) -> asyncio.Future[MemberWire]:
-        """`target`'s avatar in `viewer`'s wire format, prepared once per format (in the executor)."""
+        """`target`'s avatar in `viewer`'s wire format, prepared once per format (in the executor; a failure other
+        than RigError is tried again for the next viewer)."""
         assert viewer.hello is not None and viewer.conn is not None and target.assets is not None
         hello = viewer.hello
         key = (target.id, *wire_key(hello, reduced_size(hello.max_gaussians, target.assets.count)))
         fut = self._wires.get(key)
-        if fut is None or (fut.done() and fut.exception() is not None):
+        if fut is None or (fut.done() and fut.exception() is not None and not isinstance(fut.exception(), RigError)):
             loop = asyncio.get_running_loop()
             fut = self._wires[key] = loop.run_in_executor(self.rooms.executor, prepare_member_wire, viewer.conn,
                                                           target.assets, target.id, hello, self.rooms.settings)
@@ -352,8 +472,10 @@ class RemoteSource(Source):
         return ComputedFrame(msg.seq, msg.t, state, timing, p.received_ns, msg.values, self.member)
 
     def _failed(self, pending: Any, exc: Exception) -> None:
-        log.error("deforming frame %d of remote member %s failed: %s: %s", pending.seq, self.member,
-                  type(exc).__name__, exc)
+        """The frame is dropped (logged at most once per 10 s per member, counted as room event `bad_frame`)."""
+        self.metrics.room_events.labels("bad_frame").inc()
+        limited(("deform", self.member), logging.ERROR, "deforming frame %d of remote member %s failed: %s: %s",
+                pending.seq, self.member, type(exc).__name__, exc)
 
 
 @dataclass
@@ -402,6 +524,8 @@ class Rooms(BusListener):
         if r is None:
             r = self.rooms[room] = Room(room, self)
             self.metrics.rooms.set(len(self.rooms))
+        if member.viewer is not None:
+            member.viewer.control_limit = self.settings.room_control_bytes
         src = member.source
         if src is not None:
             src.member = member.id
@@ -428,6 +552,7 @@ class Rooms(BusListener):
             self._spawn(self.bus.leave(room, member_id, reason), f"bus leave {member_id}")
         log.info("room %s: member %s left (%s)", room, member_id, reason)
         self._close_if_empty(r)
+        self._admit_waiting(r)
 
     def _close_if_empty(self, r: Room) -> None:
         if r.local_count == 0:  # remote members only: this server no longer takes part
@@ -462,6 +587,10 @@ class Rooms(BusListener):
             if known.local or known.info == info:
                 return
             self._drop_remote(r, info.member, CLOSED)
+        elif len(r.members) >= self.settings.room_members:
+            self._wait(r, info)
+            return
+        r.waiting.pop(info.member, None)
         member = Member(info=info, local=False)
         self.metrics.room_members.labels("remote").inc()
         if not info.publish:
@@ -501,10 +630,28 @@ class Rooms(BusListener):
         member.task = asyncio.create_task(src.run(), name=f"remote-{member.id}")
         r.add(member)
 
+    def _wait(self, r: Room, info: MemberInfo) -> None:
+        """A remote member beyond `room_members` (12.6): it waits, invisible here, until a member leaves (at most
+        WAITING_LIMIT per room; more are ignored). Counted as room event `over_limit`."""
+        if info.member not in r.waiting:
+            self.metrics.room_events.labels("over_limit").inc()
+            limited(("over_limit", r.name), logging.WARNING, "room %s has its limit of %d members: remote member %s "
+                    "is not shown here until a member leaves", r.name, self.settings.room_members, info.member)
+            if len(r.waiting) >= WAITING_LIMIT:
+                return
+        r.waiting[info.member] = info
+
+    def _admit_waiting(self, r: Room) -> None:
+        """Remote members waiting for a place in `r` take the places free now, in arrival order."""
+        while r.waiting and len(r.members) < self.settings.room_members and self.rooms.get(r.name) is r:
+            self.remote_joined(r.name, r.waiting.pop(next(iter(r.waiting))))
+
     def remote_left(self, room: str, member: str, reason: str) -> None:
         r = self.rooms.get(room)
         if r is not None:
+            r.waiting.pop(member, None)
             self._drop_remote(r, member, reason)
+            self._admit_waiting(r)
 
     def _drop_remote(self, r: Room, member: str, reason: str) -> None:
         m = r.members.get(member)
@@ -514,10 +661,21 @@ class Rooms(BusListener):
         self.metrics.room_members.labels("remote").dec()
 
     def remote_values(self, msg: ExpressionValues) -> None:
+        """A remote member's frame, deformed here if its values fit its avatar (VALUES_LENGTH, VALUE_LIMIT); else
+        dropped and counted in `ofera_bus_malformed_total`."""
         r = self.rooms.get(msg.room)
         m = r.members.get(msg.member) if r is not None else None
-        if m is not None and not m.local and m.source is not None:
-            m.source.offer(PendingValues(msg, time.monotonic_ns()))
+        if m is None or m.local or m.source is None or m.assets is None:
+            return
+        v = msg.values
+        length = VALUES_LENGTH.get(m.assets.expression)
+        if v.shape != (length,) or not bool((np.abs(v) <= VALUE_LIMIT).all()):
+            self.metrics.bus_malformed.inc()
+            limited(("values", msg.member), logging.WARNING, "room %s: dropped frame %d of remote member %s: %s "
+                    "values (its %s avatar takes %s, each within +-%g)", msg.room, msg.seq, msg.member, v.shape,
+                    m.assets.expression, length, VALUE_LIMIT)
+            return
+        m.source.offer(PendingValues(msg, time.monotonic_ns()))
 
     def bus_state(self, connected: bool) -> None:
         """Lost: every remote member leaves with reason `stale`; back: the bus replays them (`remote_joined`)."""
@@ -527,6 +685,8 @@ class Rooms(BusListener):
             return
         log.warning("rooms: the bus is lost; remote members are stale")
         for r in list(self.rooms.values()):
+            r.waiting.clear()  # the bus replays them when it is back
+
             for m in [m for m in r.members.values() if not m.local]:
                 self._drop_remote(r, m.id, STALE)
                 self.metrics.room_events.labels("stale").inc()
