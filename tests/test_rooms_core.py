@@ -272,7 +272,8 @@ class Peer:
         self.open.set()
         self.blocked = asyncio.Event()
         self.blocked.set()
-        self.viewer = RoomViewer(self.send, world.executor, world.metrics, 1 << 20)
+        self.viewer = RoomViewer(self.send, world.executor, world.metrics, 1 << 20,
+                                 world.rooms.settings.room_control_bytes)
         source = None
         if hello.publish:
             source = Source(assets.pipeline(hello.layout), world.executor, world.metrics)

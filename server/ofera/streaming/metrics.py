@@ -47,7 +47,10 @@ class Metrics:
         self.room_unresolved = Counter("ofera_room_unresolved", "Remote members whose avatar id this server does not "
                                        "have (invisible to its viewers: PROTOCOL.md 12.5).", registry=r)
         self.room_events = Counter("ofera_room_events", "Room events: 'join', 'leave', 'refused' (room_full, "
-                                   "too_many_rooms), 'stale' (remote members dropped when the bus was lost).",
+                                   "too_many_rooms), 'stale' (remote members dropped when the bus was lost), "
+                                   "'bad_frame' (a member's frame that failed to encode: dropped), 'over_limit' (a "
+                                   "remote member beyond room_members: waits unseen), 'overflow' (a viewer's control "
+                                   "queue over room_control_bytes: its session ends).",
                                    ["event"], registry=r)
         for where in ("local", "remote"):
             self.room_members.labels(where)

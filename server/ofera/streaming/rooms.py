@@ -127,7 +127,7 @@ class RoomViewer:
         self.executor = executor
         self.metrics = metrics
         self.limit = limit_bytes
-        self.control_limit = control_bytes  # room_control_bytes (Rooms.join_local sets the server's setting)
+        self.control_limit = control_bytes  # the server's room_control_bytes
         self.slots: dict[str, MemberSlot] = {}
         self.joined: set[str] = set()  # members whose join this viewer was sent (or queued)
         # (member, message) for its join, avatar and rig messages; (None, message) for a leave
@@ -524,8 +524,6 @@ class Rooms(BusListener):
         if r is None:
             r = self.rooms[room] = Room(room, self)
             self.metrics.rooms.set(len(self.rooms))
-        if member.viewer is not None:
-            member.viewer.control_limit = self.settings.room_control_bytes
         src = member.source
         if src is not None:
             src.member = member.id

@@ -313,7 +313,8 @@ class Session:
             info = AvatarInfo(id=aid, count=count, sh_degree=assets.sh_degree, expression=assets.expression)
             self.source = Source(self._pipeline(hello, assets, device_bda), hub.executor, self.metrics)
         await self.t.send(self.conn.accept(self.id, info, server=f"ofera/{__version__}", member=member_id))
-        viewer = self.viewer = RoomViewer(self.t.send, hub.executor, self.metrics, s.room_send_bytes)
+        viewer = self.viewer = RoomViewer(self.t.send, hub.executor, self.metrics, s.room_send_bytes,
+                                          s.room_control_bytes)
         server_id = hub.bus.server_id if hub.bus is not None else ""
         member = Member(info=MemberInfo(member_id, info.id if info else "", server_id, hello.publish), local=True,
                         assets=assets, source=self.source, viewer=viewer, hello=hello, conn=self.conn)
