@@ -327,7 +327,9 @@ def test_a_redis_that_stops_answering_is_lost_and_found_again(redis_server: Redi
         await b.join(ROOM, BOB)
         redis_server.proc.send_signal(signal.SIGSTOP)
         try:
+            # both buses see the hang (each through its own timeouts) before Redis answers again
             await ra.wait(lambda: ra.of("state")[-1] == ("state", False), timeout=5.0)
+            await rb.wait(lambda: rb.of("state")[-1] == ("state", False), timeout=5.0)
             a.publish(ExpressionValues(ROOM, "alice", 1, 1, values(1)))  # returns at once, counted as dropped
         finally:
             redis_server.proc.send_signal(signal.SIGCONT)
