@@ -108,7 +108,7 @@ def in_process(avatar_path: Path, weights: np.ndarray, layout: str, reps: int) -
                                 "python reference (deform_rig, numpy)":
                                     median_us(lambda: reference.deform(pick()), reps) / 1000}
     state, _ = pipeline.run(weights[0])
-    writer = ParamsWriter(assets)
+    writer = ParamsWriter()
     pos, rot, scale = state.position, state.rotation, state.scale
     wire = assets.wire_avatar("flame")
     quant = make_quant(wire.position, wire.scale)

@@ -33,7 +33,7 @@ def params_parts(conn: ServerConnection, assets: AvatarAssets, hello: Hello, mem
     """(writer, `rig` messages) of the params encoding (`streaming.params`, PROTOCOL.md 13): a writer with
     `needs_state = False` and the messages that follow the avatar messages."""
     rig = params.rig_messages(conn, assets, hello.coords, hello.max_gaussians, member, chunk_bytes)
-    return params.ParamsWriter(assets, hello.coords, hello.max_gaussians), rig
+    return params.ParamsWriter(), rig
 
 
 def params_rig_size(assets: AvatarAssets, max_gaussians: int | None) -> int:

@@ -6,9 +6,9 @@
 - `ParamsWriter`: encodes a frame from its expression values (`needs_state = False`: the source need not deform
   for it), stamping `seq`, `t` and `timing` on the first frame and then at least once per `stamp_interval` s.
 
-Refusals: an avatar the rig cannot describe (ARKit-driven, vertex-bound) has no rig: `rig_messages` ends a v1 session
-with a fatal `unknown_encoding` naming the reason (SessionFatal); in a room (`member` given) it raises
-`avatar.rig.RigError` for the rooms to handle.
+Refusals: an avatar the rig cannot describe (ARKit-driven, vertex-bound) has no rig: `rig_body`, `rig_size` and
+`rig_messages` raise `avatar.rig.RigError` naming the reason (a v1 session turns it into a fatal `unknown_encoding`
+before welcome, `member_wire.params_rig_size`; rooms show that member to params viewers as a watch-only join).
 """
 
 from __future__ import annotations
@@ -19,15 +19,13 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from ofera_protocol import ConnectionUsageError, ProtocolError, ServerConnection, encode
+from ofera_protocol import ConnectionUsageError, ServerConnection, encode
 from ofera_protocol.constants import COORDS, PARAMS
-from ofera_protocol.errors import UNKNOWN_ENCODING
 from ofera_protocol.messages import ParamsFrame
 from ofera_protocol.rig import DEFAULT_RIG_CHUNK_BYTES, encode_rig, split_rig
 
 from ..avatar.rig import RigError, build_rig
 from .pipeline import AvatarAssets
-from .roles import SessionFatal
 from .wire import reduced_size
 
 PARAMS_LENGTH = 68
@@ -75,29 +73,17 @@ def rig_messages(conn: ServerConnection, assets: AvatarAssets, coords: str, max_
         raise ConnectionUsageError("rig messages are for a connection whose hello asked for encoding params")
     if coords not in COORDS:
         raise ConnectionUsageError(f"unknown coords {coords!r}; expected one of {COORDS}")
-    try:
-        body = rig_body(assets, max_gaussians)
-    except RigError as exc:
-        if member is not None:
-            raise
-        raise SessionFatal(ProtocolError(UNKNOWN_ENCODING, str(exc), True)) from None
-    return [encode(c) for c in split_rig(body, chunk_bytes, member)]
+    return [encode(c) for c in split_rig(rig_body(assets, max_gaussians), chunk_bytes, member)]
 
 
 class ParamsWriter:
     """Encodes params frames (PROTOCOL.md 13.5) from a frame's expression values; one per wire format, shared by its
-    viewers. `assets`, `coords`, `max_gaussians`: the wire format it serves (the values do not depend on them; an
-    avatar without a rig is refused here, RigError); `stamp_interval` seconds between stamped frames (None:
+    viewers (the values do not depend on coords or reduction); `stamp_interval` seconds between stamped frames (None:
     STAMP_INTERVAL_S). Thread-safe."""
 
     needs_state = False
 
-    def __init__(self, assets: AvatarAssets | None = None, coords: str = "flame", max_gaussians: int | None = None,
-                 stamp_interval: float | None = None, clock: Callable[[], float] = time.monotonic) -> None:
-        if assets is not None and assets.expression != "flame68":
-            raise RigError(f"params needs a FLAME-driven avatar (expression flame68); {assets.id!r} is driven by "
-                           f"{assets.expression} weights")
-        self.coords, self.max_gaussians = coords, max_gaussians
+    def __init__(self, stamp_interval: float | None = None, clock: Callable[[], float] = time.monotonic) -> None:
         self.stamp_interval = STAMP_INTERVAL_S if stamp_interval is None else stamp_interval
         self.clock = clock
         self._last: dict[str | None, float] = {}  # member -> clock of its last stamped frame
