@@ -144,7 +144,7 @@ class Source:
     def offer(self, pending: PendingBs) -> None:
         if self.slot.put(pending):
             self.skipped += 1
-            self.metrics.skipped.labels("bs").inc()
+            self.metrics.skipped_bs.inc()
 
     def _compute(self, p: PendingBs) -> ComputedFrame:
         start = time.monotonic_ns()
@@ -259,7 +259,7 @@ class Viewer:
     def offer(self, frame: ComputedFrame) -> None:
         if self.slot.put(frame):
             self.skipped += 1
-            self.metrics.skipped.labels("frame").inc()
+            self.metrics.skipped_frame.inc()
 
     def _make(self, frame: ComputedFrame) -> bytes | memoryview:
         return encode_computed(self.writer, frame)
@@ -268,7 +268,7 @@ class Viewer:
         t0 = time.perf_counter_ns()
         data, made = frame.encoded(self.key, self._make)
         if made:
-            self.metrics.stage.labels("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
+            self.metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
         return data
 
     async def run(self) -> None:

@@ -107,7 +107,7 @@ class MemberSlot:
             return  # computed without Gaussians while this slot was full (needs_state): keep what it holds
         if self.frame is not None:
             self.viewer.skipped += 1
-            self.viewer.metrics.skipped.labels("frame").inc()
+            self.viewer.metrics.skipped_frame.inc()
         self.frame = frame
         self.viewer.ready()
 
@@ -223,7 +223,7 @@ class RoomViewer:
         t0 = time.perf_counter_ns()
         data, made = frame.encoded(wire.key, lambda f: encode_computed(wire.writer, f))
         if made:
-            self.metrics.stage.labels("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
+            self.metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
         return data
 
     async def _send_frame(self, slot: MemberSlot, data: Any, frame: ComputedFrame) -> None:

@@ -110,8 +110,8 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
             t1 = time.perf_counter()
             await self.writable.wait()  # set again by resume_writing() or connection_lost()
             if metrics is not None:
-                metrics.stage.labels("send").observe(held)
-                metrics.stage.labels("drain").observe(time.perf_counter() - t1)
+                metrics.stage_of("send").observe(held)
+                metrics.stage_of("drain").observe(time.perf_counter() - t1)
             return
         await super().send(message)
         if message["type"] == "websocket.send":
