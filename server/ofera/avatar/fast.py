@@ -17,7 +17,7 @@ owns head pose; :meth:`FastSession.head` refuses anything else):
   ``"all"`` deforms every Gaussian (tests).
 - Precomputed per avatar: the vertex subset those faces need, its blend basis (:class:`SubsetLBS`),
   the used faces as rows of the subset, runs of consecutive Gaussians on one face, and per moving
-  Gaussian its local attributes as float64 columns (normalised rotations, linear scales).
+  Gaussian its local attributes as one float32 row (normalised rotation, linear scale: one read stream).
 - Per frame: one LBS kernel, one face-frame kernel (R_f, its quaternion, s_f, c_f, n_f per used
   face), one per-Gaussian kernel writing position / rotation / scale straight into float32 output
   arrays whose other rows already hold the neutral values.
@@ -214,19 +214,15 @@ class ThreadChoice:
 @dataclass(frozen=True, eq=False)
 class _Arrays:
     """Per-Gaussian precomputed attributes of the deformed set (read-only, shared by sessions).
-    Columns m follow the ascending avatar rows ``ids``; runs are :func:`.kernels.runs`."""
+    Rows m of ``local`` follow the ascending avatar rows ``ids``; runs are :func:`.kernels.runs`."""
 
     ids: np.ndarray  # (M,) int64 rows of the avatar
     face_vids: np.ndarray  # (U, 3) int64 rows of the vertex subset
     run_face: np.ndarray  # (R,) int64 used-face slot of each run
-    run_m: np.ndarray  # (R,) int64 first column
+    run_m: np.ndarray  # (R,) int64 first row of local
     run_len: np.ndarray  # (R,) int64
     run_row: np.ndarray  # (R,) int64 first avatar row
-    lrot: np.ndarray  # (4, M) float64 normalised local rotation (w, x, y, z)
-    lscale: np.ndarray  # (3, M) float64 linear local scale
-    lpos: np.ndarray | None = None  # triangle: (3, M) float64 local position
-    bary: np.ndarray | None = None  # barycentric: (3, M) float64
-    shift: np.ndarray | None = None  # barycentric: (M,) float64 normal_offset_scale * tanh(offset)
+    local: np.ndarray  # (M, LOCAL_COLS[_BARY]) float32, the columns of .kernels (L_POS ...)
     inv_canonical: np.ndarray | None = None  # barycentric: (U,) float64 1 / face_scale_canonical
 
 
@@ -253,19 +249,18 @@ class FastAvatar:
         run_face, run_m, run_len, run_row = K.runs(ids, gface.reshape(-1))
         self.runs = int(run_face.size)
 
-        def soa(x: np.ndarray) -> np.ndarray:  # float64 loads beat float32 + conversion here (measured)
-            return np.ascontiguousarray(np.asarray(x, np.float64).T)
-
         common = {"ids": ids, "face_vids": face_vids.reshape(-1, 3).astype(np.int64), "run_face": run_face,
-                  "run_m": run_m, "run_len": run_len, "run_row": run_row,
-                  "lrot": soa(normalize_quaternions(binding.rotation[ids])),
-                  "lscale": soa(np.exp(binding.log_scale[ids].astype(np.float64)))}
+                  "run_m": run_m, "run_len": run_len, "run_row": run_row}
+        rot = normalize_quaternions(binding.rotation[ids])
+        scale = np.exp(binding.log_scale[ids].astype(np.float64))
         if isinstance(binding, TriangleBinding):
-            self.arrays = _Arrays(**common, lpos=soa(binding.position[ids]))
+            local = np.concatenate([binding.position[ids], rot, scale], axis=1)
+            self.arrays = _Arrays(**common, local=np.ascontiguousarray(local, np.float32))
         elif isinstance(binding, BarycentricBinding):
             shift = binding.normal_offset_scale * np.tanh(binding.offset[ids].astype(np.float64))
+            local = np.concatenate([binding.bary[ids], shift.reshape(-1, 1), rot, scale], axis=1)
             canonical = binding.face_scale_canonical.astype(np.float64)[used_faces]
-            self.arrays = _Arrays(**common, bary=soa(binding.bary[ids]), shift=np.ascontiguousarray(shift),
+            self.arrays = _Arrays(**common, local=np.ascontiguousarray(local, np.float32),
                                   inv_canonical=1.0 / canonical)
         else:
             raise TypeError(f"unknown binding {type(binding).__name__}")
@@ -352,16 +347,16 @@ class FastSession:
         if verts.shape != (self.fast.lbs.count, 3):
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
         state, pos, rot, scale = self.pool.acquire()
-        bary = a.bary is not None
+        bary = a.inv_canonical is not None
         par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
         t0 = time.perf_counter_ns()
         (K.face_frames_kernel_parallel if par else K.face_frames_kernel)(verts, a.face_vids, self.face, bary)
         if bary:
-            K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.bary,
-                                 a.shift, a.lrot, a.lscale, a.inv_canonical, pos, rot, scale)
+            K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.local,
+                                 a.inv_canonical, pos, rot, scale)
         else:
             kernel = K.triangle_kernel_parallel if par else K.triangle_kernel
-            kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.lpos, a.lrot, a.lscale, pos, rot, scale)
+            kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, pos, rot, scale)
         if self.parallel is None:
             self.choice.record(par, time.perf_counter_ns() - t0)
         return state

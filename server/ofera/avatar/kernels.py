@@ -159,26 +159,44 @@ def _face_frame(u, verts, face_vids, face, with_normal):
     f[Q0 + 3] = qz
 
 
+# Columns of the per-Gaussian local attributes (M, LOCAL_COLS) float32: one row per deformed Gaussian, read in
+# one stream (the frame is bound by memory traffic: 10 separate float64 columns cost ~1.6x more, cold).
+L_POS = 0  # triangle: local position (3); barycentric: barycentric coordinates (3)
+L_SHIFT = 3  # barycentric only: normal_offset_scale * tanh(offset)
+L_ROT = 3  # normalised local rotation (w, x, y, z) (4), at L_ROT + 1 for barycentric
+L_SCALE = 7  # linear local scale (3), at L_SCALE + 1 for barycentric
+LOCAL_COLS = 10
+LOCAL_COLS_BARY = 11
+
+
 @nb.njit(**_NBC)
-def triangle_kernel(face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale):
+def triangle_kernel(face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale):
     """GaussianAvatars: position R_f p s_f + c_f, rotation quat(R_f) (x) q, scale exp(log s) s_f.
 
     Runs q of consecutive avatar rows ``run_row[q] ..`` on one face ``run_face[q]``, whose local
-    attributes are columns ``run_m[q] ..`` of lpos (3, M), lrot (4, M) (w, x, y, z), lscale (3, M)."""
+    attributes are rows ``run_m[q] ..`` of local (M, LOCAL_COLS) float32 (p, q (w, x, y, z), exp(log s))."""
     for q in range(run_face.shape[0]):
-        _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale)
+        _triangle_run(q, face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale)
 
 
 @nb.njit(parallel=True, **_NBC)
-def triangle_kernel_parallel(face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot,
-                             out_scale):
+def triangle_kernel_parallel(face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale):
     """:func:`triangle_kernel` over numba's threads (prange over runs: disjoint rows)."""
     for q in nb.prange(run_face.shape[0]):
-        _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale)
+        _triangle_run(q, face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale)
 
 
 @nb.njit(inline="always", **_NBC)
-def _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale, out_pos, out_rot, out_scale):
+def _quat_product(aw, ax, ay, az, bw, bx, by, bz, out_rot, row):
+    """out_rot[row] = a (x) b written (x, y, z, w)."""
+    out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
+    out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
+    out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
+    out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
+
+
+@nb.njit(inline="always", **_NBC)
+def _triangle_run(q, face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale):
     u = run_face[q]
     m0 = run_m[q]
     r0 = run_row[q]
@@ -200,32 +218,27 @@ def _triangle_run(q, face, run_face, run_m, run_len, run_row, lpos, lrot, lscale
     cy = face[u, C0 + 1]
     cz = face[u, C0 + 2]
     for j in range(run_len[q]):
-        m = m0 + j
+        g = local[m0 + j]
         row = r0 + j
-        px = lpos[0, m]
-        py = lpos[1, m]
-        pz = lpos[2, m]
+        px = np.float64(g[L_POS])
+        py = np.float64(g[L_POS + 1])
+        pz = np.float64(g[L_POS + 2])
         out_pos[row, 0] = (f0 * px + f1 * py + f2 * pz) * s + cx
         out_pos[row, 1] = (f3 * px + f4 * py + f5 * pz) * s + cy
         out_pos[row, 2] = (f6 * px + f7 * py + f8 * pz) * s + cz
-        bw = lrot[0, m]
-        bx = lrot[1, m]
-        by = lrot[2, m]
-        bz = lrot[3, m]
-        out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
-        out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
-        out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
-        out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
-        out_scale[row, 0] = lscale[0, m] * s
-        out_scale[row, 1] = lscale[1, m] * s
-        out_scale[row, 2] = lscale[2, m] * s
+        _quat_product(aw, ax, ay, az, np.float64(g[L_ROT]), np.float64(g[L_ROT + 1]), np.float64(g[L_ROT + 2]),
+                      np.float64(g[L_ROT + 3]), out_rot, row)
+        out_scale[row, 0] = g[L_SCALE] * s
+        out_scale[row, 1] = g[L_SCALE + 1] * s
+        out_scale[row, 2] = g[L_SCALE + 2] * s
 
 
 @nb.njit(**_NBC)
-def barycentric_kernel(face, run_face, run_m, run_len, run_row, verts, face_vids, bary, shift, lrot, lscale,
-                       inv_canonical, out_pos, out_rot, out_scale):
+def barycentric_kernel(face, run_face, run_m, run_len, run_row, verts, face_vids, local, inv_canonical, out_pos,
+                       out_rot, out_scale):
     """FATE: position sum_k bary_k v_k + n_f shift, rotation quat(R_f) (x) q, scale exp(log s) s_f /
-    s_f_canonical (inv_canonical per used face). Runs as in :func:`triangle_kernel`; bary (3, M), shift (M,)."""
+    s_f_canonical (inv_canonical per used face). Runs as in :func:`triangle_kernel`; local (M, LOCAL_COLS_BARY)
+    float32 (bary (3), shift, q (w, x, y, z), exp(log s))."""
     for q in range(run_face.shape[0]):
         u = run_face[q]
         m0 = run_m[q]
@@ -251,26 +264,20 @@ def barycentric_kernel(face, run_face, run_m, run_len, run_row, verts, face_vids
         az = face[u, Q0 + 3]
         r = face[u, S_F] * inv_canonical[u]
         for j in range(run_len[q]):
-            m = m0 + j
+            g = local[m0 + j]
             row = r0 + j
-            b0 = bary[0, m]
-            b1 = bary[1, m]
-            b2 = bary[2, m]
-            sh = shift[m]
+            b0 = np.float64(g[L_POS])
+            b1 = np.float64(g[L_POS + 1])
+            b2 = np.float64(g[L_POS + 2])
+            sh = np.float64(g[L_SHIFT])
             out_pos[row, 0] = (b0 * v0x + b1 * v1x + b2 * v2x) + nx * sh
             out_pos[row, 1] = (b0 * v0y + b1 * v1y + b2 * v2y) + ny * sh
             out_pos[row, 2] = (b0 * v0z + b1 * v1z + b2 * v2z) + nz * sh
-            bw = lrot[0, m]
-            bx = lrot[1, m]
-            by = lrot[2, m]
-            bz = lrot[3, m]
-            out_rot[row, 0] = aw * bx + ax * bw + ay * bz - az * by
-            out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
-            out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
-            out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
-            out_scale[row, 0] = lscale[0, m] * r
-            out_scale[row, 1] = lscale[1, m] * r
-            out_scale[row, 2] = lscale[2, m] * r
+            _quat_product(aw, ax, ay, az, np.float64(g[L_ROT + 1]), np.float64(g[L_ROT + 2]),
+                          np.float64(g[L_ROT + 3]), np.float64(g[L_ROT + 4]), out_rot, row)
+            out_scale[row, 0] = g[L_SCALE + 1] * r
+            out_scale[row, 1] = g[L_SCALE + 2] * r
+            out_scale[row, 2] = g[L_SCALE + 3] * r
 
 
 def runs(ids: np.ndarray, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

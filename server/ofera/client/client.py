@@ -1,4 +1,5 @@
-"""asyncio client of the OFERA stream, on the protocol codec and the `websockets` library.
+"""asyncio client of the OFERA stream, on the protocol codec and a zero-copy WebSocket transport (`transport.py`;
+`transport="websockets"` uses the `websockets` library instead).
 
     client = await connect("ws://127.0.0.1:8000/v1/stream", layout="arkit52")
     await client.send_bs(weights)            # seq and t (microseconds, monotonic clock) filled in
@@ -45,6 +46,9 @@ from websockets.asyncio.client import connect as ws_connect
 from websockets.exceptions import ConnectionClosed
 
 from .stats import LatencyStats
+from .transport import WebSocket, open_websocket
+
+TRANSPORTS = ("fast", "websockets")
 
 
 def now_us() -> int:
@@ -77,7 +81,7 @@ class ServerError(Exception):
 class Client:
     """One open session (use `connect`). Not safe for concurrent receivers: one task reads."""
 
-    def __init__(self, ws: WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar | None,
+    def __init__(self, ws: WebSocket | WsConnection, conn: ClientConnection, welcome: Welcome, avatar: Avatar | None,
                  header_only: bool = False) -> None:
         self.ws = ws
         self.conn = conn
@@ -262,7 +266,7 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
                   sparse: bool = False, max_gaussians: int | None = None, open_timeout: float = 60.0,
                   max_size: int = MAX_SERVER_MESSAGE, max_queue: int = 2, delta: bool = False,
                   track: bool = False, room: str | None = None, publish: bool = True, self_view: bool = False,
-                  room_token: str | None = None, header_only: bool = False) -> Client:
+                  room_token: str | None = None, header_only: bool = False, transport: str = "fast") -> Client:
     """Open a session: hello -> welcome -> avatar (chunks assembled). Raises ServerError if refused.
 
     `delta`: ask for key/delta frames (f16, q13; PROTOCOL.md 7.1): delta frames are returned as sparse-like
@@ -280,14 +284,23 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
 
     `header_only` (load generators): frames come back as FrameHeader, their arrays neither decoded nor checked
     (`ClientConnection.receive_header`); with `track`, `delta` or `encoding="params"`, which need the arrays, it
-    raises ConnectionUsageError before connecting."""
+    raises ConnectionUsageError before connecting.
+
+    `transport`: "fast" (default: `transport.WebSocket`, each message received straight into its buffer) or
+    "websockets" (the library's asyncio client; several copies of every message, ~3 ms more per 2 MB frame)."""
+    if transport not in TRANSPORTS:
+        raise ValueError(f"unknown transport {transport!r}; expected one of {TRANSPORTS}")
     if header_only:
         for asked, what in ((track, "track=True"), (delta, "delta=True"), (encoding == "params", 'encoding="params"')):
             if asked:
                 raise ConnectionUsageError(f"header_only=True leaves the arrays of frames undecoded: {what} needs "
                                            "them (use header_only=False)")
-    ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
-                          ping_interval=None, max_queue=max_queue)
+    if transport == "fast":
+        ws: WebSocket | WsConnection = await open_websocket(stream_url(url), max_size=max_size, max_queue=max_queue,
+                                                            open_timeout=open_timeout)
+    else:
+        ws = await ws_connect(stream_url(url), compression=None, max_size=max_size, open_timeout=open_timeout,
+                              ping_interval=None, max_queue=max_queue)
     conn = ClientConnection(max_message_size=max_size, track_gaussians=track)
     try:
         await ws.send(conn.hello(layout, avatar, encoding=encoding, coords=coords, sparse=sparse, device=device,
@@ -313,7 +326,7 @@ def _handshake_done(conn: ClientConnection) -> bool:
     return conn.avatar is not None and conn.state is not ClientState.RECEIVING_RIG
 
 
-async def _handshake(ws: WsConnection, conn: ClientConnection) -> Welcome:
+async def _handshake(ws: WebSocket | WsConnection, conn: ClientConnection) -> Welcome:
     welcome: Welcome | None = None
     while not _handshake_done(conn):
         try:

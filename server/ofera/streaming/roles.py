@@ -134,6 +134,10 @@ class Source:
         self.needs_state: Callable[[], bool] | None = None
         self.member: str | None = None  # rooms: stamped on every frame
         self.on_values: Callable[[ComputedFrame], None] | None = None  # rooms: each frame's values, to the bus
+        # Wire formats encoded in the compute thread right after the deformation, (key, make) as in
+        # ComputedFrame.encoded: the state is still in cache and the viewer needs no second hop to the pool.
+        # Only formats whose encoding has no per-client state (not deltas: they advance per frame handed to a socket).
+        self.eager: list[tuple[tuple, Callable[[ComputedFrame], Any]]] = []
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
@@ -166,7 +170,22 @@ class Source:
         if "layout" in stages and "bda" in stages:
             timing["map"] = stages["layout"] + stages["bda"]
         timing["total"] = (end - p.received_ns) // 1000
-        return ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, values, self.member)
+        frame = ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, values, self.member)
+        if state is not None:
+            self._encode_eagerly(frame)
+        return frame
+
+    def _encode_eagerly(self, frame: ComputedFrame) -> None:
+        """Make the `eager` wire formats of `frame` now. A format that fails is left to its viewer, whose own
+        encoding then raises the error the session reports (one error path for every format)."""
+        for key, make in self.eager:
+            t0 = time.perf_counter_ns()
+            try:
+                frame.encoded(key, make)
+            except Exception:
+                log.debug("eager encoding of frame %d failed; its viewer retries", frame.seq, exc_info=True)
+                continue
+            self.metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
 
     def _failed(self, pending: Any, exc: Exception) -> None:
         """The pipeline raised on `pending`: end the session (a remote source logs and goes on instead)."""
@@ -261,12 +280,13 @@ class Viewer:
             self.skipped += 1
             self.metrics.skipped_frame.inc()
 
-    def _make(self, frame: ComputedFrame) -> bytes | memoryview:
+    def make(self, frame: ComputedFrame) -> bytes | memoryview:
+        """This viewer's wire format of `frame` (no cache)."""
         return encode_computed(self.writer, frame)
 
     def _encode(self, frame: ComputedFrame) -> bytes:
         t0 = time.perf_counter_ns()
-        data, made = frame.encoded(self.key, self._make)
+        data, made = frame.encoded(self.key, self.make)
         if made:
             self.metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
         return data
@@ -278,9 +298,10 @@ class Viewer:
             if self.on_ready is not None:
                 self.on_ready()
             try:  # bytes, or a pooled memoryview (not reused while referenced)
-                if getattr(self.writer, "needs_state", True):
+                data = frame.cached(self.key)  # made in the compute thread (Source.eager), else now
+                if data is None and getattr(self.writer, "needs_state", True):
                     data = await loop.run_in_executor(self.executor, self._encode, frame)
-                else:  # params (~0.01 ms): cheaper here than a hop to the pool
+                elif data is None:  # params (~0.01 ms): cheaper here than a hop to the pool
                     data = self._encode(frame)
             except Exception as exc:
                 log.exception("encoding frame %d failed", frame.seq)

@@ -243,6 +243,8 @@ class Session:
             writer = make_writer(self.conn.format, hello.coords, gather, index, s.fast)
         self.viewer = Viewer(self.t.send, writer, key, self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
+        if not self.conn.format.delta and hello.encoding != PARAMS:
+            self.source.eager.append((key, self.viewer.make))
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full
         self.viewer.on_ready = self.source.wake
