@@ -91,3 +91,17 @@ def test_scaling_smoke(tmp_path) -> None:
     r = check_outputs(out)
     assert [s["gaussians"] for s in r["sizes"]][0] < r["sizes"][1]["gaussians"]
     assert r["sizes"][0]["fast"]["deform"]["p50"] is not None and "ratios_p50" in r["sizes"][0]
+
+
+@pytest.mark.timeout(300)
+def test_transport_smoke(tmp_path) -> None:
+    out = tmp_path / "transport.json"
+    load("transport").main(["--sizes", "300,70000", "--requests", "20", "--warmup", "3", "--json", str(out)])
+    r = check_outputs(out)
+    assert r["sizes"] == [300, 70000] and r["clients"] == ["socket", "fast", "websockets"]
+    for size in ("300", "70000"):
+        for client in r["clients"]:
+            run = r["results"][size][client]
+            assert run["n"] == 20 and 0 < run["min"] <= run["p50"] <= run["p99"] and run["cpu_ms"] >= 0
+        assert set(r["ratios"][size]) == {"websockets_over_fast", "fast_over_socket"}
+    assert r["cpu"]["client_cores"] is not None and r["cpu"]["server_cores"] is not None
