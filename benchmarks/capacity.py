@@ -238,7 +238,8 @@ def main(argv: list[str] | None = None) -> dict:
                     "(1: all in this process's event loop)")
     ap.add_argument("--budget-ms", type=float, default=13.9, help="p99 bound of a passing K")
     ap.add_argument("--max-drop", type=float, default=0.01, help="largest fraction of bs dropped in a passing K")
-    ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"], help="the server's event loop")
+    ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
+                    help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=C.RESULTS / "capacity.json")
     args = ap.parse_args(argv)

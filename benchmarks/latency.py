@@ -213,7 +213,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta: key frames, then only what "
                     "moved; f16 or q13): the compact stream")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
-    ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"], help="the server's event loop")
+    ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
+                    help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2, help="server compute threads")
     ap.add_argument("--no-floor", action="store_true", help="skip the transport-floor measurement")
     ap.add_argument("--client-decode", default="fast", choices=["fast", "reference", "header"],

@@ -161,7 +161,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sparse", action="store_true")
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta; f16 or q13)")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
-    ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"], help="the server's event loop")
+    ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
+                    help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--client-decode", default="fast", choices=["fast", "reference"])
     ap.add_argument("--no-floor", action="store_true")

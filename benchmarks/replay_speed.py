@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--decode", default="header", choices=["header", "full", "both"],
                     help="what the replay client decodes of each frame (both: full, then header, one server)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--event-loop", default="asyncio", choices=["asyncio", "uvloop"])
+    ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"])
     ap.add_argument("--json", type=Path, default=C.RESULTS / "replay_speed.json")
     args = ap.parse_args(argv)
     if not C.CAPTURE.is_file():

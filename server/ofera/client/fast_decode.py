@@ -78,7 +78,7 @@ def delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, held_p, held_
     for j in range(ids.shape[0]):
         if moved[j, 0]:
             if not wide[p]:
-                i = ids[j]
+                i = np.uint64(ids[j])  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
                 for c in range(3):
                     v = np.int32(held_p[i, c]) + np.int32(res[k, c])
                     if v < 0 or v > 65535:
@@ -89,7 +89,7 @@ def delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, held_p, held_
             p += 1
     p = k = w = r = s = 0
     for j in range(ids.shape[0]):
-        i = ids[j]
+        i = np.uint64(ids[j])
         if moved[j, 0]:
             if wide[p]:
                 for c in range(3):

@@ -514,12 +514,12 @@ def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, tabl
                      out_rot, out_scale):
     """ofera_protocol.delta.delta_q13_reference in one pass over the candidates. Returns (n, n_p, w, n_r, n_s)."""
     n = n_p = w = m = n_r = n_s = 0
-    for j in range(rows.shape[0]):
-        r = rows[j]
+    for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
+        r = np.uint64(rows[j])
         mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
         if not (mp or mr or ms):
             continue
-        i = ids[j]
+        i = np.uint64(ids[j])
         out_sel[n] = j
         out_moved[n, 0], out_moved[n, 1], out_moved[n, 2] = mp, mr, ms
         n += 1
@@ -566,12 +566,12 @@ def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held
     value sent is NaN, infinite or beyond +-65504."""
     n = n_p = w = m = n_r = n_s = 0
     ok = True
-    for j in range(rows.shape[0]):
-        r = rows[j]
+    for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
+        r = np.uint64(rows[j])
         mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
         if not (mp or mr or ms):
             continue
-        i = ids[j]
+        i = np.uint64(ids[j])
         out_sel[n] = j
         out_moved[n, 0], out_moved[n, 1], out_moved[n, 2] = mp, mr, ms
         n += 1
