@@ -14,7 +14,11 @@ Runs the fast path (numba head/deform, numba frame writer) and then the straight
 (numpy lbs + Deformer + codec.encode_frame) the same way, and reports both and their ratio
 (--impl fast|reference to run one). The client decodes every frame with the numba decoder
 (--client-decode fast: the codec's checks and values; a Unity client decodes natively)
-or the reference codec. Prints a table, writes --json and a PNG next to it.
+or the reference codec. ``--encoding params`` (PROTOCOL.md 13, the most compact stream: 295 B a frame) counts a
+frame once the client has deformed its Gaussians from it (``ofera.client.params.RigDeformer``, numba; with
+``--client-decode header`` the deformation is skipped); the server then stamps every params frame
+(OFERA_PARAMS_STAMP_INTERVAL=0) so that each carries its bs's seq and t.
+Prints a table, writes --json and a PNG next to it.
 JSON: {"gaussians", "rate_hz", "encoding", "frames", "frames_sent", "frames_skipped", "drop_fraction",
 "e2e_ms": {p50, p90, p99, p999, max} (every bs sent, skipped ones included), "answered_e2e_ms" (frames that
 arrived only), "server_ms": {p50, p99}, "stages_ms": {...}, "bytes_per_frame", ..., "reference": {same},
@@ -25,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import re
 import sys
 import urllib.request
@@ -71,9 +76,12 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     from ofera.client import connect, now_us
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
+    from ofera_protocol.messages import ParamsFrame
 
-    client = await connect(url, layout=layout, encoding=encoding, sparse=sparse, delta=delta)
-    fast = FastFrameDecoder(client.conn.format) if decode == "fast" else None  # delta frames too
+    params = encoding == "params"
+    client = await connect(url, layout=layout, encoding=encoding, sparse=sparse, delta=delta,
+                           track=params and decode != "header")
+    fast = FastFrameDecoder(client.conn.format) if decode == "fast" and not params else None  # delta frames too
     period_us = 1e6 / rate
     total = int((warmup + seconds) * rate)
     first_counted = int(warmup * rate)
@@ -82,7 +90,14 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     arrivals: list[tuple[int, float]] = []  # (seq, decoded time) of every counted frame
 
     def on_message(data: bytes, t_recv: float) -> bool:
-        if decode != "header":
+        if params:  # the values, then (unless header only) the client's own deformation of the Gaussians
+            msg = client.conn.receive(data)
+            if not isinstance(msg, ParamsFrame) or msg.seq is None:
+                return False
+            if client.rig_deformer is not None:
+                client.rig_deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
+            seq, t, timing = msg.seq, msg.t, msg.timing or {}
+        elif decode != "header":
             msg = fast.decode(data) if fast is not None else client.conn.receive(data)
             if not isinstance(msg, Frame):
                 return False
@@ -148,6 +163,8 @@ def summarise(run: dict) -> dict:
 
 
 def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
+    if args.encoding == "params":
+        os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = "0"  # inherited by the server: every params frame stamped
     with C.ServerProcess(avatars, impl=impl, threads=args.threads,
                          extra={"event_loop": args.event_loop}) as server:
         with C.CpuMeter(server.proc.pid) as cpu:
@@ -208,7 +225,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--rate", type=float, default=72.0, help="bs per second")
     ap.add_argument("--seconds", type=float, default=5.0, help="measured duration per implementation")
     ap.add_argument("--warmup", type=float, default=1.0, help="seconds sent first and not counted")
-    ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13"])
+    ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13", "params"])
     ap.add_argument("--sparse", action="store_true", help="ask for sparse frames (movable Gaussians only)")
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta: key frames, then only what "
                     "moved; f16 or q13): the compact stream")
@@ -275,9 +292,10 @@ def main(argv: list[str] | None = None) -> dict:
             "server_metrics_ms": "means from /metrics: encode stage, bs received -> frame handed to the socket",
             "transport_floor_ms": "round trip of a tiny request answered by a message of bytes_per_frame between "
                                   "two Python processes (websockets library both ends, no compute)",
+            "params": "--encoding params: e2e includes the client's deformation of the Gaussians (RigDeformer)",
         },
-        "targets": {"e2e_p99_ms": 5.0 if args.delta else 8.0, "head_deform_encode_p50_ms": 1.5,
-                    "head_deform_encode_p99_ms": 3.0},
+        "targets": {"e2e_p99_ms": 5.0 if args.delta or args.encoding == "params" else 8.0,
+                    "head_deform_encode_p50_ms": 1.5, "head_deform_encode_p99_ms": 3.0},
         "machine": C.machine(),
         "notes": notes,
     }

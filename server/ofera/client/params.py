@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 from ofera_protocol import GaussianState, to_coords
+from ofera_protocol.fast_encodings import coord_signs
 from ofera_protocol.rig import Rig, deform_rig
 
 from .rig_fast import FastRig
@@ -36,7 +37,12 @@ class RigDeformer:
         return deform_rig(self.rig, params) if self.fast is None else self.fast.deform(params)
 
     def apply(self, params: np.ndarray, gaussians: GaussianState, coords: str) -> None:
-        """Write the deformed Gaussians into `gaussians` (the session's, from the avatar message) in `coords`."""
+        """Write the deformed Gaussians into `gaussians` (the session's, from the avatar message) in `coords` (the
+        fast path writes them in place, no intermediate arrays)."""
+        if self.fast is not None:
+            psign, rsign = coord_signs(coords)
+            self.fast.apply(params, gaussians.position, gaussians.rotation, gaussians.scale, psign, rsign)
+            return
         position, rotation, scale = self.deform(params)
         position, rotation = to_coords(position, rotation, coords)
         gaussians.position[self.index] = position

@@ -41,9 +41,10 @@ def _rot6d(p: np.ndarray, o: int, out: np.ndarray) -> None:
 @njit(**NB)
 def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, face_verts, gaussian_face, local,
             normal_offset, triangle, local_rotation, local_scale, a, coef, verts, frame, position, rotation,
-            scale):
-    """PROTOCOL.md 13.4 steps 1-7 over FastRig's arrays (shapes there); writes position (M, 3), rotation (M, 4)
-    (x, y, z, w), scale (M, 3); a (5, 3, 4), coef (K,), verts (V, 3), frame (F, FACE) are scratch."""
+            scale, rows, psign, rsign):
+    """PROTOCOL.md 13.4 steps 1-7 over FastRig's arrays (shapes there); writes Gaussian m into row rows[m] of
+    position (N, 3), rotation (N, 4) (x, y, z, w), scale (N, 3), position and rotation times psign (3,), rsign (4,)
+    (the session's coords); a (5, 3, 4), coef (K,), verts (V, 3), frame (F, FACE) are scratch."""
     e_dims = joints_expr.shape[2]
     rot = np.empty((3, 3))
     a[:] = 0.0
@@ -83,17 +84,18 @@ def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, fa
             t3 = w2 * a[2, i, 3] + w3 * a[3, i, 3] + w4 * a[4, i, 3]
             verts[u, i] = t0 * x + t1 * y + t2 * z + t3 + wi * (x if i == 0 else (y if i == 1 else z))
     for f in range(frame.shape[0]):  # step 6 and quat(R_f), once per used face
-        i0, i1, i2 = face_verts[f, 0], face_verts[f, 1], face_verts[f, 2]
+        i0, i1, i2 = np.uint64(face_verts[f, 0]), np.uint64(face_verts[f, 1]), np.uint64(face_verts[f, 2])
         v0x, v0y, v0z = verts[i0, 0], verts[i0, 1], verts[i0, 2]
         v1x, v1y, v1z = verts[i1, 0], verts[i1, 1], verts[i1, 2]
         v2x, v2y, v2z = verts[i2, 0], verts[i2, 1], verts[i2, 2]
         e1x, e1y, e1z = v1x - v0x, v1y - v0y, v1z - v0z
         e2x, e2y, e2z = v2x - v0x, v2y - v0y, v2z - v0z
         l1 = np.sqrt(max(e1x * e1x + e1y * e1y + e1z * e1z, 1e-20))
-        a0x, a0y, a0z = e1x / l1, e1y / l1, e1z / l1
+        inv = 1.0 / l1  # one division, then products (differs from the reference's divisions by ~1e-16)
+        a0x, a0y, a0z = e1x * inv, e1y * inv, e1z * inv
         nx, ny, nz = a0y * e2z - a0z * e2y, a0z * e2x - a0x * e2z, a0x * e2y - a0y * e2x
-        ln = np.sqrt(max(nx * nx + ny * ny + nz * nz, 1e-20))
-        a1x, a1y, a1z = nx / ln, ny / ln, nz / ln
+        inv = 1.0 / np.sqrt(max(nx * nx + ny * ny + nz * nz, 1e-20))
+        a1x, a1y, a1z = nx * inv, ny * inv, nz * inv
         a2x, a2y, a2z = a0y * a1z - a0z * a1y, a0z * a1x - a0x * a1z, a0x * a1y - a0y * a1x
         sf = (l1 + abs(a2x * e2x + a2y * e2y + a2z * e2z)) / 2.0
         if triangle:  # R_f s_f (R_f's columns a0 a1 a2) and c_f
@@ -122,7 +124,7 @@ def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, fa
         n = (-1.0 if qw < 0 else 1.0) / np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         frame[f, 12], frame[f, 13], frame[f, 14], frame[f, 15], frame[f, 16] = qw * n, qx * n, qy * n, qz * n, sf
     for m in range(gaussian_face.shape[0]):  # step 7
-        f = gaussian_face[m]
+        f = np.uint64(gaussian_face[m])
         p0, p1, p2 = float(local[m, 0]), float(local[m, 1]), float(local[m, 2])
         if triangle:
             px = frame[f, 0] * p0 + frame[f, 1] * p1 + frame[f, 2] * p2 + frame[f, 9]
@@ -139,10 +141,14 @@ def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, fa
         qx = fw * lx + fx * lw + fy * lz - fz * ly
         qy = fw * ly - fx * lz + fy * lw + fz * lx
         qz = fw * lz + fx * ly - fy * lx + fz * lw
-        n = 1.0 / np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        position[m, 0], position[m, 1], position[m, 2] = px, py, pz
-        rotation[m, 0], rotation[m, 1], rotation[m, 2], rotation[m, 3] = qx * n, qy * n, qz * n, qw * n
-        scale[m, 0], scale[m, 1], scale[m, 2] = local_scale[m, 0] * sf, local_scale[m, 1] * sf, local_scale[m, 2] * sf
+        # q_f and the local rotation are unit (normalised in float64): their product is unit to ~1e-16, so the
+        # reference's renormalisation is left out (as the server's kernels do).
+        row = np.uint64(rows[m])  # unsigned: no wrap-around code (see ofera.avatar.kernels)
+        position[row, 0], position[row, 1], position[row, 2] = px * psign[0], py * psign[1], pz * psign[2]
+        rotation[row, 0], rotation[row, 1] = qx * rsign[0], qy * rsign[1]
+        rotation[row, 2], rotation[row, 3] = qz * rsign[2], qw * rsign[3]
+        scale[row, 0], scale[row, 1] = local_scale[m, 0] * sf, local_scale[m, 1] * sf
+        scale[row, 2] = local_scale[m, 2] * sf
 
 
 class FastRig:
@@ -176,18 +182,41 @@ class FastRig:
         self._coef = np.zeros(self.basis.shape[1])
         self._verts = np.zeros((verts.size, 3))
         self._frame = np.zeros((faces.size, FACE))
+        self._rows = np.arange(self.gaussian_face.shape[0], dtype=np.int64)
+        self.index = rig.index.astype(np.int64)  # (M,) session ids
+        identity = np.zeros(68, np.float32)
+        identity[50:] = [1, 0, 0, 0, 1, 0] * 3
+        self.deform(identity)  # the kernel compiled (or loaded from numba's cache) now, not on the first frame
+
+    def _run(self, params: np.ndarray, position: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
+             rows: np.ndarray, psign: np.ndarray, rsign: np.ndarray) -> None:
+        params = np.ascontiguousarray(params, np.float32).reshape(-1)
+        if params.shape != (68,):
+            raise ValueError(f"params has shape {params.shape}, expected (68,)")
+        _deform(params, self.joints, self.joints_expr, self.pose_rows, self.template, self.basis, self.weights,
+                self.face_verts, self.gaussian_face, self.local, self.normal_offset, self.triangle,
+                self.local_rotation, self.local_scale, self._a, self._coef, self._verts, self._frame, position,
+                rotation, scale, rows, psign, rsign)
 
     def deform(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """params (68,) -> position (M, 3) m, rotation (M, 4) (x, y, z, w), scale (M, 3) m of the rig's Gaussians
         (session ids `rig.index`), float32, FLAME space: `deform_rig`'s results to ~1e-8 m."""
-        params = np.ascontiguousarray(params, np.float32).reshape(-1)
-        if params.shape != (68,):
-            raise ValueError(f"params has shape {params.shape}, expected (68,)")
         m = self.gaussian_face.shape[0]
         position, scale = np.empty((m, 3), np.float32), np.empty((m, 3), np.float32)
         rotation = np.empty((m, 4), np.float32)
-        _deform(params, self.joints, self.joints_expr, self.pose_rows, self.template, self.basis, self.weights,
-                self.face_verts, self.gaussian_face, self.local, self.normal_offset, self.triangle,
-                self.local_rotation, self.local_scale, self._a, self._coef, self._verts, self._frame, position,
-                rotation, scale)
+        self._run(params, position, rotation, scale, self._rows, _ONES[:3], _ONES)
         return position, rotation, scale
+
+    def apply(self, params: np.ndarray, position: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
+              psign: np.ndarray, rsign: np.ndarray) -> None:
+        """`deform` written straight into rows `rig.index` of a session's float32 arrays (N, 3), (N, 4), (N, 3),
+        times the coords' signs psign (3,), rsign (4,) (ofera_protocol.fast_encodings.coord_signs): no copies."""
+        for name, arr, width in (("position", position, 3), ("rotation", rotation, 4), ("scale", scale, 3)):
+            if (arr.dtype != np.float32 or arr.ndim != 2 or arr.shape[1] != width or not arr.flags.c_contiguous
+                    or not arr.flags.writeable or arr.shape[0] <= int(self.index.max(initial=-1))):
+                raise ValueError(f"{name} must be a writable C-contiguous float32 (N, {width}) array covering "
+                                 "the rig's rows")
+        self._run(params, position, rotation, scale, self.index, psign, rsign)
+
+
+_ONES = np.ones(4, np.float32)
