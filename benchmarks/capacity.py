@@ -10,7 +10,9 @@ time (no coordinated omission). Latency = frame received - scheduled send time; 
 bs's scheduled time). By default clients read
 each frame's header only (``--decode header``: a renderer decodes on its own machine; here K decoders
 would compete with the server for the same 2 cores); ``--decode full`` decodes the arrays too (numba
-decoder, the codec's checks and values).
+decoder, the codec's checks and values). ``--encoding params`` (PROTOCOL.md 13): the server stamps every params
+frame (OFERA_PARAMS_STAMP_INTERVAL=0); with ``--decode full`` each client deforms its Gaussians itself
+(``ofera.client.params.RigDeformer``), which a frame's latency then includes.
 The result: p50/p99 per K, frames skipped (bs dropped), and the largest K such that every K' <= K passes:
 at most --max-drop of its bs dropped (1 %) and p99 below --budget-ms (13.9 ms, one 72 Hz frame). The
 reference server (numpy) is run the same way for --reference-sessions.
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import subprocess
 import sys
 import time
@@ -41,6 +44,7 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
     from ofera.client import now_us
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
+    from ofera_protocol.messages import ParamsFrame
 
     period = 1e6 / rate
     total = int((warmup + seconds) * rate)
@@ -54,7 +58,8 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
 
     async def one(i: int, client) -> None:
         offset = i * period / k
-        decoder = FastFrameDecoder(client.conn.format) if decode else None
+        params = client.conn.rig is not None  # a params session: the values, then (decode) the client's deformation
+        decoder = FastFrameDecoder(client.conn.format) if decode and not params else None
         arrivals: list[tuple[int, float]] = []
 
         async def sender() -> None:
@@ -68,7 +73,14 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
         async def receiver() -> None:
             while True:
                 data = await client.ws.recv()
-                if decoder is not None:
+                if params:
+                    msg = client.conn.receive(data)
+                    if not isinstance(msg, ParamsFrame) or msg.seq is None:
+                        continue
+                    if client.rig_deformer is not None:
+                        client.rig_deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
+                    seq, t = msg.seq, msg.t
+                elif decoder is not None:
                     msg = decoder.decode(data)
                     if not isinstance(msg, Frame):
                         continue
@@ -101,7 +113,9 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
 
 
 def hello(args) -> dict:
-    return {"encoding": args.encoding, "sparse": args.sparse, "delta": args.delta}
+    params = args.encoding == "params"
+    return {"encoding": args.encoding, "sparse": args.sparse, "delta": args.delta,
+            "track": params and args.decode == "full"}
 
 
 async def worker_main(spec: dict) -> None:
@@ -230,7 +244,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--warmup", type=float, default=0.5)
     ap.add_argument("--sessions", default="1,2,4,6,8,10,12,16", help="K values, comma-separated")
     ap.add_argument("--reference-sessions", default="1,2", help="K values for the reference server ('' = none)")
-    ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13"])
+    ap.add_argument("--encoding", default="f16", choices=["f32", "f16", "q13", "params"],
+                    help="params (PROTOCOL.md 13): with --decode full each client deforms its Gaussians itself")
     ap.add_argument("--sparse", action="store_true")
     ap.add_argument("--delta", action="store_true", help="delta sessions (hello.delta): the compact stream")
     ap.add_argument("--decode", default="header", choices=["header", "full"])
@@ -255,6 +270,8 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         print(f"[capacity] {impl}: K = {ks}, {args.encoding}{' sparse' if args.sparse else ''}, {args.rate:g} Hz, "
               f"{args.seconds:g} s each", flush=True)
+        if args.encoding == "params":
+            os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = "0"  # inherited by the server: every params frame stamped
         with C.ServerProcess(avatars, impl=impl, threads=args.threads,
                          extra={"event_loop": args.event_loop}) as server:
             runs[impl] = asyncio.run(sweep(server.url, ks, weights, layout, args, server.proc.pid))
