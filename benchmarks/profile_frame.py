@@ -47,7 +47,8 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
 
-    client = await connect(url, layout=layout, encoding=args.encoding, sparse=args.sparse, delta=args.delta)
+    client = await connect(url, layout=layout, encoding=args.encoding, sparse=args.sparse, delta=args.delta,
+                           transport=args.client_transport)
     fast = FastFrameDecoder(client.conn.format) if args.client_decode == "fast" else None  # delta frames too
     period = 1e6 / args.rate
     first = int(args.warmup * args.rate)
@@ -165,6 +166,8 @@ def main(argv: list[str] | None = None) -> dict:
                     help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--client-decode", default="fast", choices=["fast", "reference"])
+    ap.add_argument("--client-transport", default="fast", choices=["fast", "websockets"],
+                    help="the client's WebSocket transport (ofera.client.connect(transport=...))")
     ap.add_argument("--no-floor", action="store_true")
     ap.add_argument("--server-path", default=None, help="PYTHONPATH of the server process only (before/after "
                     "comparisons: another checkout's 'server:protocol' directories; the client stays this tree's)")
@@ -187,7 +190,7 @@ def main(argv: list[str] | None = None) -> dict:
         floor = C.transport_floor(first["bytes_per_frame"], args.rate, 3.0)
     report = {"benchmark": "profile_frame", "gaussians": first["count"], "rate_hz": args.rate,
               "encoding": args.encoding, "sparse": args.sparse, "delta": args.delta, "order": list(ORDER),
-              "server_path": args.server_path,
+              "server_path": args.server_path, "event_loop": args.event_loop, "client_transport": args.client_transport,
               "results": results, "transport_floor_ms": floor,
               "definitions": {"stages": __doc__.split("\n\n")[2], "percentiles": "per stage over the frames that "
                               "arrived; e2e_ms includes skipped bs (first later frame), answered_e2e_ms does not",

@@ -9,8 +9,8 @@ by ``recv_into``, where the application reads it.
 
 Why not the ``websockets`` library's asyncio client (used for the server's tests and kept as
 ``connect(..., transport="websockets")``): its receive path copies each message several times and resumes a parser
-per chunk read. A 2 MB message's round trip from a bare server took 1.93 ms p50 with it, 0.96 ms with this transport
-and 0.99 ms with plain socket reads (``benchmarks/transport.py``; 1 MB: 1.42 / 0.40 / 0.41 ms).
+per chunk read. A 2 MB message's round trip from a bare server took 1.66 ms p50 with it, 0.77 ms with this
+transport and 0.58 ms with plain socket reads (``benchmarks/transport.py``; 1 MB: 1.32 / 0.37 / 0.31 ms).
 
 Layers, in the style of h11: :class:`FrameReader` is the sans-I/O parser (where the next bytes go, what they
 completed); :class:`_Protocol` is the asyncio glue; :class:`WebSocket` is the connection (``send``, ``recv``,
