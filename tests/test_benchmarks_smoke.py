@@ -61,6 +61,25 @@ def test_capacity_smoke(tmp_path) -> None:
     assert r["max_sessions_within_budget"] == max(passing, default=0)
 
 
+@pytest.mark.timeout(300)
+def test_params_latency_and_capacity_smoke(tmp_path, monkeypatch) -> None:
+    """The compact stream (PROTOCOL.md 13): every params frame stamped, the client deforming its Gaussians."""
+    monkeypatch.delenv("OFERA_PARAMS_STAMP_INTERVAL", raising=False)  # the benchmarks set it for their servers
+    out = tmp_path / "latency.json"
+    load("latency").main(["--gaussians", SMALL, "--seconds", "0.7", "--warmup", "0.3", "--encoding", "params",
+                          "--impl", "fast", "--no-floor", "--json", str(out)])
+    r = check_outputs(out)
+    assert r["encoding"] == "params" and r["targets"]["e2e_p99_ms"] == 5.0
+    assert r["frames"] + r["frames_skipped"] == r["frames_sent"] == int(1.0 * 72) - int(0.3 * 72)
+    assert r["frames"] > 0 and r["bytes_per_frame"] < 1000  # 68 float32 values and a stamp, not Gaussians
+    out = tmp_path / "capacity.json"
+    load("capacity").main(["--gaussians", SMALL, "--seconds", "0.5", "--warmup", "0.3", "--sessions", "1,2",
+                           "--encoding", "params", "--decode", "full", "--reference-sessions", "", "--json", str(out)])
+    r = check_outputs(out)
+    for run in r["per_k"].values():
+        assert run["frames"] > 0 and run["frames"] + run["skipped"] == run["sent"]
+
+
 def test_dropped_bs_take_the_latency_of_the_first_later_frame() -> None:
     """bs 1, 2 are dropped and answered by frame 3's arrival; bs 4 by nothing (the end of listening)."""
     sys.path.insert(0, str(BENCH))
