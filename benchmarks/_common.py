@@ -28,6 +28,8 @@ import sys
 import tempfile
 import time
 import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -296,12 +298,14 @@ def _echo_server(port: int, size: int) -> None:
     asyncio.run(main())
 
 
-def transport_floor(size: int, rate: float = 72.0, seconds: float = 3.0) -> dict:
+def transport_floor(size: int, rate: float = 72.0, seconds: float = 3.0, client: str = "fast") -> dict:
     """Round trips (ms) of a tiny request answered by a `size`-byte message between two Python processes
-    over loopback WebSocket (the websockets library on both ends, no compute): the floor under any frame
-    of that size on this machine."""
+    over loopback WebSocket, no compute: a websockets-library server, and the client on `client` ("fast":
+    ofera.client.transport, what the benchmarks' clients use; "websockets": the library): the floor under any
+    frame of that size on this machine."""
     import asyncio
 
+    from ofera.client.transport import open_websocket
     from websockets.asyncio.client import connect
 
     port = free_port()
@@ -310,20 +314,26 @@ def transport_floor(size: int, rate: float = 72.0, seconds: float = 3.0) -> dict
     async def run() -> list[float]:
         for _ in range(100):
             try:
-                ws = await connect(f"ws://127.0.0.1:{port}", compression=None, max_size=2**26, ping_interval=None)
+                if client == "fast":
+                    ws = await open_websocket(f"ws://127.0.0.1:{port}/", max_size=2**26)
+                else:
+                    ws = await connect(f"ws://127.0.0.1:{port}", compression=None, max_size=2**26,
+                                       ping_interval=None)
                 break
             except OSError:
                 await asyncio.sleep(0.1)
         else:
             raise RuntimeError("echo server did not start")
         lat = []
-        async with ws:
+        try:
             for _ in range(int(rate * seconds)):
                 t = time.perf_counter()
                 await ws.send(b"x")
                 await ws.recv()
                 lat.append((time.perf_counter() - t) * 1e3)
                 await asyncio.sleep(max(0.0, 1 / rate - (time.perf_counter() - t)))
+        finally:
+            await ws.close()
         return lat[int(rate * 0.3):]
 
     try:
@@ -332,7 +342,31 @@ def transport_floor(size: int, rate: float = 72.0, seconds: float = 3.0) -> dict
         proc.terminate()
         proc.wait()
     p = pct(lat)
-    return {"bytes": size, "p50": p["p50"], "p99": p["p99"], "min": round(float(np.min(lat)), 3)}
+    return {"bytes": size, "client": client, "p50": p["p50"], "p99": p["p99"], "min": round(float(np.min(lat)), 3)}
+
+
+@contextmanager
+def params_stamped_every_frame() -> Iterator[None]:
+    """OFERA_PARAMS_STAMP_INTERVAL=0 while servers started inside are made (they inherit it: every params frame then
+    carries seq and t, so that each can be timed); the previous value afterwards."""
+    old = os.environ.get("OFERA_PARAMS_STAMP_INTERVAL")
+    os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = "0"
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("OFERA_PARAMS_STAMP_INTERVAL", None)
+        else:
+            os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = old
+
+
+def server_event_loop(port: int) -> str | None:
+    """The event loop a running server reports on /healthz (what `--event-loop auto` resolved to)."""
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=5) as r:
+            return json.loads(r.read()).get("event_loop")
+    except (OSError, ValueError):
+        return None
 
 
 def _serve(settings_json: str, impl: str) -> None:

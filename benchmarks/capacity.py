@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
-import os
 import subprocess
 import sys
 import time
@@ -270,9 +270,8 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         print(f"[capacity] {impl}: K = {ks}, {args.encoding}{' sparse' if args.sparse else ''}, {args.rate:g} Hz, "
               f"{args.seconds:g} s each", flush=True)
-        if args.encoding == "params":
-            os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = "0"  # inherited by the server: every params frame stamped
-        with C.ServerProcess(avatars, impl=impl, threads=args.threads,
+        stamped = C.params_stamped_every_frame() if args.encoding == "params" else contextlib.nullcontext()
+        with stamped, C.ServerProcess(avatars, impl=impl, threads=args.threads,
                          extra={"event_loop": args.event_loop}) as server:
             runs[impl] = asyncio.run(sweep(server.url, ks, weights, layout, args, server.proc.pid))
     fast = runs["fast"]

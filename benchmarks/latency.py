@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import os
+import contextlib
 import re
 import sys
 import urllib.request
@@ -82,6 +82,11 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     client = await connect(url, layout=layout, encoding=encoding, sparse=sparse, delta=delta,
                            track=params and decode != "header")
     fast = FastFrameDecoder(client.conn.format) if decode == "fast" and not params else None  # delta frames too
+    deformer = client.rig_deformer  # params: numba (decode "fast"), the float64 numpy reference, or none (header)
+    if params and decode == "reference":
+        from ofera.client.params import RigDeformer
+
+        deformer = RigDeformer(client.conn.rig, reference=True)
     period_us = 1e6 / rate
     total = int((warmup + seconds) * rate)
     first_counted = int(warmup * rate)
@@ -94,8 +99,8 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
             msg = client.conn.receive(data)
             if not isinstance(msg, ParamsFrame) or msg.seq is None:
                 return False
-            if client.rig_deformer is not None:
-                client.rig_deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
+            if deformer is not None:
+                deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
             seq, t, timing = msg.seq, msg.t, msg.timing or {}
         elif decode != "header":
             msg = fast.decode(data) if fast is not None else client.conn.receive(data)
@@ -163,10 +168,9 @@ def summarise(run: dict) -> dict:
 
 
 def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
-    if args.encoding == "params":
-        os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = "0"  # inherited by the server: every params frame stamped
-    with C.ServerProcess(avatars, impl=impl, threads=args.threads,
-                         extra={"event_loop": args.event_loop}) as server:
+    stamped = C.params_stamped_every_frame() if args.encoding == "params" else contextlib.nullcontext()
+    with stamped, C.ServerProcess(avatars, impl=impl, threads=args.threads,
+                                  extra={"event_loop": args.event_loop}) as server:
         with C.CpuMeter(server.proc.pid) as cpu:
             run = asyncio.run(run_session(server.url, weights, layout, args.rate, args.seconds, args.warmup,
                                           args.encoding, args.sparse, args.client_decode, args.delta))
@@ -178,6 +182,7 @@ def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
                                                              for s in ("head", "deform")) + enc, 3),
                                             "note": "head p50 + deform p50 + encode mean (/metrics)"}
         out["server_metrics_ms"] = metric_means(f"http://127.0.0.1:{server.port}")
+        out["event_loop"] = C.server_event_loop(server.port)
         out["count"] = run["count"]
     return out
 
@@ -278,6 +283,7 @@ def main(argv: list[str] | None = None) -> dict:
         "bytes_per_frame": fast["bytes_per_frame"],
         "transport_floor_ms": floor,
         "impl": impls[0] if len(impls) == 1 else "fast",
+        "event_loop": fast.get("event_loop"),
         "input": {"layout": layout, "capture": str(C.CAPTURE) if C.CAPTURE.is_file() else None, "fps": fps},
         "definitions": {
             "e2e_ms": "client clock: frame decoded - scheduled send time of its bs (loopback, same machine); a "
@@ -291,7 +297,8 @@ def main(argv: list[str] | None = None) -> dict:
             "cpu": "cores used on average during the run: the client process (this one) and the server",
             "server_metrics_ms": "means from /metrics: encode stage, bs received -> frame handed to the socket",
             "transport_floor_ms": "round trip of a tiny request answered by a message of bytes_per_frame between "
-                                  "two Python processes (websockets library both ends, no compute)",
+                                  "two Python processes (a websockets server, the client on ofera.client.transport "
+                                  "as the benchmark's, no compute)",
             "params": "--encoding params: e2e includes the client's deformation of the Gaussians (RigDeformer)",
         },
         "targets": {"e2e_p99_ms": 5.0 if args.delta or args.encoding == "params" else 8.0,

@@ -855,3 +855,44 @@ def test_messages_before_a_violation_in_the_same_read_are_kept() -> None:
         reader.feed(data)
     assert e.value.code == 1002
     assert [(ev.opcode, ev.data) for ev in e.value.events] == [(OP_BINARY, b"kept")]
+
+
+def test_an_http_error_body_is_never_read_as_frames() -> None:
+    """The bytes after a non-101 response's headers are its body, not WebSocket frames: a body that happens to
+    look like a close frame gets no close frame back (HandshakeError, and TCP closed)."""
+    async def script(peer: Peer) -> bytes:
+        body = server_frame(OP_CLOSE, struct.pack("!H", 1000))
+        peer.send(b"HTTP/1.1 400 Bad Request\r\nContent-Length: %d\r\n\r\n" % len(body) + body)
+        await peer.writer.drain()
+        return await peer.reader.read()  # everything the client sent after its request, until it closed TCP
+
+    async def main() -> None:
+        async with raw_server(script, upgrade=False) as (url, done):
+            with pytest.raises(HandshakeError) as e:
+                await opened(url)
+            assert e.value.status == 400
+            assert await asyncio.wait_for(done, WAIT) == b""
+
+    run(main())
+
+
+def test_close_with_reading_paused_still_reads_the_servers_close_frame() -> None:
+    """max_queue unread messages pause reading; close() resumes it (dropping those messages) so that the server's
+    close reply is read at once instead of after close_timeout."""
+    async def script(peer: Peer) -> bytes:
+        for k in range(6):  # more than max_queue: the client stops reading
+            peer.send(server_frame(OP_BINARY, bytes([k]) * 10))
+        await peer.writer.drain()
+        return await closing_handshake(peer)
+
+    async def main() -> None:
+        async with raw_server(script) as (url, done):
+            ws = await opened(url, max_queue=2, close_timeout=30)
+            await asyncio.sleep(0.3)  # the messages arrive; reading pauses at 2
+            t0 = asyncio.get_running_loop().time()
+            await asyncio.wait_for(ws.close(), WAIT)
+            assert asyncio.get_running_loop().time() - t0 < 5  # not the 30 s close_timeout
+            assert struct.unpack("!H", (await asyncio.wait_for(done, WAIT))[:2])[0] == 1000
+            assert ws.close_code == 1000
+
+    run(main())

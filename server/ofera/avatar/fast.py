@@ -17,7 +17,8 @@ owns head pose; :meth:`FastSession.head` refuses anything else):
   ``"all"`` deforms every Gaussian (tests).
 - Precomputed per avatar: the vertex subset those faces need, its blend basis (:class:`SubsetLBS`),
   the used faces as rows of the subset, runs of consecutive Gaussians on one face, and per moving
-  Gaussian its local attributes as one float32 row (normalised rotation, linear scale: one read stream).
+  Gaussian its local attributes as one float32 row (local position or barycentric coordinates and shift,
+  normalised rotation, linear scale: one read stream).
 - Per frame: one LBS kernel, one face-frame kernel (R_f, its quaternion, s_f, c_f, n_f per used
   face), one per-Gaussian kernel writing position / rotation / scale straight into float32 output
   arrays whose other rows already hold the neutral values.

@@ -287,7 +287,8 @@ async def connect(url: str, layout: str = "arkit52", avatar: str = "default", en
     raises ConnectionUsageError before connecting.
 
     `transport`: "fast" (default: `transport.WebSocket`, each message received straight into its buffer) or
-    "websockets" (the library's asyncio client; several copies of every message, ~3 ms more per 2 MB frame)."""
+    "websockets" (the library's asyncio client: several copies of every message, about twice the round trip of a
+    1-4 MB message at p50, benchmarks/transport.py)."""
     if transport not in TRANSPORTS:
         raise ValueError(f"unknown transport {transport!r}; expected one of {TRANSPORTS}")
     if header_only:

@@ -186,7 +186,9 @@ class FastRig:
         self.index = rig.index.astype(np.int64)  # (M,) session ids
         identity = np.zeros(68, np.float32)
         identity[50:] = [1, 0, 0, 0, 1, 0] * 3
-        self.deform(identity)  # the kernel compiled (or loaded from numba's cache) now, not on the first frame
+        self.deform(identity)  # the kernel compiled (or loaded from numba's cache) now, not on the first frame:
+        identity.flags.writeable = False  # for writable params and for read-only ones (frames' msgpack buffers)
+        self.deform(identity)
 
     def _run(self, params: np.ndarray, position: np.ndarray, rotation: np.ndarray, scale: np.ndarray,
              rows: np.ndarray, psign: np.ndarray, rsign: np.ndarray) -> None:

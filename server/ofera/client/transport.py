@@ -246,7 +246,8 @@ def _message(opcode: int, payload: bytes | memoryview) -> Message:
 
 
 def frame_bytes(opcode: int, payload: bytes | bytearray | memoryview) -> bytes:
-    """One masked, final client frame (RFC 6455 5.2-5.3)."""
+    """One masked, final client frame (RFC 6455 5.2-5.3) of `payload`'s bytes (any buffer: counted in bytes)."""
+    payload = memoryview(payload).cast("B")
     n = len(payload)
     head = bytes([0x80 | opcode]) + (bytes([0x80 | n]) if n < 126 else
                                      b"\xfe" + struct.pack("!H", n) if n < 65536 else
@@ -286,8 +287,9 @@ class _Protocol(asyncio.BufferedProtocol):
             end = self._head.find(b"\r\n\r\n")
             if end >= 0:
                 rest = bytes(self._head[end + 4:])
-                self.handshake.set_result(bytes(self._head[:end + 4]))
-                if rest:
+                head = bytes(self._head[:end + 4])
+                self.handshake.set_result(head)
+                if rest and head.startswith(b"HTTP/1.1 101 "):  # frames sent with the upgrade (never an error's body)
                     self.ws.deliver(rest)
             elif len(self._head) > _MAX_HEAD:
                 self.handshake.set_exception(HandshakeError(0, f"handshake response over {_MAX_HEAD} bytes"))
@@ -327,6 +329,7 @@ class WebSocket:
         self.sent: Close | None = None  # ours
         self._violation: ProtocolViolation | None = None
         self._rcvd_first = False  # whether the server's close frame came before ours
+        self._closing = False  # close() was called
 
     # -- events from the protocol
 
@@ -351,13 +354,16 @@ class WebSocket:
     def _handle(self, events: list[Message | Control]) -> None:
         for ev in events:
             if isinstance(ev, Message):
+                if self._closing:
+                    continue  # after our close frame: only the server's close reply matters
                 self._messages.append(ev.data)
                 self._arrived.set()
             elif ev.opcode == OP_PING:
                 self._write(frame_bytes(OP_PONG, ev.data))
             elif ev.opcode == OP_CLOSE:
                 self._on_close(ev.data)
-        if len(self._messages) >= self.max_queue and not self._paused and self.protocol is not None:
+        if (len(self._messages) >= self.max_queue and not self._paused and not self._closing
+                and self.protocol is not None):
             self._paused = True
             self.protocol.transport.pause_reading()  # type: ignore[union-attr]
 
@@ -379,8 +385,10 @@ class WebSocket:
         if self.sent is None:
             self.sent = Close(e.code, str(e)[:120])
             self._write(frame_bytes(OP_CLOSE, close_payload(e.code, str(e))))
-        if self.protocol is not None and self.protocol.transport is not None:
-            self.protocol.transport.close()
+        t = self.protocol.transport if self.protocol is not None else None
+        if t is not None:
+            t.close()  # after the close frame is written; a peer that stopped reading is cut off later
+            asyncio.get_running_loop().call_later(self.close_timeout, t.abort)
 
     def lost(self) -> None:
         if not self._closed.done():
@@ -443,13 +451,19 @@ class WebSocket:
         if self.sent is None and not self._closed.done():
             self.sent = Close(code, reason)
             self._write(frame_bytes(OP_CLOSE, close_payload(code, reason)))
+        t = self.protocol.transport if self.protocol is not None else None
+        self._closing = True  # messages arriving from here on are dropped; reading resumes for the server's reply
+        if self._paused and t is not None and not self._closed.done():
+            self._paused = False
+            t.resume_reading()
         try:
             await asyncio.wait_for(asyncio.shield(self._closed), self.close_timeout)
         except asyncio.TimeoutError:  # not the builtin TimeoutError before Python 3.11
-            pass
+            if t is not None:
+                t.abort()  # no reply, or a peer that stopped reading (close() would wait for it forever)
         finally:
-            if self.protocol is not None and self.protocol.transport is not None:
-                self.protocol.transport.close()
+            if t is not None:
+                t.close()
 
     async def wait_closed(self) -> None:
         await asyncio.shield(self._closed)

@@ -262,6 +262,7 @@ class Session:
             # The source and the viewer reference each other (offer, wake): break the cycle so that their
             # buffers (MBs per session) are freed now, not at the next full garbage collection.
             self.source.subscribers.clear()
+            self.source.eager.clear()
             self.source.demand = None
             self.viewer.on_ready = None
             m.sessions.labels("source").dec()
