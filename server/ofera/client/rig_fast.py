@@ -17,6 +17,9 @@ from ofera_protocol.rig import JOINTS, Rig
 
 from ..jit import NB
 
+GAUSS_COLS = 12
+"""Numbers per Gaussian in FastRig.gauss (float32): local position or bary (3), rotation (w, x, y, z), scale (3),
+normal offset, padding."""
 FACE = 17
 """Numbers per used face in the kernel's scratch: R_f s_f (9, row-major) or v0 v1 v2 (9), then c_f or e1 x e2 (3),
 q_f (w, x, y, z), s_f."""
@@ -39,10 +42,10 @@ def _rot6d(p: np.ndarray, o: int, out: np.ndarray) -> None:
 
 
 @njit(**NB)
-def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, face_verts, gaussian_face, local,
-            normal_offset, triangle, local_rotation, local_scale, a, coef, verts, frame, position, rotation,
-            scale, rows, psign, rsign):
-    """PROTOCOL.md 13.4 steps 1-7 over FastRig's arrays (shapes there); writes Gaussian m into row rows[m] of
+def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, face_verts, run_face, run_m, run_len,
+            gauss, triangle, a, coef, verts, frame, position, rotation, scale, rows, psign, rsign):
+    """PROTOCOL.md 13.4 steps 1-7 over FastRig's arrays (shapes there; the Gaussians in runs on one face, their
+    attributes one float32 row each: gauss (M, GAUSS_COLS)); writes Gaussian m into row rows[m] of
     position (N, 3), rotation (N, 4) (x, y, z, w), scale (N, 3), position and rotation times psign (3,), rsign (4,)
     (the session's coords); a (5, 3, 4), coef (K,), verts (V, 3), frame (F, FACE) are scratch."""
     e_dims = joints_expr.shape[2]
@@ -123,32 +126,37 @@ def _deform(params, joints, joints_expr, pose_rows, template, basis, weights, fa
             qw, qx, qy, qz = a0y - a1x, a2x + a0z, a1z + a2y, tz
         n = (-1.0 if qw < 0 else 1.0) / np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         frame[f, 12], frame[f, 13], frame[f, 14], frame[f, 15], frame[f, 16] = qw * n, qx * n, qy * n, qz * n, sf
-    for m in range(gaussian_face.shape[0]):  # step 7
-        f = np.uint64(gaussian_face[m])
-        p0, p1, p2 = float(local[m, 0]), float(local[m, 1]), float(local[m, 2])
-        if triangle:
-            px = frame[f, 0] * p0 + frame[f, 1] * p1 + frame[f, 2] * p2 + frame[f, 9]
-            py = frame[f, 3] * p0 + frame[f, 4] * p1 + frame[f, 5] * p2 + frame[f, 10]
-            pz = frame[f, 6] * p0 + frame[f, 7] * p1 + frame[f, 8] * p2 + frame[f, 11]
-        else:
-            k = float(normal_offset[m])
-            px = p0 * frame[f, 0] + p1 * frame[f, 3] + p2 * frame[f, 6] + frame[f, 9] * k
-            py = p0 * frame[f, 1] + p1 * frame[f, 4] + p2 * frame[f, 7] + frame[f, 10] * k
-            pz = p0 * frame[f, 2] + p1 * frame[f, 5] + p2 * frame[f, 8] + frame[f, 11] * k
+    for q in range(run_face.shape[0]):  # step 7, by runs of consecutive Gaussians on one face (its frame loaded once)
+        f = np.uint64(run_face[q])
+        f0, f1, f2, f3, f4, f5 = frame[f, 0], frame[f, 1], frame[f, 2], frame[f, 3], frame[f, 4], frame[f, 5]
+        f6, f7, f8, f9, f10, f11 = frame[f, 6], frame[f, 7], frame[f, 8], frame[f, 9], frame[f, 10], frame[f, 11]
         fw, fx, fy, fz, sf = frame[f, 12], frame[f, 13], frame[f, 14], frame[f, 15], frame[f, 16]
-        lw, lx, ly, lz = local_rotation[m, 0], local_rotation[m, 1], local_rotation[m, 2], local_rotation[m, 3]
-        qw = fw * lw - fx * lx - fy * ly - fz * lz
-        qx = fw * lx + fx * lw + fy * lz - fz * ly
-        qy = fw * ly - fx * lz + fy * lw + fz * lx
-        qz = fw * lz + fx * ly - fy * lx + fz * lw
-        # q_f and the local rotation are unit (normalised in float64): their product is unit to ~1e-16, so the
-        # reference's renormalisation is left out (as the server's kernels do).
-        row = np.uint64(rows[m])  # unsigned: no wrap-around code (see ofera.avatar.kernels)
-        position[row, 0], position[row, 1], position[row, 2] = px * psign[0], py * psign[1], pz * psign[2]
-        rotation[row, 0], rotation[row, 1] = qx * rsign[0], qy * rsign[1]
-        rotation[row, 2], rotation[row, 3] = qz * rsign[2], qw * rsign[3]
-        scale[row, 0], scale[row, 1] = local_scale[m, 0] * sf, local_scale[m, 1] * sf
-        scale[row, 2] = local_scale[m, 2] * sf
+        m0 = np.uint64(run_m[q])
+        for j in range(np.uint64(run_len[q])):
+            m = m0 + j
+            g = gauss[m]
+            p0, p1, p2 = float(g[0]), float(g[1]), float(g[2])
+            if triangle:
+                px = f0 * p0 + f1 * p1 + f2 * p2 + f9
+                py = f3 * p0 + f4 * p1 + f5 * p2 + f10
+                pz = f6 * p0 + f7 * p1 + f8 * p2 + f11
+            else:
+                k = float(g[10])
+                px = p0 * f0 + p1 * f3 + p2 * f6 + f9 * k
+                py = p0 * f1 + p1 * f4 + p2 * f7 + f10 * k
+                pz = p0 * f2 + p1 * f5 + p2 * f8 + f11 * k
+            lw, lx, ly, lz = float(g[3]), float(g[4]), float(g[5]), float(g[6])
+            qw = fw * lw - fx * lx - fy * ly - fz * lz
+            qx = fw * lx + fx * lw + fy * lz - fz * ly
+            qy = fw * ly - fx * lz + fy * lw + fz * lx
+            qz = fw * lz + fx * ly - fy * lx + fz * lw
+            # q_f and the local rotation are unit: their product is unit to float32 rounding, so the reference's
+            # renormalisation is left out (as the server's kernels do).
+            row = np.uint64(rows[m])  # unsigned: no wrap-around code (see ofera.avatar.kernels)
+            position[row, 0], position[row, 1], position[row, 2] = px * psign[0], py * psign[1], pz * psign[2]
+            rotation[row, 0], rotation[row, 1] = qx * rsign[0], qy * rsign[1]
+            rotation[row, 2], rotation[row, 3] = qz * rsign[2], qw * rsign[3]
+            scale[row, 0], scale[row, 1], scale[row, 2] = g[7] * sf, g[8] * sf, g[9] * sf
 
 
 class FastRig:
@@ -168,13 +176,20 @@ class FastRig:
         self.weights = np.ascontiguousarray(np.stack([w[:, 0] + w[:, 1], w[:, 2], w[:, 3], w[:, 4]], axis=1))
         lq = rig.local_rotation.astype(np.float64)
         lq = lq / np.maximum(np.linalg.norm(lq, axis=1, keepdims=True), 1e-12)
-        self.local_rotation = np.ascontiguousarray(lq[:, [3, 0, 1, 2]])  # (M, 4) (w, x, y, z), unit
-        self.local_scale = np.ascontiguousarray(rig.local_scale, np.float32)  # (M, 3) face units
         triangle = rig.binding == "triangle"
         self.triangle = triangle
-        self.local = np.ascontiguousarray(rig.local_position if triangle else rig.bary, np.float32)  # (M, 3)
-        no = np.zeros(0, np.float32) if triangle else rig.normal_offset
-        self.normal_offset = np.ascontiguousarray(no, np.float32)  # (M,) barycentric, else empty
+        m = self.gaussian_face.shape[0]
+        no = np.zeros(m) if triangle else rig.normal_offset
+        # One row per Gaussian (one read stream): local position or barycentric coordinates (3), the unit local
+        # rotation (w, x, y, z), the local scale (3, face units), the normal offset (barycentric).
+        self.gauss = np.ascontiguousarray(np.concatenate(
+            [rig.local_position if triangle else rig.bary, lq[:, [3, 0, 1, 2]], rig.local_scale,
+             np.reshape(no, (-1, 1)), np.zeros((m, 1))], axis=1), np.float32)  # (M, GAUSS_COLS)
+        gf = self.gaussian_face.astype(np.int64)
+        start = np.flatnonzero(np.concatenate([[True], gf[1:] != gf[:-1]])) if m else np.zeros(0, np.int64)
+        self.run_face = gf[start]  # (R,) used face of each run of consecutive Gaussians
+        self.run_m = start.astype(np.int64)  # (R,) its first Gaussian
+        self.run_len = np.diff(np.concatenate([start, [m]])).astype(np.int64)  # (R,)
         self.joints = np.ascontiguousarray(rig.joints, np.float32)  # (5, 3) m
         self.joints_expr = np.ascontiguousarray(rig.joints_expr, np.float32)  # (5, 3, E)
         self.pose_rows = np.ascontiguousarray(rig.pose_rows, np.uint8)  # (P,)
@@ -196,9 +211,8 @@ class FastRig:
         if params.shape != (68,):
             raise ValueError(f"params has shape {params.shape}, expected (68,)")
         _deform(params, self.joints, self.joints_expr, self.pose_rows, self.template, self.basis, self.weights,
-                self.face_verts, self.gaussian_face, self.local, self.normal_offset, self.triangle,
-                self.local_rotation, self.local_scale, self._a, self._coef, self._verts, self._frame, position,
-                rotation, scale, rows, psign, rsign)
+                self.face_verts, self.run_face, self.run_m, self.run_len, self.gauss, self.triangle, self._a,
+                self._coef, self._verts, self._frame, position, rotation, scale, rows, psign, rsign)
 
     def deform(self, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """params (68,) -> position (M, 3) m, rotation (M, 4) (x, y, z, w), scale (M, 3) m of the rig's Gaussians
