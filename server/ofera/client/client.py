@@ -244,13 +244,15 @@ class Client:
         """Say bye and close (idempotent). Messages still on their way (a room's other members keep streaming) are
         read and dropped until the server's close arrives, at most `timeout` seconds: unread, they would hold the
         close frame back until the library's close timeout."""
+        async def drain() -> None:
+            while True:
+                await self.ws.recv()
+
         try:
             if self.conn.state.value != "closed":
                 await self.ws.send(self.conn.bye())
-            async with asyncio.timeout(timeout):
-                while True:
-                    await self.ws.recv()
-        except (ConnectionClosed, TimeoutError):
+            await asyncio.wait_for(drain(), timeout)  # (asyncio.timeout would need Python 3.11; we support 3.10)
+        except (ConnectionClosed, asyncio.TimeoutError):
             pass
         await self.ws.close()
 
