@@ -208,6 +208,30 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def terminate(proc: subprocess.Popen, timeout: float = 10.0) -> None:
+    """End a benchmark's subprocess: SIGTERM, then SIGKILL if it is still there after `timeout` seconds."""
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def read_params_frame(client, data, deformer=None):  # noqa: ANN001, ANN201 - ParamsFrame | None
+    """A params session's message (PROTOCOL.md 13) -> its ParamsFrame when it is a stamped frame (else None), after
+    `deformer` (an ofera.client.params.RigDeformer, or None: not deformed) wrote its Gaussians into the client's."""
+    from ofera_protocol.messages import ParamsFrame
+
+    msg = client.conn.receive(data)
+    if not isinstance(msg, ParamsFrame) or msg.seq is None:
+        return None
+    if deformer is not None:
+        deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
+    return msg
+
+
 def wait_healthz(proc: subprocess.Popen, port: int, timeout: float) -> bool:
     """Wait for the server process ``proc`` to answer ``http://127.0.0.1:<port>/healthz`` with 200: True when it
     does, False when ``proc`` exits first or ``timeout`` seconds pass (``proc.poll()`` tells which)."""
@@ -264,13 +288,8 @@ class ServerProcess:
         return self.log.read().decode(errors="replace")[-4000:]
 
     def stop(self) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        if self.proc is not None:
+            terminate(self.proc, 15)
 
     def __enter__(self) -> ServerProcess:
         return self.start()

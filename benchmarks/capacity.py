@@ -44,7 +44,6 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
     from ofera.client import now_us
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
-    from ofera_protocol.messages import ParamsFrame
 
     period = 1e6 / rate
     total = int((warmup + seconds) * rate)
@@ -74,11 +73,9 @@ async def run_k(clients, k: int, weights, rate: float, seconds: float, warmup: f
             while True:
                 data = await client.ws.recv()
                 if params:
-                    msg = client.conn.receive(data)
-                    if not isinstance(msg, ParamsFrame) or msg.seq is None:
+                    msg = C.read_params_frame(client, data, client.rig_deformer)
+                    if msg is None:
                         continue
-                    if client.rig_deformer is not None:
-                        client.rig_deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
                     seq, t = msg.seq, msg.t
                 elif decoder is not None:
                     msg = decoder.decode(data)

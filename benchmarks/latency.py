@@ -76,7 +76,6 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     from ofera.client import connect, now_us
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import Frame
-    from ofera_protocol.messages import ParamsFrame
 
     params = encoding == "params"
     client = await connect(url, layout=layout, encoding=encoding, sparse=sparse, delta=delta,
@@ -96,11 +95,9 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
 
     def on_message(data: bytes, t_recv: float) -> bool:
         if params:  # the values, then (unless header only) the client's own deformation of the Gaussians
-            msg = client.conn.receive(data)
-            if not isinstance(msg, ParamsFrame) or msg.seq is None:
+            msg = C.read_params_frame(client, data, deformer)
+            if msg is None:
                 return False
-            if deformer is not None:
-                deformer.apply(msg.params, client.conn.gaussians, client.welcome.coords)
             seq, t, timing = msg.seq, msg.t, msg.timing or {}
         elif decode != "header":
             msg = fast.decode(data) if fast is not None else client.conn.receive(data)

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import shutil
 import sys
 import time
@@ -198,17 +197,10 @@ def room(gaussians: int, seconds: float, threads: int, rate: float) -> dict:
     sys.modules[spec.name] = rooms
     spec.loader.exec_module(rooms)
     out = Path(tempfile.mkdtemp(prefix="ofera-params-room-")) / "room.json"
-    old = os.environ.get("OFERA_PARAMS_STAMP_INTERVAL")
-    os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = "0"  # inherited by the server process rooms.py starts
-    try:
+    with C.params_stamped_every_frame():  # inherited by the server process rooms.py starts
         report = rooms.main(["--gaussians", str(gaussians), "--ks", "16", "--encodings", "params", "--servers", "1",
                              "--seconds", str(seconds), "--threads", str(threads), "--rate", str(rate),
                              "--floor-seconds", "0", "--no-plot", "--json", str(out)])
-    finally:
-        if old is None:
-            os.environ.pop("OFERA_PARAMS_STAMP_INTERVAL", None)
-        else:
-            os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = old
     runs = report.get("runs", {})
     run = next(iter(runs.values()), {}).get("16") if runs else None
     return {"run": run, "summary": report.get("summary")}

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import base64
-import hashlib
 import os
 import socket
 import struct
@@ -40,10 +39,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
+from ofera.client.transport import OP_BINARY, accept_key, frame_bytes  # noqa: E402
 
 CLIENTS = ("socket", "fast", "websockets")
 DEFAULT_SIZES = "300,65536,1000000,2000000,4000000"
-GUID = b"258EAFA5-E914-47DA-95CA-C5AB0DC85B11"
 COLORS = {"socket": "tab:grey", "fast": "tab:blue", "websockets": "tab:red"}
 
 
@@ -67,12 +66,11 @@ def server_frame(data: bytes) -> bytes:
 
 def masked_request(index: int) -> bytes:
     """The client's masked 1-byte binary frame asking for message `index`."""
-    key = os.urandom(4)
-    return b"\x82\x81" + key + bytes([index ^ key[0]])
+    return frame_bytes(OP_BINARY, bytes([index]))
 
 
 def accept(key: bytes) -> bytes:
-    return base64.b64encode(hashlib.sha1(key + GUID).digest())
+    return accept_key(key.decode()).encode()
 
 
 # ----------------------------------------------------------------------------- the bare server (--serve)
@@ -144,13 +142,7 @@ class ServerProc:
         self.port = int(line)
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        C.terminate(self.proc)
 
 
 # ----------------------------------------------------------------------------- the clients

@@ -199,6 +199,7 @@ class FastRig:
         self._frame = np.zeros((faces.size, FACE))
         self._rows = np.arange(self.gaussian_face.shape[0], dtype=np.int64)
         self.index = rig.index.astype(np.int64)  # (M,) session ids
+        self._rows_needed = int(self.index.max(initial=-1)) + 1  # rows a session's arrays must have
         identity = np.zeros(68, np.float32)
         identity[50:] = [1, 0, 0, 0, 1, 0] * 3
         self.deform(identity)  # the kernel compiled (or loaded from numba's cache) now, not on the first frame:
@@ -229,7 +230,7 @@ class FastRig:
         times the coords' signs psign (3,), rsign (4,) (ofera_protocol.fast_encodings.coord_signs): no copies."""
         for name, arr, width in (("position", position, 3), ("rotation", rotation, 4), ("scale", scale, 3)):
             if (arr.dtype != np.float32 or arr.ndim != 2 or arr.shape[1] != width or not arr.flags.c_contiguous
-                    or not arr.flags.writeable or arr.shape[0] <= int(self.index.max(initial=-1))):
+                    or not arr.flags.writeable or arr.shape[0] < self._rows_needed):
                 raise ValueError(f"{name} must be a writable C-contiguous float32 (N, {width}) array covering "
                                  "the rig's rows")
         self._run(params, position, rotation, scale, self.index, psign, rsign)

@@ -474,6 +474,11 @@ def _request(host: str, path: str, key: str) -> bytes:
             f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\nUser-Agent: ofera-client\r\n\r\n").encode()
 
 
+def accept_key(key: str) -> str:
+    """The Sec-WebSocket-Accept a server answers `key` (Sec-WebSocket-Key) with (RFC 6455 4.2.2)."""
+    return base64.b64encode(hashlib.sha1(key.encode() + _GUID).digest()).decode()
+
+
 def check_response(head: bytes, key: str) -> None:
     """Raise HandshakeError unless `head` (status line + headers) accepts the upgrade asked with `key`."""
     lines = head.decode("latin-1").split("\r\n")
@@ -488,7 +493,7 @@ def check_response(head: bytes, key: str) -> None:
         name, sep, value = line.partition(":")
         if sep:
             headers[name.strip().lower()] = value.strip()
-    want = base64.b64encode(hashlib.sha1(key.encode() + _GUID).digest()).decode()
+    want = accept_key(key)
     if headers.get("upgrade", "").lower() != "websocket" or headers.get("sec-websocket-accept") != want:
         raise HandshakeError(101, "the server's upgrade response does not accept this WebSocket key")
     extensions = headers.get("sec-websocket-extensions")

@@ -179,13 +179,10 @@ class Source:
         """Make the `eager` wire formats of `frame` now. A format that fails is left to its viewer, whose own
         encoding then raises the error the session reports (one error path for every format)."""
         for key, make in self.eager:
-            t0 = time.perf_counter_ns()
             try:
-                frame.encoded(key, make)
+                encode_timed(frame, key, make, self.metrics)
             except Exception:
                 log.debug("eager encoding of frame %d failed; its viewer retries", frame.seq, exc_info=True)
-                continue
-            self.metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
 
     def _failed(self, pending: Any, exc: Exception) -> None:
         """The pipeline raised on `pending`: end the session (a remote source logs and goes on instead)."""
@@ -224,6 +221,16 @@ class FrameEncoder(Protocol):
 
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
                scale: np.ndarray) -> bytes | memoryview: ...
+
+
+def encode_timed(frame: ComputedFrame, key: tuple, make: Callable[[ComputedFrame], Any], metrics: Metrics) -> Any:
+    """`frame`'s bytes in wire format `key` (made by `make` once, by whoever asks first); the making is observed as
+    the `encode` stage."""
+    t0 = time.perf_counter_ns()
+    data, made = frame.encoded(key, make)
+    if made:
+        metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
+    return data
 
 
 def encode_computed(writer: Any, frame: ComputedFrame) -> bytes | memoryview:
@@ -285,11 +292,7 @@ class Viewer:
         return encode_computed(self.writer, frame)
 
     def _encode(self, frame: ComputedFrame) -> bytes:
-        t0 = time.perf_counter_ns()
-        data, made = frame.encoded(self.key, self.make)
-        if made:
-            self.metrics.stage_of("encode").observe((time.perf_counter_ns() - t0) * 1e-9)
-        return data
+        return encode_timed(frame, self.key, self.make, self.metrics)
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
