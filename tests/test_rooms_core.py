@@ -826,30 +826,3 @@ def test_a_remote_avatar_that_fails_to_load_stays_invisible() -> None:
         assert [m.member for m in v.control if isinstance(m, Leave)] == ["m-r"]
 
     in_world(body)
-
-
-def test_fast_frame_writer_writes_member_like_the_codec() -> None:
-    """frame.member in the numba writer's header: the codec's bytes (and without member, v1's bytes)."""
-    from ofera.streaming.encode_fast import frame_writer
-    from ofera.streaming.wire import make_writer
-    from ofera_protocol import FrameFormat, decode_server_message
-
-    rng = np.random.default_rng(0)
-    n = 40
-    pos = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
-    rot = rng.normal(0, 1, (n, 4)).astype(np.float32)
-    rot /= np.linalg.norm(rot, axis=1, keepdims=True)
-    scale = rng.uniform(1e-3, 1e-2, (n, 3)).astype(np.float32)
-    index = np.arange(0, n, 3, dtype=np.uint32)
-    for encoding in ("f32", "f16", "q13"):
-        quant = make_quant(pos, scale) if encoding == "q13" else None
-        for gather, idx in ((None, None), (index.astype(np.int64), index)):
-            fmt = FrameFormat(encoding, n, sparse=idx is not None, quant=quant)
-            fast = frame_writer(fmt, "unity", gather, idx, stamp_encode=False)
-            ref = make_writer(fmt, "unity", gather, idx, fast=False)
-            for member in (None, "m-5f2a9c1e0b7d"):
-                kw = {} if member is None else {"member": member}
-                a = bytes(fast.encode(7, 11, {"epm": 5}, pos, rot, scale, **kw))
-                b = ref.encode(7, 11, {"epm": 5}, pos, rot, scale, **kw)
-                assert a == b, (encoding, idx is not None, member)
-                assert decode_server_message(a, fmt).member == member

@@ -153,6 +153,12 @@ def test_fast_frame_writer_gives_the_codec_bytes() -> None:
                 ref = make_writer(fmt, coords, gather, idx, fast=False)
                 got = fast.encode(7, 11, timing, pos, rot, scale)
                 assert bytes(got) == ref.encode(7, 11, timing, pos, rot, scale), (encoding, coords, idx is not None)
+                # a room's frame: frame.member in the header, the codec's bytes (rooms, PROTOCOL.md 12)
+                member = "m-5f2a9c1e0b7d"
+                a = bytes(fast.encode(7, 11, timing, pos, rot, scale, member=member))
+                assert a == ref.encode(7, 11, timing, pos, rot, scale, member=member), (encoding, coords, member)
+                assert decode_server_message(a, fmt).member == member
+                assert decode_server_message(bytes(got), fmt).member is None
                 # stamped: the same frame, its timing with the writer's own encode time added
                 stamped = make_writer(fmt, coords, gather, idx, fast=True).encode(7, 11, timing, pos, rot, scale)
                 frame = decode_server_message(bytes(stamped), fmt)
