@@ -316,6 +316,33 @@ def test_a_member_leaving_while_redis_is_unreachable_is_withdrawn_when_it_is_bac
     asyncio.run(main())
 
 
+def test_close_ends_a_loop_whose_cancellation_was_swallowed(redis_server: RedisServer) -> None:
+    """Before Python 3.12 `asyncio.wait_for` can swallow a cancellation that arrives as its inner call completes;
+    a bus loop that lost its cancellation so must still end, and close() return, not hang (CI once hung here)."""
+    async def main() -> None:
+        a = bus(redis_server.url, "A", heartbeat_s=0.05, ttl_s=1.0)
+        await a.start(Recorder())
+        await a.join(ROOM, ALICE)
+        real, swallowed = a._heartbeat_once, []
+
+        async def swallowing(link):  # noqa: ANN001, ANN202 - stands in for a wait_for that swallows
+            try:
+                await asyncio.sleep(0.5)  # a slow Redis: the loop sits here when close() cancels it
+                return await real(link)
+            except asyncio.CancelledError:
+                swallowed.append(1)
+                return False
+
+        a._heartbeat_once = swallowing
+        await asyncio.sleep(0.3)
+        closing = asyncio.ensure_future(a.close())
+        await asyncio.sleep(0)  # close() starts: the loops are cancelled while one may sit in a heartbeat
+        await asyncio.wait_for(closing, 5.0)
+        assert swallowed and not a.connected
+
+    asyncio.run(main())
+
+
 def test_a_redis_that_stops_answering_is_lost_and_found_again(redis_server: RedisServer) -> None:
     """A hung Redis (SIGSTOP: connections stay open, nothing answers) is seen through timeouts, not only resets."""
     async def main() -> None:

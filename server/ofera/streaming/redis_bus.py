@@ -163,6 +163,7 @@ class _Link:
     client: aioredis.Redis
     pubsub: aioredis.client.PubSub
     tasks: list[asyncio.Task] = field(default_factory=list)
+    stopped: bool = False  # set before its tasks are cancelled: a loop whose cancellation was swallowed ends anyway
 
 
 class RedisBus:
@@ -223,11 +224,14 @@ class RedisBus:
 
     async def close(self) -> None:
         self._closed = True
-        if self._reconnect is not None:
-            self._reconnect.cancel()
+        reconnect, self._reconnect = self._reconnect, None
+        if reconnect is not None:
+            await _cancel([reconnect])
+        await asyncio.gather(*self._closing, return_exceptions=True)  # lost links, being closed
         link, self._link = self._link, None
         if link is None:
             return
+        link.stopped = True
         await _cancel(link.tasks)
         with contextlib.suppress(RedisError, OSError, asyncio.TimeoutError):
             pipe = link.client.pipeline(transaction=False)
@@ -237,7 +241,7 @@ class RedisBus:
                     pipe.publish(self.channel(room), self._pack(k="leave", m=member, r=CLOSED_REASON))
             pipe.delete(self.server_key(self.server_id))
             await asyncio.wait_for(pipe.execute(), self.timeout_s)
-        await _drop(link)
+        await _drop(link, self.timeout_s)
         self._local.clear()
         self._remote.clear()
         self.metrics.bus_connected.set(0)
@@ -255,7 +259,7 @@ class RedisBus:
                 return  # announced when the bus is back
             try:
                 if first:
-                    await link.pubsub.subscribe(self.channel(room))
+                    await asyncio.wait_for(link.pubsub.subscribe(self.channel(room)), self.timeout_s)
                 await self._announce(link, room, [info])
                 if first:
                     await self._reconcile(link, room)
@@ -283,7 +287,7 @@ class RedisBus:
                 await asyncio.wait_for(pipe.execute(), self.timeout_s)
                 self._count_published("leave")
                 if last:
-                    await link.pubsub.unsubscribe(self.channel(room))
+                    await asyncio.wait_for(link.pubsub.unsubscribe(self.channel(room)), self.timeout_s)
             except (RedisError, OSError, asyncio.TimeoutError) as exc:
                 self._lost(link, exc)
 
@@ -307,7 +311,8 @@ class RedisBus:
         link = _Link(client, pubsub)
         try:
             await asyncio.wait_for(client.ping(), self.timeout_s)
-            await pubsub.subscribe(f"{self.server_key(self.server_id)}:inbox", *map(self.channel, self._local))
+            channels = [f"{self.server_key(self.server_id)}:inbox", *map(self.channel, self._local)]
+            await asyncio.wait_for(pubsub.subscribe(*channels), self.timeout_s)
             await self._heartbeat_once(link)
             if self._withdraw:
                 pipe = client.pipeline(transaction=False)
@@ -320,7 +325,7 @@ class RedisBus:
             for room, members in self._local.items():
                 await self._announce(link, room, list(members.values()))
         except BaseException:
-            await _drop(link)
+            await _drop(link, self.timeout_s)
             raise
         link.tasks = [asyncio.create_task(f(link), name=f"ofera-bus-{f.__name__}")
                       for f in (self._read_loop, self._heartbeat_loop, self._send_loop)]
@@ -336,12 +341,13 @@ class RedisBus:
         if self._link is not link or self._closed:
             return
         self._link = None
+        link.stopped = True
         log.warning("rooms bus: lost Redis at %s (%s); local members go on, reconnecting", redact(self.url),
                     exc or type(exc).__name__)
         for task in link.tasks:
             if task is not asyncio.current_task():
                 task.cancel()
-        closing = asyncio.get_running_loop().create_task(_drop(link))
+        closing = asyncio.get_running_loop().create_task(_drop(link, self.timeout_s))
         self._closing.add(closing)  # held until done (the loop keeps only weak references to tasks)
         closing.add_done_callback(self._closing.discard)
         self.metrics.bus_dropped.labels("down").inc(len(self._pending))
@@ -362,6 +368,11 @@ class RedisBus:
                     log.debug("rooms bus: reconnect failed: %s", exc)
                     delay = min(most, delay * 2)
                     continue
+                if self._closed:  # closed while connecting (a cancellation the connect swallowed)
+                    link.stopped = True
+                    await _cancel(link.tasks)
+                    await _drop(link, self.timeout_s)
+                    return
                 self._link = link
             self.metrics.bus_reconnects.inc()
             log.warning("rooms bus: Redis at %s is back; rooms heal", redact(self.url))
@@ -377,7 +388,7 @@ class RedisBus:
     # --- background tasks -------------------------------------------------------------------------------------
     async def _read_loop(self, link: _Link) -> None:
         try:
-            while True:
+            while not link.stopped:
                 msg = await link.pubsub.get_message(ignore_subscribe_messages=True, timeout=1.0)
                 if msg is not None and msg.get("type") == "message":
                     self._on_message(msg["channel"], msg["data"])
@@ -386,7 +397,7 @@ class RedisBus:
 
     async def _heartbeat_loop(self, link: _Link) -> None:
         try:
-            while True:
+            while not link.stopped:
                 await asyncio.sleep(self.heartbeat_s)
                 if await self._heartbeat_once(link):
                     log.warning("rooms bus: this server's liveness key had expired: members re-announced")
@@ -399,7 +410,7 @@ class RedisBus:
 
     async def _send_loop(self, link: _Link) -> None:
         try:
-            while True:
+            while not link.stopped:
                 await self._wake.wait()
                 self._wake.clear()
                 batch, self._pending = self._pending, {}
@@ -560,19 +571,24 @@ class RedisBus:
 
 
 async def _cancel(tasks: list[asyncio.Task]) -> None:
+    """Cancel `tasks` (but the current one) and wait until they are done, cancelling again while any runs on:
+    before Python 3.12, `asyncio.wait_for` swallows a cancellation that arrives as its inner call completes."""
     current = asyncio.current_task()
     others = [t for t in tasks if t is not current]
-    for t in others:
-        t.cancel()
-    await asyncio.gather(*others, return_exceptions=True)
+    running = {t for t in others if not t.done()}
+    while running:
+        for t in running:
+            t.cancel()
+        _, running = await asyncio.wait(running, timeout=0.05)
+    await asyncio.gather(*others, return_exceptions=True)  # their exceptions retrieved (logged by the loops)
 
 
-async def _drop(link: _Link) -> None:
-    """Close a link's connections, ignoring errors (it may be dead already)."""
+async def _drop(link: _Link, timeout_s: float) -> None:
+    """Close a link's connections within `timeout_s` each, ignoring errors (it may be dead or hung already)."""
     with contextlib.suppress(Exception):
-        await link.pubsub.aclose()
+        await asyncio.wait_for(link.pubsub.aclose(), timeout_s)
     with contextlib.suppress(Exception):
-        await link.client.aclose()
+        await asyncio.wait_for(link.client.aclose(), timeout_s)
 
 
 __all__ = ["RedisBus", "check_redis", "decode_message", "redact", "VALUE_SIZES", "MAX_REMOTE_MEMBERS", "LOST_REASON",

@@ -116,6 +116,8 @@ const debug = {
       && drawnView === viewVersion && !prepBusy && !needsDraw;
   },
   get playing() { return playback !== null && playback.timer !== null; },
+  /** Samples of the current recording never sent: passed over by a late timer or superseded under flow control. */
+  get playSkipped() { return playback?.skipped ?? 0; },
   /** Rooms: {room, member, members: [{member, avatar, count, self, state, framesReceived, fps, latencyMs, ...}],
    * left: [{member, reason, at}], settled} (rooms.js); null outside a room session. */
   get room() { return conn?.welcome?.room ? room.snapshot() : null; },
@@ -186,6 +188,7 @@ function buildControls() {
       out.textContent = "0.00";
       input.addEventListener("input", () => {
         weights[i] = Number(input.value);
+        playbackConf = null; // the sliders' weights, not a sample's
         out.textContent = weights[i].toFixed(2);
         row.classList.toggle("on", weights[i] > 0);
         weightsDirty = true;
@@ -269,6 +272,7 @@ function setWeights(map) {
     weights[i] = Math.min(1, Math.max(0, Number(v)));
   }
   syncSliders();
+  playbackConf = null;
   weightsDirty = true;
   wake();
 }
@@ -284,8 +288,9 @@ function loadRecording(text, name) {
   stopPlayback();
   try {
     const log = looksLikeJson(text) ? parseBsData(text, table) : parseFaceLog(text, table, name);
-    playback = { log, name, start: 0, idx: -1, timer: null };
-    $("playinfo").textContent = `${name}: ${log.kind}, layout ${log.layout}, ${log.rows} rows, ${log.duration.toFixed(2)} s`;
+    const info = `${name}: ${log.kind}, layout ${log.layout}, ${log.rows} rows, ${log.duration.toFixed(2)} s`;
+    playback = { log, name, info, start: 0, idx: -1, timer: null, skipped: 0, unsent: false };
+    $("playinfo").textContent = info;
     $("play").disabled = false;
     startPlayback();
     return { rows: log.rows, layout: log.layout, duration: log.duration };
@@ -301,16 +306,22 @@ function startPlayback() {
   stopPlayback(true);
   playback.start = performance.now();
   playback.idx = -1;
+  playback.skipped = 0;
+  playback.unsent = false;
   $("stop").disabled = false;
   playStep();
 }
 
 function stopPlayback(keep = false) {
-  playbackConf = null;
+  if (!playback?.unsent) playbackConf = null; // else the last sample, held back by flow control, keeps its own
   if (playback?.timer) clearTimeout(playback.timer);
   if (playback) playback.timer = null;
   $("stop").disabled = true;
-  if (!keep && playback) $("playinfo").textContent = $("playinfo").textContent.replace(/ · playing.*$/, "");
+  if (!keep && playback) $("playinfo").textContent = playback.info + skippedText(playback);
+}
+
+function skippedText(p) {
+  return p.skipped ? ` · ${p.skipped} of ${p.log.rows} samples skipped (late or flow-controlled)` : "";
 }
 
 function playStep() {
@@ -320,16 +331,17 @@ function playStep() {
   let idx = p.idx;
   while (idx + 1 < rows && times[idx + 1] <= t) idx++;
   if (idx !== p.idx && idx >= 0) {
+    p.skipped += idx - p.idx - 1 + (p.unsent ? 1 : 0); // rows a late timer passed over; one never sent
     p.idx = idx;
     weights.set(frames.subarray(52 * idx, 52 * idx + 52));
     playbackConf = p.log.conf ? p.log.conf.subarray(2 * idx, 2 * idx + 2) : null; // a Quest log's confidences
     weightsDirty = true;
+    p.unsent = true;
     p.slidersStale = true;
     maybeSend(performance.now()); // at the recorded time (flow control permitting)
     wake();
   }
-  const info = $("playinfo");
-  info.textContent = info.textContent.replace(/ · playing.*$/, "") + ` · playing ${t.toFixed(1)} s`;
+  $("playinfo").textContent = `${p.info} · playing ${t.toFixed(1)} s${skippedText(p)}`;
   if (idx + 1 >= rows) {
     if ($("loop").checked && rows > 1) {
       p.timer = setTimeout(() => { p.start = performance.now(); p.idx = -1; playStep(); }, 200);
@@ -531,6 +543,10 @@ function maybeSend(now) {
     if (outstanding >= 2 && now - c.lastSendMs < 1000) return;
   }
   c.ws.send(bsMessage(c.seq, nowUs(), weights, playbackConf));
+  if (playback?.unsent) {
+    playback.unsent = false;
+    if (playback.timer === null) playbackConf = null; // the recording's last sample is out
+  }
   c.seq += 1;
   c.lastSendMs = now;
   weightsDirty = false;
