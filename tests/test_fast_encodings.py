@@ -305,6 +305,47 @@ def test_fast_delta_decoder_equals_the_reference(kernels, enc) -> None:
         np.testing.assert_array_equal(getattr(fast.delta, name), getattr(ref, name))
 
 
+def bad_delta_frames(good: dict) -> list[dict]:
+    """Delta frames (n = 1 of 20 Gaussians) whose masks are wrong in every way codec.delta_masks checks."""
+    one, zero, two = np.ones(1, np.uint8), np.zeros(1, np.uint8), np.full(1, 2, np.uint8)
+    return [dict(good, changed=np.array([1, 0], np.uint8)), dict(good, changed=np.array([1, 0, 0, 0], np.uint8)),
+            dict(good, changed=np.array([3, 0, 0], np.uint8)), dict(good, changed=np.zeros(3, np.uint8)),
+            dict(good, changed=np.array([1, 0, 0x10], np.uint8)), dict(good, n=2), dict(good, n=0),
+            dict(good, n=21), dict(good, moved_position=two), dict(good, moved_rotation=np.zeros(2, np.uint8)),
+            dict(good, moved_scale=np.zeros(0, np.uint8)), dict(good, wide=one + 1),
+            dict(good, wide=np.zeros(0, np.uint8)), dict(good, moved_position=zero, moved_rotation=zero),
+            dict(good, wide=one)]
+
+
+def test_fast_delta_masks_equal_the_codecs(kernels) -> None:
+    """FastFrameDecoder's numba masks give codec.delta_masks' arrays and counts on random valid masks."""
+    from ofera.client.fast_decode import FastFrameDecoder, delta_masks_kernel
+    from ofera_protocol.codec import delta_masks, pack_bits
+
+    rng = np.random.default_rng(3)
+    for count in (1, 7, 8, 9, 100, 1001):
+        fmt = FrameFormat("q13", count, False, make_quant(np.zeros((count, 3)), np.full((count, 3), 1e-3)),
+                          delta=True)
+        fast = FastFrameDecoder(fmt)
+        for _ in range(5):
+            changed = rng.random(count) < rng.random()
+            n = int(changed.sum())
+            moved = rng.random((n, 3)) < 0.5
+            moved[~moved.any(axis=1), rng.integers(0, 3)] = True
+            wide = rng.random(int(moved[:, 0].sum())) < 0.3
+            m = {"n": n, "changed": pack_bits(changed).tobytes(), "wide": pack_bits(wide).tobytes(),
+                 **{k: pack_bits(moved[:, c]).tobytes() for c, k in
+                    enumerate(("moved_position", "moved_rotation", "moved_scale"))}}
+            bins = [np.frombuffer(m[k], np.uint8) for k in
+                    ("changed", "moved_position", "moved_rotation", "moved_scale", "wide")]
+            assert delta_masks_kernel(bins[0], count, n, *bins[1:], np.zeros(count, np.uint32),
+                                      np.zeros((n, 3), bool), np.zeros((n, 1), bool))[0]  # the kernel's own result
+            want, got = delta_masks(m, fmt), fast._masks(m, fmt)
+            for a, b in zip(want[:3], got[:3], strict=True):
+                np.testing.assert_array_equal(a, b)
+            assert want[3] == got[3]
+
+
 def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
     from ofera_protocol import ProtocolError
     from ofera_protocol.codec import pack_map
@@ -337,6 +378,12 @@ def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
 
     fast = FastFrameDecoder(fmt)
     fast.delta.has_key = True
+    for bad in bad_delta_frames(good):  # the fast decoder refuses them with the codec's own error
+        with pytest.raises(ProtocolError) as want:
+            decode_server_message(pack_map(bad), fmt)
+        with pytest.raises(ProtocolError) as got:
+            fast.decode(pack_map(bad))
+        assert (got.value.code, str(got.value)) == (want.value.code, str(want.value))
     with pytest.raises(ProtocolError) as e:
         fast.decode(pack_map(dict(good, position_delta=np.array([[-5, 0, 0]], np.int8))))
     assert e.value.code == "bad_field" and not fast.delta.position.any()

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import re
 import struct
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import msgpack
@@ -525,12 +525,13 @@ _CODE_DTYPES = {"q13": ("<u2", "<u4", "u1"), "f16": ("<u2", "<u2", "<u2")}
 _CODE_WIDTH = {"q13": (3, 1, 3), "f16": (3, 4, 3)}
 
 
-def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, timing: dict[str, int]) -> DeltaFrame:
-    """The wire arrays of a delta frame (`key: false`), checked: mask lengths and padding, n = the number of
-    changed Gaussians, every one carrying something, array lengths; f16 codes sent whole must be finite.
-    Raises ProtocolError."""
-    from .encodings import FIELD_BYTES
+DeltaMasks = tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]
+"""A delta frame's masks: index (n,) uint32, moved (n, 3) bool, wide (n_p,) bool, and (n_p, n_r, n_s, wide ones)."""
 
+
+def delta_masks(m: dict[str, Any], fmt: FrameFormat) -> DeltaMasks:
+    """The masks of a delta frame, checked: lengths and padding, n = the number of changed Gaussians, every one
+    carrying something. Raises ProtocolError."""
     w = "frame"
     n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
     changed = unpack_bits(F.get_bin(m, "changed", w), fmt.count, "changed")
@@ -543,7 +544,18 @@ def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, ti
         raise ProtocolError(BAD_FIELD, "frame: a changed Gaussian carries nothing (all its 'moved_*' bits are 0)")
     n_p, n_r, n_s = (int(c) for c in moved.sum(axis=0))
     wide = unpack_bits(F.get_bin(m, "wide", w), n_p, "wide")
-    nw = int(wide.sum())
+    return index, moved, wide, (n_p, n_r, n_s, int(wide.sum()))
+
+
+def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, timing: dict[str, int],
+                       masks: Callable[[dict[str, Any], FrameFormat], DeltaMasks] = delta_masks) -> DeltaFrame:
+    """The wire arrays of a delta frame (`key: false`), checked: the masks (`masks`: :func:`delta_masks` or a
+    faster twin that gives the same or defers to it), array lengths; f16 codes sent whole must be finite.
+    Raises ProtocolError."""
+    from .encodings import FIELD_BYTES
+
+    w = "frame"
+    index, moved, wide, (n_p, n_r, n_s, nw) = masks(m, fmt)
     res = F.get_array(m, "position_delta", w, "i1", (n_p - nw, 3))
     pb, rb, sb = FIELD_BYTES[fmt.encoding]
     dts = _CODE_DTYPES[fmt.encoding] if fmt.encoding == "q13" else ("<f2", "<f2", "<f2")
@@ -566,9 +578,11 @@ def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, ti
 FrameParts = tuple[int, int, dict[str, int], bool | None, int, Any, list[bytes]]
 
 
-def frame_parts(m: dict[str, Any], fmt: FrameFormat) -> FrameParts | DeltaFrame:
+def frame_parts(m: dict[str, Any], fmt: FrameFormat,
+                masks: Callable[[dict[str, Any], FrameFormat], DeltaMasks] = delta_masks) -> FrameParts | DeltaFrame:
     """The checked fields of a `frame` map: (seq, t, timing, key, n, index, [position, rotation, scale] bins with
-    their byte lengths checked), or the DeltaFrame of a delta frame. Every decoder of frames starts here."""
+    their byte lengths checked), or the DeltaFrame of a delta frame (its masks by `masks`). Every decoder of
+    frames starts here."""
     from .encodings import FIELD_BYTES
 
     w = "frame"
@@ -579,7 +593,7 @@ def frame_parts(m: dict[str, Any], fmt: FrameFormat) -> FrameParts | DeltaFrame:
     if fmt.delta:
         key = F.get_bool(m, "key", w)
         if not key:
-            return decode_delta_frame(m, fmt, seq, t, timing)
+            return decode_delta_frame(m, fmt, seq, t, timing, masks)
     n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
     index = F.get_array(m, "index", w, "<u4", (n,), required=False)
     if key and index is not None:

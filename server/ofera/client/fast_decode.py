@@ -3,7 +3,9 @@ streams. The reference is the protocol codec (``ofera_protocol.decode_server_mes
 this decoder starts from the same field checks (``codec.frame_parts``) and gives the same float32 values.
 
 Delta sessions (PROTOCOL.md 7.1): key frames are decoded here and their codes handed to an
-``ofera_protocol.delta.DeltaDecoder``, which applies delta frames (vectorised numpy: the frames are small).
+``ofera_protocol.delta.DeltaDecoder``; delta frames' masks are unpacked and checked by :func:`delta_masks_kernel`
+(the twin of ``codec.delta_masks``, which raises the exact error when the kernel finds one) and applied by
+:func:`delta_apply_kernel` (the twin of ``DeltaDecoder.apply``).
 """
 
 from __future__ import annotations
@@ -126,6 +128,54 @@ def delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, held_p, held_
     return 0
 
 
+@nb.njit(inline="always", **_NB)
+def _unpack_mask(buf, n, out, col):
+    """Bits 0..n-1 of buf (LSB first) into out[:n, col]; the number set, or -1 if buf's length is not ceil(n / 8)
+    or a padding bit is set."""
+    if buf.shape[0] != (n + 7) // 8:
+        return -1
+    if n & 7 and buf[n >> 3] >> (n & 7):
+        return -1
+    ones = 0
+    for j in range(n):
+        b = (buf[j >> 3] >> (j & 7)) & 1
+        out[j, col] = b
+        ones += b
+    return ones
+
+
+@nb.njit(**_NB)
+def delta_masks_kernel(changed, count, n, mpos, mrot, mscale, wide_bits, index, moved, wide):
+    """A delta frame's masks (PROTOCOL.md 7.1) unpacked and checked in one go: the changed Gaussians into index
+    (count,) uint32, the moved bits into moved (n, 3) bool, the wide bits into wide (n, 1) bool. Returns (ok,
+    n_p, n_r, n_s, wide ones); ok False for any fault codec.delta_masks reports (it then names it)."""
+    if changed.shape[0] != (count + 7) // 8 or (count & 7 and changed[count >> 3] >> (count & 7)):
+        return False, 0, 0, 0, 0
+    k = 0
+    for b in range(changed.shape[0]):
+        byte = changed[b]
+        if byte == 0:
+            continue
+        for bit in range(8):
+            if (byte >> bit) & 1:
+                if k == n:
+                    return False, 0, 0, 0, 0
+                index[k] = b * 8 + bit
+                k += 1
+    if k != n:
+        return False, 0, 0, 0, 0
+    n_p = _unpack_mask(mpos, n, moved, 0)
+    n_r = _unpack_mask(mrot, n, moved, 1)
+    n_s = _unpack_mask(mscale, n, moved, 2)
+    if n_p < 0 or n_r < 0 or n_s < 0:
+        return False, 0, 0, 0, 0
+    for j in range(n):
+        if not (moved[j, 0] or moved[j, 1] or moved[j, 2]):
+            return False, 0, 0, 0, 0
+    nw = _unpack_mask(wide_bits, n_p, wide, 0)
+    return nw >= 0, n_p, n_r, n_s, nw
+
+
 _Z3 = np.zeros(3)
 _Z256 = np.zeros(256, np.float32)
 
@@ -137,6 +187,9 @@ def decoder_warm() -> None:
     out3, out4 = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32)
     q13_decode_kernel(np.frombuffer(raw, "<u2", 6), np.frombuffer(raw, "<u4", 2), np.frombuffer(raw, np.uint8, 6),
                       np.zeros(3), np.ones(3), np.ones(256, np.float32), out3, out4, out3.copy())
+    one = np.frombuffer(b"\x01", np.uint8)
+    delta_masks_kernel(one, 1, 1, one, one, one, np.frombuffer(b"\x00", np.uint8), np.zeros(1, np.uint32),
+                       np.zeros((1, 3), bool), np.zeros((1, 1), bool))
     ids, moved, wide = np.zeros(1, np.int64), np.ones((1, 3), bool), np.zeros(1, bool)
     res = np.frombuffer(raw, np.int8, 3).reshape(1, 3)
     wpos = np.frombuffer(raw, "<u2", 0).reshape(0, 3)
@@ -176,6 +229,29 @@ class FastFrameDecoder:
             lmin, lmax = float(q.log_scale[0]), float(q.log_scale[1])
             codes = np.arange(256, dtype=np.float64)
             self._lut = np.exp(lmin + codes * ((lmax - lmin) / SCALE_LEVELS)).astype(np.float32)
+        if fmt.delta:  # the masks' buffers, reused (a DeltaFrame holds views until the next frame)
+            self._index = np.zeros(n, np.uint32)
+            self._moved = np.zeros((n, 3), bool)
+            self._wide = np.zeros((n, 1), bool)
+
+    def _masks(self, m: dict, fmt: FrameFormat) -> Any:
+        """codec.delta_masks by delta_masks_kernel into this decoder's buffers; the codec's own on any fault (it
+        raises the exact ProtocolError)."""
+        from ofera_protocol import _fields as F
+        from ofera_protocol.codec import delta_masks
+        from ofera_protocol.constants import UINT32_MAX
+
+        w = "frame"
+        n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
+        bins = [np.frombuffer(F.get_bin(m, k, w), np.uint8) for k in
+                ("changed", "moved_position", "moved_rotation", "moved_scale", "wide")]
+        ok = n <= fmt.count
+        if ok:
+            ok, n_p, n_r, n_s, nw = delta_masks_kernel(bins[0], fmt.count, n, *bins[1:], self._index, self._moved,
+                                                       self._wide)
+        if not ok:
+            return delta_masks(m, fmt)
+        return self._index[:n].copy(), self._moved[:n], self._wide[:n_p, 0], (n_p, n_r, n_s, nw)  # index: kept
 
     def _apply_delta(self, d: DeltaFrame) -> Frame:
         """The numba twin of ofera_protocol.delta.DeltaDecoder.apply (same checks, same values)."""
@@ -211,7 +287,7 @@ class FastFrameDecoder:
         if m.get("type") != "frame":
             return decode_server_message(data, self.format)
         fmt = self.format
-        parts = frame_parts(m, fmt)
+        parts = frame_parts(m, fmt, self._masks) if fmt.delta else frame_parts(m, fmt)
         if isinstance(parts, DeltaFrame):
             return self._apply_delta(parts)
         seq, t, timing, key, n, index, bufs = parts
