@@ -219,7 +219,7 @@ def test_delta_kernels_equal_the_reference(kernels, enc, coords) -> None:
         a, b = ref.encode(f, 1, TIMING, p, r, s), fast.encode(f, 1, TIMING, p, r, s)
         assert a == b, f"frame {f} differs"
         sizes.append(len(a))
-    for name in ("held_p", "held_r", "held_s"):
+    for name in ("held_p", "held_r", "held_s", "dec_p", "dec_r", "dec_s"):
         np.testing.assert_array_equal(getattr(ref, name), getattr(fast, name))
     assert ref.key_frames == 3 and min(sizes) < max(sizes) * 0.6  # key frames at 0, 10, 20; deltas are smaller
 

@@ -154,35 +154,36 @@ def _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos) -> tuple[i
 
 
 def delta_q13_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, scale_lut,
-                        rot_lut, tol, held_p, held_r, held_s,
+                        rot_lut, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
                         out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
     """q13 delta kernel (reference). For the K candidates (session ids ``ids``, state rows ``rows``) with held
-    codes ``held_*`` (indexed by session id), decoded in float64 (what the client holds): find what moved, encode
-    it with ``kern`` (the frame kernels), write the selection (candidate positions ``out_sel[:n]``,
-    ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide
-    position codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``, update
-    the held codes, and return (n, n_p, w, n_r, n_s)."""
-    dec_p = lo + held_p[ids].astype(np.float64) * step
-    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, q13_decode_rotation64(held_r[ids]),
-                   scale_lut[held_s[ids]])
+    codes ``held_*`` (indexed by session id) and their float64 decodings ``dec_*`` (indexed by candidate): find
+    what moved, encode it with ``kern`` (the frame kernels), write the selection (candidate positions
+    ``out_sel[:n]``, ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``,
+    the wide position codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``,
+    update the held codes and decodings, and return (n, n_p, w, n_r, n_s)."""
+    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s)
     sel, n, p_sel, r_sel, s_sel = _select(moved, out_sel, out_moved)
     new_p = np.empty((p_sel.size, 3), np.uint16)
     kern.q13_position(pos, rows[p_sel], psign, lo, k, new_p.reshape(-1))
     n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
+    dec_p[p_sel] = lo + new_p.astype(np.float64) * step
     n_r, n_s = r_sel.size, s_sel.size
     kern.q13_rotation(rot, rows[r_sel], rsign, out_rot[:n_r])
     held_r[ids[r_sel]] = out_rot[:n_r]
+    dec_r[r_sel] = q13_decode_rotation64(out_rot[:n_r])
     kern.q13_scale(scale, rows[s_sel], thresholds, out_scale[:n_s].reshape(-1))
     held_s[ids[s_sel]] = out_scale[:n_s]
+    dec_s[s_sel] = scale_lut[out_scale[:n_s]]
     return n, n_p, w, n_r, n_s
 
 
 def delta_f16_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s,
-                        out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
+                        dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale
+                        ) -> tuple[int, ...]:
     """f16 delta kernel (reference): :func:`delta_q13_reference` with f16 bit patterns as codes. Returns
     (n, n_p, w, n_r, n_s); ValueError if a value sent is beyond the half range."""
-    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, half_to_f64(held_p[ids]), half_to_f64(held_r[ids]),
-                   half_to_f64(held_s[ids]))
+    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s)
     sel, n, p_sel, r_sel, s_sel = _select(moved, out_sel, out_moved)
     n_r, n_s = r_sel.size, s_sel.size
     new_p = np.empty((p_sel.size, 3), np.uint16)
@@ -192,8 +193,11 @@ def delta_f16_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, tol
     if not ok:
         raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
     n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
+    dec_p[p_sel] = half_to_f64(new_p)
     held_r[ids[r_sel]] = out_rot[:n_r]
+    dec_r[r_sel] = half_to_f64(out_rot[:n_r])
     held_s[ids[s_sel]] = out_scale[:n_s]
+    dec_s[s_sel] = half_to_f64(out_scale[:n_s])
     return n, n_p, w, n_r, n_s
 
 
@@ -269,6 +273,7 @@ class DeltaEncoder:
         self.held_r = np.zeros(rot_shape, np.uint32 if q13 else np.uint16)
         self.held_s = np.zeros((n, 3), np.uint8 if q13 else np.uint16)
         m = self.ids.size
+        self.dec_p, self.dec_r, self.dec_s = np.zeros((m, 3)), np.zeros((m, 4)), np.zeros((m, 3))
         self._sel = np.zeros(m, np.int64)
         self._moved = np.zeros((m, 3), bool)
         self._wide = np.zeros(m, bool)
@@ -292,12 +297,18 @@ class DeltaEncoder:
             k.q13_position(position, g, self.psign, self.lo, self.k, self.held_p.reshape(-1))
             k.q13_rotation(rotation, g, self.rsign, self.held_r)
             k.q13_scale(scale, g, self.thresholds, self.held_s.reshape(-1))
+            self.dec_p[:] = self.lo + self.held_p[self.ids].astype(np.float64) * self.step
+            self.dec_r[:] = q13_decode_rotation64(self.held_r[self.ids])
+            self.dec_s[:] = self.lut[self.held_s[self.ids]]
         else:
             ok = k.f16(position, g, self.psign, self.held_p.reshape(-1))
             ok &= k.f16(rotation, g, self.rsign, self.held_r.reshape(-1))
             ok &= k.f16(scale, g, np.ones(3, np.float32), self.held_s.reshape(-1))
             if not ok:
                 raise ValueError("state has NaN, infinity or values beyond +-65504 (f16)")
+            self.dec_p[:] = half_to_f64(self.held_p[self.ids])
+            self.dec_r[:] = half_to_f64(self.held_r[self.ids])
+            self.dec_s[:] = half_to_f64(self.held_s[self.ids])
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": True, "n": self.format.count,
                          "position": self.held_p, "rotation": self.held_r, "scale": self.held_s})
 
@@ -318,9 +329,10 @@ class DeltaEncoder:
         if self.format.encoding == "q13":
             n, n_p, w, n_r, n_s = self.kernels.delta_q13(
                 *args, self.lo, self.k, self.step, self.thresholds, self.lut, ROT_FIELD64, self.tol,
-                self.held_p, self.held_r, self.held_s, *out)
+                self.held_p, self.held_r, self.held_s, self.dec_p, self.dec_r, self.dec_s, *out)
         else:
-            n, n_p, w, n_r, n_s = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s, *out)
+            n, n_p, w, n_r, n_s = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s,
+                                                         self.dec_p, self.dec_r, self.dec_s, *out)
         changed = np.zeros(self.format.count, bool)
         changed[self.ids[self._sel[:n]]] = True
         moved = self._moved[:n]

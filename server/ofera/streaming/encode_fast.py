@@ -459,25 +459,26 @@ def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | N
 
 
 @nb.njit(inline="always", **_NB)
-def _moved(pos, rot, scale, r, ps, rs, tol, h):
-    """(position, rotation, scale) of state row r moved from the held decoded values h (a 10-tuple: position,
-    rotation (x, y, z, w), scale), by the rule of ofera_protocol.delta (same float64 operations, same order).
-    ps, rs: the coords' signs; tol: ofera_protocol.delta.DeltaTolerance.params(); all tuples of scalars."""
-    dx = np.float64(pos[r, 0] * ps[0]) - h[0]
-    dy = np.float64(pos[r, 1] * ps[1]) - h[1]
-    dz = np.float64(pos[r, 2] * ps[2]) - h[2]
+def _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
+    """(position, rotation, scale) moved, by the rule of ofera_protocol.delta (same float64 operations, same order)."""
+    dx = np.float64(pos[r, 0] * psign[0]) - dec_p[j, 0]
+    dy = np.float64(pos[r, 1] * psign[1]) - dec_p[j, 1]
+    dz = np.float64(pos[r, 2] * psign[2]) - dec_p[j, 2]
     mp = dx * dx + dy * dy + dz * dz > tol[0]
-    q0 = np.float64(rot[r, 0] * rs[0])
-    q1 = np.float64(rot[r, 1] * rs[1])
-    q2 = np.float64(rot[r, 2] * rs[2])
-    q3 = np.float64(rot[r, 3] * rs[3])
-    dot = h[3] * q0 + h[4] * q1 + h[5] * q2 + h[6] * q3
+    q0 = np.float64(rot[r, 0] * rsign[0])
+    q1 = np.float64(rot[r, 1] * rsign[1])
+    q2 = np.float64(rot[r, 2] * rsign[2])
+    q3 = np.float64(rot[r, 3] * rsign[3])
+    h0, h1, h2, h3 = dec_r[j, 0], dec_r[j, 1], dec_r[j, 2], dec_r[j, 3]
+    dot = h0 * q0 + h1 * q1 + h2 * q2 + h3 * q3
     n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
-    hh = h[3] * h[3] + h[4] * h[4] + h[5] * h[5] + h[6] * h[6]
+    hh = h0 * h0 + h1 * h1 + h2 * h2 + h3 * h3
     mr = dot * dot < tol[1] * n2 * hh
-    s0, s1, s2 = np.float64(scale[r, 0]), np.float64(scale[r, 1]), np.float64(scale[r, 2])
-    ms = ((s0 > h[7] * tol[2]) | (s0 < h[7] * tol[3]) | (s1 > h[8] * tol[2]) | (s1 < h[8] * tol[3])
-          | (s2 > h[9] * tol[2]) | (s2 < h[9] * tol[3]))
+    ms = False
+    for c in range(3):
+        v = np.float64(scale[r, c])
+        if v > dec_s[j, c] * tol[2] or v < dec_s[j, c] * tol[3]:
+            ms = True
     return mp, mr, ms
 
 
@@ -507,114 +508,99 @@ def _q13_pos_code(v, lo, k):
     return np.uint16(min(max(q, 0.0), POS_LEVELS))
 
 
-@nb.njit(inline="always", **_NB)
-def _q13_held(held_p, held_r, held_s, i, lo, step, scale_lut, rot_lut):
-    """The float64 decoding of Gaussian i's held q13 codes as a 10-tuple (ofera_protocol.delta's arithmetic:
-    lo + code step; q13_decode_rotation64; the scale table)."""
-    v = held_r[i]
-    a0 = rot_lut[(v >> 20) & 1023]
-    a1 = rot_lut[(v >> 10) & 1023]
-    a2 = rot_lut[v & 1023]
-    d = 1.0 - a0 * a0
-    d = d - a1 * a1
-    d = d - a2 * a2
-    big = math.sqrt(max(d, 0.0))
-    drop = v >> 30
-    return (lo[0] + np.float64(held_p[i, 0]) * step[0], lo[1] + np.float64(held_p[i, 1]) * step[1],
-            lo[2] + np.float64(held_p[i, 2]) * step[2],
-            big if drop == 0 else a0, big if drop == 1 else (a0 if drop == 0 else a1),
-            big if drop == 2 else (a2 if drop == 3 else a1), big if drop == 3 else a2,
-            scale_lut[held_s[i, 0]], scale_lut[held_s[i, 1]], scale_lut[held_s[i, 2]])
-
-
 @nb.njit(**_NB)
 def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
-                     held_p, held_r, held_s, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
-    """ofera_protocol.delta.delta_q13_reference in one pass over the candidates, the held codes decoded on the
-    way (13 bytes read per Gaussian). Returns (n, n_p, w, n_r, n_s)."""
+                     held_p, held_r, held_s, dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos,
+                     out_rot, out_scale):
+    """ofera_protocol.delta.delta_q13_reference in one pass over the candidates. Returns (n, n_p, w, n_r, n_s)."""
     n = n_p = w = m = n_r = n_s = 0
-    ps, rs = (psign[0], psign[1], psign[2]), (rsign[0], rsign[1], rsign[2], rsign[3])
-    tl = (tol[0], tol[1], tol[2], tol[3])  # scalars: the loop's stores cannot alias them
-    lo_, k_, step_ = (lo[0], lo[1], lo[2]), (k[0], k[1], k[2]), (step[0], step[1], step[2])
     for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
         r = np.uint64(rows[j])
-        i = np.uint64(ids[j])
-        h = _q13_held(held_p, held_r, held_s, i, lo_, step_, scale_lut, rot_lut)
-        mp, mr, ms = _moved(pos, rot, scale, r, ps, rs, tl, h)
+        mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
         if not (mp or mr or ms):
             continue
+        i = np.uint64(ids[j])
         out_sel[n] = j
         out_moved[n, 0], out_moved[n, 1], out_moved[n, 2] = mp, mr, ms
         n += 1
         if mp:
-            c0 = _q13_pos_code(pos[r, 0] * ps[0], lo_[0], k_[0])
-            c1 = _q13_pos_code(pos[r, 1] * ps[1], lo_[1], k_[1])
-            c2 = _q13_pos_code(pos[r, 2] * ps[2], lo_[2], k_[2])
+            c0 = _q13_pos_code(pos[r, 0] * psign[0], lo[0], k[0])
+            c1 = _q13_pos_code(pos[r, 1] * psign[1], lo[1], k[1])
+            c2 = _q13_pos_code(pos[r, 2] * psign[2], lo[2], k[2])
+            dec_p[j, 0] = lo[0] + np.float64(c0) * step[0]
+            dec_p[j, 1] = lo[1] + np.float64(c1) * step[1]
+            dec_p[j, 2] = lo[2] + np.float64(c2) * step[2]
             w, m = _emit_position(c0, c1, c2, held_p, i, n_p, w, m, out_wide, out_res, out_pos)
             n_p += 1
         if mr:
-            v = pack_rotation(rot[r, 0] * rs[0], rot[r, 1] * rs[1], rot[r, 2] * rs[2], rot[r, 3] * rs[3])
+            v = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
             out_rot[n_r] = v
             held_r[i] = v
             n_r += 1
+            a0 = rot_lut[(v >> 20) & 1023]
+            a1 = rot_lut[(v >> 10) & 1023]
+            a2 = rot_lut[v & 1023]
+            d = 1.0 - a0 * a0
+            d = d - a1 * a1
+            d = d - a2 * a2
+            big = math.sqrt(max(d, 0.0))
+            drop = v >> 30
+            dec_r[j, 0] = big if drop == 0 else a0
+            dec_r[j, 1] = big if drop == 1 else (a0 if drop == 0 else a1)
+            dec_r[j, 2] = big if drop == 2 else (a2 if drop == 3 else a1)
+            dec_r[j, 3] = big if drop == 3 else a2
         if ms:
             for c in range(3):
-                code = np.uint8(_scale_code(scale[r, c], table))
-                out_scale[n_s, c] = code
-                held_s[i, c] = code
+                code = _scale_code(scale[r, c], table)
+                out_scale[n_s, c] = np.uint8(code)
+                held_s[i, c] = np.uint8(code)
+                dec_s[j, c] = scale_lut[code]
             n_s += 1
     return n, n_p, w, n_r, n_s
 
 
-@nb.njit(inline="always", **_NB)
-def _f16_held(held_p, held_r, held_s, i):
-    """Gaussian i's held f16 codes as float64 (exact), a 10-tuple."""
-    return (np.float64(f16_bits_to_f32(held_p[i, 0])), np.float64(f16_bits_to_f32(held_p[i, 1])),
-            np.float64(f16_bits_to_f32(held_p[i, 2])), np.float64(f16_bits_to_f32(held_r[i, 0])),
-            np.float64(f16_bits_to_f32(held_r[i, 1])), np.float64(f16_bits_to_f32(held_r[i, 2])),
-            np.float64(f16_bits_to_f32(held_r[i, 3])), np.float64(f16_bits_to_f32(held_s[i, 0])),
-            np.float64(f16_bits_to_f32(held_s[i, 1])), np.float64(f16_bits_to_f32(held_s[i, 2])))
-
-
 @nb.njit(**_NB)
-def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s,
+def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
                      out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
     """ofera_protocol.delta.delta_f16_reference in one pass. Returns (n, n_p, w, n_r, n_s, ok); ok False if a
     value sent is NaN, infinite or beyond +-65504."""
     n = n_p = w = m = n_r = n_s = 0
     ok = True
-    ps, rs = (psign[0], psign[1], psign[2]), (rsign[0], rsign[1], rsign[2], rsign[3])
-    tl = (tol[0], tol[1], tol[2], tol[3])
     for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
         r = np.uint64(rows[j])
-        i = np.uint64(ids[j])
-        mp, mr, ms = _moved(pos, rot, scale, r, ps, rs, tl, _f16_held(held_p, held_r, held_s, i))
+        mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
         if not (mp or mr or ms):
             continue
+        i = np.uint64(ids[j])
         out_sel[n] = j
         out_moved[n, 0], out_moved[n, 1], out_moved[n, 2] = mp, mr, ms
         n += 1
         if mp:
-            v0, v1, v2 = pos[r, 0] * ps[0], pos[r, 1] * ps[1], pos[r, 2] * ps[2]
+            v0, v1, v2 = pos[r, 0] * psign[0], pos[r, 1] * psign[1], pos[r, 2] * psign[2]
             ok &= abs(v0) <= F16_MAX and abs(v1) <= F16_MAX and abs(v2) <= F16_MAX
             c0, c1, c2 = f32_to_f16_bits(v0), f32_to_f16_bits(v1), f32_to_f16_bits(v2)
+            dec_p[j, 0] = np.float64(f16_bits_to_f32(c0))
+            dec_p[j, 1] = np.float64(f16_bits_to_f32(c1))
+            dec_p[j, 2] = np.float64(f16_bits_to_f32(c2))
             w, m = _emit_position(c0, c1, c2, held_p, i, n_p, w, m, out_wide, out_res, out_pos)
             n_p += 1
         if mr:
             for c in range(4):
                 v = rot[r, c] * rsign[c]
                 ok &= abs(v) <= F16_MAX
-                hb = f32_to_f16_bits(v)
-                out_rot[n_r, c] = hb
-                held_r[i, c] = hb
+                h = f32_to_f16_bits(v)
+                out_rot[n_r, c] = h
+                held_r[i, c] = h
+                dec_r[j, c] = np.float64(f16_bits_to_f32(h))
             n_r += 1
         if ms:
             for c in range(3):
                 v = scale[r, c]
                 ok &= abs(v) <= F16_MAX
-                hb = f32_to_f16_bits(v)
-                out_scale[n_s, c] = hb
-                held_s[i, c] = hb
+                h = f32_to_f16_bits(v)
+                out_scale[n_s, c] = h
+                held_s[i, c] = h
+                dec_s[j, c] = np.float64(f16_bits_to_f32(h))
             n_s += 1
     return n, n_p, w, n_r, n_s, ok
 
@@ -637,11 +623,11 @@ def delta_kernel_warm() -> None:
              np.zeros((2, 3), np.uint16))
         k.delta_q13(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), np.zeros(3), np.ones(3),
                     np.ones(3), thr, lut, ROT_FIELD64, tol, np.zeros((2, 3), np.uint16), np.zeros(2, np.uint32),
-                    np.zeros((2, 3), np.uint8), *o,
+                    np.zeros((2, 3), np.uint8), np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o,
                     np.zeros(2, np.uint32), np.zeros((2, 3), np.uint8))
         k.delta_f16(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), tol,
                     np.zeros((2, 3), np.uint16), np.zeros((2, 4), np.uint16), np.zeros((2, 3), np.uint16),
-                    *o, np.zeros((2, 4), np.uint16),
+                    np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o, np.zeros((2, 4), np.uint16),
                     np.zeros((2, 3), np.uint16))
 
 
