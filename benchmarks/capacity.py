@@ -233,6 +233,17 @@ def plot(path: Path, runs: dict, budget: float, max_drop: float, title: str) -> 
     C.save_figure(fig, path, title)
 
 
+def session_counts(ap: argparse.ArgumentParser, flag: str, text: str) -> list[int]:
+    """A comma list of session counts (each >= 1; '' = none), or the parser's usage error naming the flag."""
+    try:
+        ks = [int(k) for k in text.split(",") if k.strip()]
+    except ValueError:
+        ap.error(f"{flag} takes a comma list of whole numbers, got {text!r}")
+    if any(k < 1 for k in ks):
+        ap.error(f"{flag}: every session count must be at least 1 (use '' for none), got {text!r}")
+    return ks
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gaussians", type=int, default=100_000)
@@ -255,12 +266,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", type=Path, default=C.RESULTS / "capacity.json")
     args = ap.parse_args(argv)
+    plan = {"fast": session_counts(ap, "--sessions", args.sessions),
+            "reference": session_counts(ap, "--reference-sessions", args.reference_sessions)}
 
     weights, layout, _, notes = C.capture()
     avatars, epm_notes = C.avatars_dir(args.gaussians or None)
     notes += epm_notes
-    plan = {"fast": [int(k) for k in args.sessions.split(",") if k.strip()],
-            "reference": [int(k) for k in args.reference_sessions.split(",") if k.strip()]}
     runs = {}
     for impl, ks in plan.items():
         if not ks:

@@ -30,6 +30,13 @@ def check_outputs(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
+@pytest.mark.parametrize("flags", [["--sessions", "0"], ["--reference-sessions", "1,x"]])
+def test_capacity_refuses_bad_session_counts(flags, capsys) -> None:
+    with pytest.raises(SystemExit) as e:
+        load("capacity").main(flags)
+    assert e.value.code == 2 and flags[0] in capsys.readouterr().err  # a usage error naming the flag, not a crash
+
+
 @pytest.mark.timeout(300)
 def test_latency_smoke(tmp_path) -> None:
     out = tmp_path / "latency.json"
