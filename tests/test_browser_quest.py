@@ -103,12 +103,9 @@ def metric(server, name: str) -> float:
     return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(name + " "))
 
 
-def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
-    """Every sample is sent once with its confidence, or counted as skipped: the page plays in real time, so a
-    timer that fires late (a busy machine) passes rows over and flow control (two bs unanswered) supersedes one.
-    At 36 Hz against a small avatar that answers in a few ms, skips stay rare; every bs sent carries its `conf`."""
-    path = tmp_path / "quest.csv"
-    truth = write_quest_log(path, seconds=1.0, bom=True, label=True)
+def play_log(browser, server, path, truth) -> tuple[int, int, float, str, dict, list]:
+    """Play the log at `path` once in a fresh page until it settles: (bs sent, samples the page counted as skipped,
+    bs with `conf` the server counted, the #playinfo text, what playText returned, page errors and problems)."""
     page = open_page(browser, f"{server.http_url}/", viewport={"width": 800, "height": 600})
     problems = page_errors(page)
     try:
@@ -116,17 +113,28 @@ def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
         seq = page.evaluate("__ofera.lastSentSeq")
         with_conf = metric(server, "ofera_bs_conf_total")
         out = page.evaluate("t => __ofera.playText(t, 'quest.csv')", path.read_bytes().decode("utf-8"))
-        assert out.get("rows") == len(truth.times) and out.get("layout") == "ovr70", out
-        assert "Quest Pro log (quest-v2" in page.text_content("#playinfo")
+        assert out.get("rows") == len(truth.times), out
+        info = page.text_content("#playinfo")
         page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=120_000)
         sent, skipped = page.evaluate("__ofera.lastSentSeq") - seq, page.evaluate("__ofera.playSkipped")
-        assert sent + skipped == len(truth.times), ("a sample neither sent nor counted as skipped", sent, skipped)
-        assert skipped <= len(truth.times) // 6, f"{skipped} of {len(truth.times)} samples skipped"
-        assert not page.evaluate("__ofera.errors"), page.evaluate("__ofera.errors")  # conf accepted by the server
-        assert metric(server, "ofera_bs_conf_total") - with_conf == sent  # each with its conf
-        assert not problems, problems
+        conf = metric(server, "ofera_bs_conf_total") - with_conf
+        return sent, skipped, conf, info + " | " + page.text_content("#playinfo"), out, page.evaluate(
+            "__ofera.errors") + problems
     finally:
         page.close()
+
+
+def test_page_plays_a_quest_log_with_its_confidence(browser, server, tmp_path):
+    """Every sample is sent once with its confidence, or counted as skipped: the page plays in real time, so a
+    timer that fires late (a busy machine) passes rows over and flow control (two bs unanswered) supersedes one.
+    At 36 Hz against a small avatar that answers in a few ms, skips stay rare; every bs sent carries its `conf`."""
+    path = tmp_path / "quest.csv"
+    truth = write_quest_log(path, seconds=1.0, bom=True, label=True)
+    sent, skipped, conf, info, out, problems = play_log(browser, server, path, truth)
+    assert out.get("layout") == "ovr70" and "Quest Pro log (quest-v2" in info, (out, info)
+    assert sent + skipped == len(truth.times), ("a sample neither sent nor counted as skipped", sent, skipped)
+    assert skipped <= len(truth.times) // 6, f"{skipped} of {len(truth.times)} samples skipped"
+    assert conf == sent and not problems, (conf, sent, problems)  # each with its conf, accepted by the server
 
 
 def test_page_counts_the_samples_it_cannot_send_in_time(browser, server, tmp_path):
@@ -134,19 +142,7 @@ def test_page_counts_the_samples_it_cannot_send_in_time(browser, server, tmp_pat
     counted as skipped, never lost silently, and the recording's last sample still goes out with its conf."""
     path = tmp_path / "fast.csv"
     truth = write_quest_log(path, seconds=0.5, tracker_hz=1000.0, row_hz=1000.0)
-    page = open_page(browser, f"{server.http_url}/", viewport={"width": 800, "height": 600})
-    problems = page_errors(page)
-    try:
-        page.uncheck("#loop")
-        seq = page.evaluate("__ofera.lastSentSeq")
-        with_conf = metric(server, "ofera_bs_conf_total")
-        out = page.evaluate("t => __ofera.playText(t, 'fast.csv')", path.read_bytes().decode("utf-8"))
-        assert out.get("rows") == len(truth.times), out
-        page.wait_for_function("!__ofera.playing && __ofera.settled", timeout=120_000)
-        sent, skipped = page.evaluate("__ofera.lastSentSeq") - seq, page.evaluate("__ofera.playSkipped")
-        assert sent + skipped == len(truth.times) and skipped > 0, (sent, skipped, len(truth.times))
-        assert f"{skipped} of {len(truth.times)} samples skipped" in page.text_content("#playinfo")
-        assert metric(server, "ofera_bs_conf_total") - with_conf == sent
-        assert not page.evaluate("__ofera.errors") and not problems, (page.evaluate("__ofera.errors"), problems)
-    finally:
-        page.close()
+    sent, skipped, conf, info, _, problems = play_log(browser, server, path, truth)
+    assert sent + skipped == len(truth.times) and skipped > 0, (sent, skipped, len(truth.times))
+    assert f"{skipped} of {len(truth.times)} samples skipped" in info
+    assert conf == sent and not problems, (conf, sent, problems)
