@@ -224,6 +224,25 @@ def test_delta_kernels_equal_the_reference(kernels, enc, coords) -> None:
     assert ref.key_frames == 3 and min(sizes) < max(sizes) * 0.6  # key frames at 0, 10, 20; deltas are smaller
 
 
+def test_delta_masks_kernel_equals_the_reference(kernels) -> None:
+    """The numba bitmasks of a delta frame are delta_masks_reference's bytes, empty selections and counts that are
+    not multiples of 8 included."""
+    from ofera_protocol.delta import delta_masks_reference
+
+    rng = np.random.default_rng(11)
+    fast = numba_kernels()
+    for count in (1, 5, 8, 13, 64, 1000):
+        ids = np.sort(rng.choice(count, max(1, count * 2 // 3), replace=False)).astype(np.int64)
+        for n in {0, 1, ids.size // 2, ids.size}:
+            sel = np.sort(rng.choice(ids.size, n, replace=False)).astype(np.int64)
+            moved = rng.random((ids.size, 3)) < 0.5
+            wide = rng.random(ids.size) < 0.4
+            n_p = int(moved[:n, 0].sum())
+            want = delta_masks_reference(count, ids, sel, moved, wide, n, n_p)
+            got = fast.delta_masks(count, ids, sel, moved, wide, n, n_p)
+            assert [a.tobytes() for a in got] == [a.tobytes() for a in want], (count, n)
+
+
 @pytest.mark.parametrize("enc", ["f16", "q13"])
 def test_delta_client_error_is_bounded_whatever_is_dropped(kernels, enc) -> None:
     """Closed loop: after any number of frames and any drops (frames never handed to the socket are never

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .codec import pack_bits, pack_map, unpack_bits  # noqa: F401 - pack_bits, unpack_bits: re-exported
+from .codec import pack_bits, pack_map, unpack_bits  # noqa: F401 - unpack_bits: re-exported
 from .encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from .errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
 from .messages import DeltaFrame, Frame
@@ -201,6 +201,16 @@ def delta_f16_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, tol
     return n, n_p, w, n_r, n_s
 
 
+def delta_masks_reference(count: int, ids, sel, moved, wide, n: int, n_p: int) -> tuple[np.ndarray, ...]:
+    """A delta frame's bitmasks from a kernel's selection (``sel[:n]`` candidate positions, ``moved[:n]`` (n, 3)
+    bool, ``wide[:n_p]``): (changed over the ``count`` Gaussians (their session ids ``ids[sel]``),
+    moved_position, moved_rotation, moved_scale, wide), each uint8 LSB first (:func:`pack_bits`)."""
+    changed = np.zeros(count, bool)
+    changed[ids[sel[:n]]] = True
+    m = moved[:n]
+    return pack_bits(changed), pack_bits(m[:, 0]), pack_bits(m[:, 1]), pack_bits(m[:, 2]), pack_bits(wide[:n_p])
+
+
 class ReferenceKernels:
     """The reference kernel set of :class:`DeltaEncoder`: ``fast_encodings.NumpyKernels`` (frames) plus the delta
     kernels of this module, all plain numpy (the spec in code). The server's numba set has the same methods."""
@@ -218,6 +228,9 @@ class ReferenceKernels:
 
     def delta_f16(self, *args) -> tuple[int, ...]:
         return delta_f16_reference(self._frames, *args)
+
+    def delta_masks(self, *args) -> tuple[np.ndarray, ...]:
+        return delta_masks_reference(*args)
 
 
 # ----------------------------------------------------------------------------- encoder (server)
@@ -333,13 +346,11 @@ class DeltaEncoder:
         else:
             n, n_p, w, n_r, n_s = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s,
                                                          self.dec_p, self.dec_r, self.dec_s, *out)
-        changed = np.zeros(self.format.count, bool)
-        changed[self.ids[self._sel[:n]]] = True
-        moved = self._moved[:n]
+        changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.ids, self._sel, self._moved,
+                                                             self._wide, n, n_p)
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
-                         "changed": pack_bits(changed), "moved_position": pack_bits(moved[:, 0]),
-                         "moved_rotation": pack_bits(moved[:, 1]), "moved_scale": pack_bits(moved[:, 2]),
-                         "wide": pack_bits(self._wide[:n_p]), "position_delta": self._res[:n_p - w],
+                         "changed": changed, "moved_position": mp, "moved_rotation": mr, "moved_scale": ms,
+                         "wide": wide, "position_delta": self._res[:n_p - w],
                          "position": self._pos[:w], "rotation": self._rot[:n_r], "scale": self._scale[:n_s]})
 
 

@@ -391,6 +391,13 @@ class NumbaKernels:
         return tuple(int(x) for x in delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table,
                                                       *rest))
 
+    def delta_masks(self, count, ids, sel, moved, wide, n, n_p) -> tuple[np.ndarray, ...]:
+        """ofera_protocol.delta.delta_masks_reference by :func:`delta_masks_kernel` (same bytes)."""
+        out = (np.zeros((count + 7) // 8, np.uint8), *(np.empty((n + 7) // 8, np.uint8) for _ in range(3)),
+               np.empty((n_p + 7) // 8, np.uint8))
+        delta_masks_kernel(ids, sel, moved, wide, n, n_p, *out)
+        return out
+
     def delta_f16(self, *args) -> tuple[int, ...]:
         """ofera_protocol.delta.delta_f16_reference in one numba pass."""
         *out, ok = delta_f16_kernel(*args)
@@ -605,6 +612,33 @@ def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held
     return n, n_p, w, n_r, n_s, ok
 
 
+@nb.njit(inline="always", **_NB)
+def _pack_column(moved, c, n, out):
+    """Bits moved[:n, c] into out (ceil(n / 8) uint8, LSB first)."""
+    for b in range(out.shape[0]):
+        byte = 0
+        for bit in range(min(8, n - 8 * b)):
+            byte |= np.uint8(moved[8 * b + bit, c]) << bit
+        out[b] = byte
+
+
+@nb.njit(**_NB)
+def delta_masks_kernel(ids, sel, moved, wide, n, n_p, changed, out_mp, out_mr, out_ms, out_wide):
+    """ofera_protocol.delta.delta_masks_reference into zeroed `changed` (ceil(count / 8)) and the other outputs
+    (ceil(n / 8), ceil(n_p / 8)): the bits written straight from the selection, no (count,) bool array."""
+    for j in range(n):
+        i = np.uint64(ids[sel[j]])
+        changed[i >> 3] |= np.uint8(1) << (i & 7)
+    _pack_column(moved, 0, n, out_mp)
+    _pack_column(moved, 1, n, out_mr)
+    _pack_column(moved, 2, n, out_ms)
+    for b in range(out_wide.shape[0]):
+        byte = 0
+        for bit in range(min(8, n_p - 8 * b)):
+            byte |= np.uint8(wide[8 * b + bit]) << bit
+        out_wide[b] = byte
+
+
 def delta_kernel_warm() -> None:
     """Compile the delta kernels for writable and read-only float32 state arrays."""
     from ofera_protocol.delta import ROT_FIELD64
@@ -629,6 +663,8 @@ def delta_kernel_warm() -> None:
                     np.zeros((2, 3), np.uint16), np.zeros((2, 4), np.uint16), np.zeros((2, 3), np.uint16),
                     np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o, np.zeros((2, 4), np.uint16),
                     np.zeros((2, 3), np.uint16))
+    k.delta_masks(2, np.arange(2, dtype=np.int64), np.arange(2, dtype=np.int64), np.ones((2, 3), bool),
+                  np.zeros(2, bool), 2, 2)
 
 
 def delta_encoder(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
