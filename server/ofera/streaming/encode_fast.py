@@ -613,13 +613,19 @@ def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held
 
 
 @nb.njit(inline="always", **_NB)
-def _pack_column(moved, c, n, out):
-    """Bits moved[:n, c] into out (ceil(n / 8) uint8, LSB first)."""
-    for b in range(out.shape[0]):
-        byte = 0
-        for bit in range(min(8, n - 8 * b)):
-            byte |= np.uint8(moved[8 * b + bit, c]) << bit
-        out[b] = byte
+def _pack_column(bits, c, n, out):
+    """bits[:n, c] (bool) into out (ceil(n / 8) uint8, LSB first)."""
+    full = n >> 3
+    for b in range(full):  # whole bytes: a fixed 8-bit loop (unrolled)
+        byte = np.uint32(0)
+        for bit in range(8):
+            byte |= np.uint32(bits[8 * b + bit, c]) << np.uint32(bit)
+        out[b] = np.uint8(byte)
+    if n & 7:
+        byte = np.uint32(0)
+        for bit in range(n & 7):
+            byte |= np.uint32(bits[8 * full + bit, c]) << np.uint32(bit)
+        out[full] = np.uint8(byte)
 
 
 @nb.njit(**_NB)
@@ -632,11 +638,7 @@ def delta_masks_kernel(ids, sel, moved, wide, n, n_p, changed, out_mp, out_mr, o
     _pack_column(moved, 0, n, out_mp)
     _pack_column(moved, 1, n, out_mr)
     _pack_column(moved, 2, n, out_ms)
-    for b in range(out_wide.shape[0]):
-        byte = 0
-        for bit in range(min(8, n_p - 8 * b)):
-            byte |= np.uint8(wide[8 * b + bit]) << bit
-        out_wide[b] = byte
+    _pack_column(wide.reshape(-1, 1), 0, n_p, out_wide)
 
 
 def delta_kernel_warm() -> None:
