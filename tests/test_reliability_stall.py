@@ -73,10 +73,16 @@ def stalled_frame(i: int) -> bytes:
     return ws_frame(bs(i, value=(i % 50) / 50))
 
 
-def viewer_of(server, before: set[str]):
+def viewer_of(server, before: set[str], timeout: float = 10.0):
+    """The session that is not in `before`, once its source and viewer exist: the server makes them just after
+    sending the avatar's last chunk, so a client that has read the avatar can look before they do (CI once did)."""
     hub = server.app.state.hub
-    new = [s for sid, s in list(hub.sessions.items()) if sid not in before]
-    return new[0] if new else None
+    deadline = time.monotonic() + timeout
+    while True:
+        new = [s for sid, s in list(hub.sessions.items()) if sid not in before]
+        if new and new[0].source is not None and new[0].viewer is not None or time.monotonic() > deadline:
+            return new[0] if new else None
+        time.sleep(0.01)
 
 
 def test_stalled_client_is_bounded_and_does_not_slow_others() -> None:
