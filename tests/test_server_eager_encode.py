@@ -217,13 +217,14 @@ def test_a_v1_f16_session_encodes_its_frames_in_the_compute_thread(observed: Any
     async def main() -> None:
         c = await connect(main_server().url, avatar=SMALL, encoding="f16")
         frames = await frames_of(c, 5)
+        (source,) = observed.sources
+        assert len(source.eager) == 1  # registered for the session ...
         await c.close()
         assert [f.seq for f in frames] == list(range(5))
+        await until(lambda: source.eager == [], WAIT)  # ... dropped when it ends (the server's side of the close)
 
     run(main())
-    (source,) = observed.sources
     (writer,) = observed.writers
-    assert source.eager == []  # registered for the session, dropped when it ended (its writer's buffers go now)
     assert [seq for seq, _ in writer.calls] == list(range(5))  # once per frame ...
     assert all(name.startswith("ofera-compute") for _, name in writer.calls)
     assert observed.viewer_encodes == []  # ... in Source._compute: the viewer found every frame cached
