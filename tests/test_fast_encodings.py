@@ -338,7 +338,7 @@ def bad_delta_frames(good: dict) -> list[dict]:
 
 def test_fast_delta_masks_equal_the_codecs(kernels) -> None:
     """FastFrameDecoder's numba masks give codec.delta_masks' arrays and counts on random valid masks."""
-    from ofera.client.fast_decode import FastFrameDecoder, delta_masks_kernel
+    from ofera.client.fast_decode import FastFrameDecoder, unpack_delta_masks_kernel
     from ofera_protocol.codec import delta_masks, pack_bits
 
     rng = np.random.default_rng(3)
@@ -357,7 +357,7 @@ def test_fast_delta_masks_equal_the_codecs(kernels) -> None:
                     enumerate(("moved_position", "moved_rotation", "moved_scale"))}}
             bins = [np.frombuffer(m[k], np.uint8) for k in
                     ("changed", "moved_position", "moved_rotation", "moved_scale", "wide")]
-            assert delta_masks_kernel(bins[0], count, n, *bins[1:], np.zeros(count, np.uint32),
+            assert unpack_delta_masks_kernel(bins[0], count, n, *bins[1:], np.zeros(count, np.uint32),
                                       np.zeros((n, 3), bool), np.zeros((n, 1), bool))[0]  # the kernel's own result
             want, got = delta_masks(m, fmt), fast._masks(m, fmt)
             for a, b in zip(want[:3], got[:3], strict=True):

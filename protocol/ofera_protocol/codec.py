@@ -527,6 +527,8 @@ _CODE_WIDTH = {"q13": (3, 1, 3), "f16": (3, 4, 3)}
 
 DeltaMasks = tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]
 """A delta frame's masks: index (n,) uint32, moved (n, 3) bool, wide (n_p,) bool, and (n_p, n_r, n_s, wide ones)."""
+MaskDecoder = Callable[[dict[str, Any], FrameFormat], DeltaMasks]
+"""What turns a delta frame's map into its checked DeltaMasks: :func:`delta_masks` or a faster twin."""
 
 
 def delta_masks(m: dict[str, Any], fmt: FrameFormat) -> DeltaMasks:
@@ -548,7 +550,7 @@ def delta_masks(m: dict[str, Any], fmt: FrameFormat) -> DeltaMasks:
 
 
 def decode_delta_frame(m: dict[str, Any], fmt: FrameFormat, seq: int, t: int, timing: dict[str, int],
-                       masks: Callable[[dict[str, Any], FrameFormat], DeltaMasks] = delta_masks) -> DeltaFrame:
+                       masks: MaskDecoder = delta_masks) -> DeltaFrame:
     """The wire arrays of a delta frame (`key: false`), checked: the masks (`masks`: :func:`delta_masks` or a
     faster twin that gives the same or defers to it), array lengths; f16 codes sent whole must be finite.
     Raises ProtocolError."""
@@ -579,7 +581,7 @@ FrameParts = tuple[int, int, dict[str, int], bool | None, int, Any, list[bytes]]
 
 
 def frame_parts(m: dict[str, Any], fmt: FrameFormat,
-                masks: Callable[[dict[str, Any], FrameFormat], DeltaMasks] = delta_masks) -> FrameParts | DeltaFrame:
+                masks: MaskDecoder = delta_masks) -> FrameParts | DeltaFrame:
     """The checked fields of a `frame` map: (seq, t, timing, key, n, index, [position, rotation, scale] bins with
     their byte lengths checked), or the DeltaFrame of a delta frame (its masks by `masks`). Every decoder of
     frames starts here."""

@@ -3,9 +3,9 @@ streams. The reference is the protocol codec (``ofera_protocol.decode_server_mes
 this decoder starts from the same field checks (``codec.frame_parts``) and gives the same float32 values.
 
 Delta sessions (PROTOCOL.md 7.1): key frames are decoded here and their codes handed to an
-``ofera_protocol.delta.DeltaDecoder``; delta frames' masks are unpacked and checked by :func:`delta_masks_kernel`
-(the twin of ``codec.delta_masks``, which raises the exact error when the kernel finds one) and applied by
-:func:`delta_apply_kernel` (the twin of ``DeltaDecoder.apply``).
+``ofera_protocol.delta.DeltaDecoder``; delta frames' masks are unpacked and checked by
+:func:`unpack_delta_masks_kernel` (the twin of ``codec.delta_masks``, which raises the exact error when the kernel
+finds one) and applied by :func:`delta_apply_kernel` (the twin of ``DeltaDecoder.apply``).
 """
 
 from __future__ import annotations
@@ -145,7 +145,7 @@ def _unpack_mask(buf, n, out, col):
 
 
 @nb.njit(**_NB)
-def delta_masks_kernel(changed, count, n, mpos, mrot, mscale, wide_bits, index, moved, wide):
+def unpack_delta_masks_kernel(changed, count, n, mpos, mrot, mscale, wide_bits, index, moved, wide):
     """A delta frame's masks (PROTOCOL.md 7.1) unpacked and checked in one go: the changed Gaussians into index
     (count,) uint32, the moved bits into moved (n, 3) bool, the wide bits into wide (n, 1) bool. Returns (ok,
     n_p, n_r, n_s, wide ones); ok False for any fault codec.delta_masks reports (it then names it)."""
@@ -188,9 +188,9 @@ def decoder_warm() -> None:
     q13_decode_kernel(np.frombuffer(raw, "<u2", 6), np.frombuffer(raw, "<u4", 2), np.frombuffer(raw, np.uint8, 6),
                       np.zeros(3), np.ones(3), np.ones(256, np.float32), out3, out4, out3.copy())
     one = np.frombuffer(b"\x01", np.uint8)
-    delta_masks_kernel(one, 1, 1, one, one, one, np.frombuffer(b"\x00", np.uint8), np.zeros(1, np.uint32),
+    unpack_delta_masks_kernel(one, 1, 1, one, one, one, np.frombuffer(b"\x00", np.uint8), np.zeros(1, np.uint32),
                        np.zeros((1, 3), bool), np.zeros((1, 1), bool))
-    ids, moved, wide = np.zeros(1, np.int64), np.ones((1, 3), bool), np.zeros(1, bool)
+    ids, moved, wide = np.zeros(1, np.uint32), np.ones((1, 3), bool), np.zeros(1, bool)  # ids: a DeltaFrame's index
     res = np.frombuffer(raw, np.int8, 3).reshape(1, 3)
     wpos = np.frombuffer(raw, "<u2", 0).reshape(0, 3)
     for q13 in (True, False):
@@ -235,7 +235,7 @@ class FastFrameDecoder:
             self._wide = np.zeros((n, 1), bool)
 
     def _masks(self, m: dict, fmt: FrameFormat) -> Any:
-        """codec.delta_masks by delta_masks_kernel into this decoder's buffers; the codec's own on any fault (it
+        """codec.delta_masks by unpack_delta_masks_kernel into this decoder's buffers; the codec's own on any fault (it
         raises the exact ProtocolError)."""
         from ofera_protocol import _fields as F
         from ofera_protocol.codec import delta_masks
@@ -247,8 +247,8 @@ class FastFrameDecoder:
                 ("changed", "moved_position", "moved_rotation", "moved_scale", "wide")]
         ok = n <= fmt.count
         if ok:
-            ok, n_p, n_r, n_s, nw = delta_masks_kernel(bins[0], fmt.count, n, *bins[1:], self._index, self._moved,
-                                                       self._wide)
+            ok, n_p, n_r, n_s, nw = unpack_delta_masks_kernel(bins[0], fmt.count, n, *bins[1:], self._index,
+                                                              self._moved, self._wide)
         if not ok:
             return delta_masks(m, fmt)
         return self._index[:n].copy(), self._moved[:n], self._wide[:n_p, 0], (n_p, n_r, n_s, nw)  # index: kept
@@ -267,7 +267,7 @@ class FastFrameDecoder:
         scl = d.scale.view(np.uint8 if q13 else np.uint16).reshape(-1, 3)
         held_r = dd.rotation.reshape(-1, 1) if q13 else dd.rotation
         lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
-        code = delta_apply_kernel(q13, d.index.astype(np.int64), d.moved, d.wide, d.position_delta,
+        code = delta_apply_kernel(q13, d.index, d.moved, d.wide, d.position_delta,
                                   d.position.view(np.uint16).reshape(-1, 3), rot, scl, dd.position, held_r, dd.scale,
                                   lo, step, lut, p, r, s)
         if code == 1:
@@ -287,7 +287,7 @@ class FastFrameDecoder:
         if m.get("type") != "frame":
             return decode_server_message(data, self.format)
         fmt = self.format
-        parts = frame_parts(m, fmt, self._masks) if fmt.delta else frame_parts(m, fmt)
+        parts = frame_parts(m, fmt, self._masks)  # masks: delta frames only
         if isinstance(parts, DeltaFrame):
             return self._apply_delta(parts)
         seq, t, timing, key, n, index, bufs = parts
