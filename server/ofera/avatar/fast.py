@@ -20,7 +20,7 @@ owns head pose; :meth:`FastSession.head` refuses anything else):
   Gaussian its local attributes as one float32 row (local position or barycentric coordinates and shift,
   normalised rotation, linear scale: one read stream).
 - Per frame: one LBS kernel, one face-frame kernel (R_f, its quaternion, s_f, c_f, n_f per used
-  face), one per-Gaussian kernel writing position / rotation / scale straight into float32 output
+  face, float32 rows), one per-Gaussian kernel writing position / rotation / scale straight into float32 output
   arrays whose other rows already hold the neutral values.
 
 Output buffers come from a :class:`StatePool`: a returned state is never written again while anyone
@@ -308,7 +308,8 @@ class FastSession:
         self.threaded = False  # whether the last frame ran on numba's threads
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
-        self.face = np.zeros((fast.used_faces.size, cols), np.float64)
+        self.face = np.zeros((cols, fast.used_faces.size), np.float32)  # face frames, one row per column
+        self.edges = np.zeros((9, fast.used_faces.size), np.float64)  # face_frames_kernel's scratch
         self.pool = StatePool(fast.neutral, pool_size)
         self._expr = np.zeros(50, np.float32)
         self._rot = np.zeros((5, 3, 3), np.float32)
@@ -351,7 +352,8 @@ class FastSession:
         bary = a.inv_canonical is not None
         par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
         t0 = time.perf_counter_ns()
-        (K.face_frames_kernel_parallel if par else K.face_frames_kernel)(verts, a.face_vids, self.face, bary)
+        frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
+        frames(verts, a.face_vids, self.edges, self.face, bary)
         if bary:
             K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.local,
                                  a.inv_canonical, pos, rot, scale)
