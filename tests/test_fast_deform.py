@@ -134,6 +134,35 @@ def test_default_avatar_fast_path(subject) -> None:
         assert_same_state(session.run(expr, rot), reference_frame(avatar, fast.subject, expr, rot))
 
 
+@pytest.mark.parametrize("coords", ["flame", "unity"])
+def test_states_carry_their_varying_rows_and_encode_to_the_codecs_bytes(head, subject, coords) -> None:
+    """Every state of a fast session carries the avatar's VaryingRows; outside them every state equals the neutral
+    one, so a FrameWriter that re-encodes only those rows into its pooled buffers gives the codec's bytes."""
+    from ofera.streaming.encode_fast import frame_writer
+    from ofera_protocol import Frame, FrameFormat, encode_frame, to_coords
+
+    rng = np.random.default_rng(12)
+    avatar = random_avatar(head, "triangle", rng, sorted_faces=True)
+    fast = FastAvatar(avatar, subject)
+    assert np.array_equal(fast.varying.indices, np.flatnonzero(fast.selected))
+    others = ~fast.selected
+    fmt = FrameFormat("f16", avatar.count, False, None)
+    writer = frame_writer(fmt, coords, pool=2)
+    sessions = [fast.session(pool_size=2), fast.session(pool_size=2)]  # two pools, one VaryingRows
+    for i in range(6):
+        expr, rot = random_flame(rng, 1.5)
+        state = sessions[i % 2].run(expr, rot)
+        assert state.varying is fast.varying
+        for got, neutral in zip((state.position, state.rotation, state.scale),
+                                (fast.neutral.position, fast.neutral.rotation, fast.neutral.scale)):
+            assert np.array_equal(got[others], neutral[others])
+        data = writer.encode(i, i, {"total": i}, state.position, state.rotation, state.scale, varying=state.varying)
+        p, r = to_coords(state.position, state.rotation, coords)
+        assert bytes(data) == encode_frame(Frame(seq=i, t=i, timing={"total": i}, position=p, rotation=r,
+                                                 scale=state.scale), fmt)
+    assert writer.partial >= 4
+
+
 def test_movable_set_is_close_and_exact_set_is_exact(head, subject) -> None:
     rng = np.random.default_rng(6)
     avatar = random_avatar(head, "triangle", rng)

@@ -33,7 +33,7 @@ from ofera_protocol.encodings import (
     position_error_bound,
     quantize_log_scale,
 )
-from ofera_protocol.fast_encodings import BufferPool, FrameWriter, NumpyKernels, scale_thresholds
+from ofera_protocol.fast_encodings import BufferPool, FrameWriter, NumpyKernels, VaryingRows, scale_thresholds
 from ofera_protocol.messages import DeltaFrame
 
 N = 20_000
@@ -175,6 +175,100 @@ def test_buffer_pool_reuses_only_unreferenced_buffers() -> None:
     del view
     d = pool.get(50)
     assert len(d) >= 50
+
+
+def varying_states(rng, n: int, frames: int):
+    """A stream of states that differ only in rows `rows` (spans of several lengths, the first and last rows
+    included), as the fast deformation's are, and the VaryingRows they carry."""
+    rows = np.concatenate([np.arange(0, 7), np.arange(100, 101), np.arange(500, 2000), rng.choice(n, 300),
+                           np.arange(n - 5, n)])
+    varying = VaryingRows(rows)
+    base = state(rng, n, edge_cases=False)
+    out = []
+    for _ in range(frames):
+        pos, rot, scale = (a.copy() for a in base)
+        fresh = state(rng, len(varying), edge_cases=False)
+        for a, f in zip((pos, rot, scale), fresh):
+            a[varying.indices] = f
+        out.append((pos, rot, scale))
+    return out, varying
+
+
+def test_varying_rows_are_spans_of_the_rows() -> None:
+    v = VaryingRows(np.array([9, 3, 4, 5, 9, 0]))
+    assert v.indices.tolist() == [0, 3, 4, 5, 9] and len(v) == 5 and v.end() == 10
+    assert v.start.tolist() == [0, 3, 9] and v.length.tolist() == [1, 3, 1]
+    empty = VaryingRows(np.zeros(0, np.int64))
+    assert len(empty) == 0 and empty.start.size == 0 and empty.end() == 0
+    with pytest.raises(ValueError, match="non-negative"):
+        VaryingRows(np.array([-1, 2]))
+
+
+@pytest.mark.parametrize("enc", ["f32", "f16", "q13"])
+@pytest.mark.parametrize("coords", ["flame", "unity"])
+@pytest.mark.parametrize("impl", ["numpy", "numba"])
+def test_writer_with_varying_rows_gives_the_full_encodes_bytes(kernels, enc, coords, impl) -> None:
+    """Pooled buffers re-encode only the varying rows; every frame is still the codec's bytes, whatever the
+    header's length (seq and timing grow and shrink) and however the pool hands buffers out (some kept)."""
+    rng = np.random.default_rng(7)
+    n = 4000
+    states, varying = varying_states(rng, n, 12)
+    fmt = FrameFormat(enc, n, False, make_quant(states[0][0], states[0][2]) if enc == "q13" else None)
+    writer = FrameWriter(fmt, coords, kernels=kernels if impl == "numba" else NumpyKernels(), pool=3)
+    kept = []
+    for i, (pos, rot, scale) in enumerate(states):
+        seq = [1, 2, 70000, 3, 2**40, 5][i % 6]
+        timing = TIMING if i % 4 else {**TIMING, "queue": 123456789, "extra": 2**33}
+        got = writer.encode(seq, i, timing, pos, rot, scale, varying=varying)
+        p, r = to_coords(pos, rot, coords)
+        want = encode_frame(Frame(seq=seq, t=i, timing=timing, position=p, rotation=r, scale=scale), fmt)
+        assert bytes(got) == want, i
+        if i % 5 == 1:
+            kept.append(got)  # held: the pool hands out another buffer next
+    assert writer.partial >= (6 if enc != "q13" else 0) and (enc != "q13" or writer.partial == 0)
+
+
+def test_writer_varying_rows_refuse_non_finite_and_recover(kernels) -> None:
+    rng = np.random.default_rng(8)
+    states, varying = varying_states(rng, 3000, 3)
+    fmt = FrameFormat("f16", 3000, False, None)
+    writer = FrameWriter(fmt, kernels=kernels, pool=1)
+    pos, rot, scale = states[0]
+    writer.encode(1, 1, TIMING, pos, rot, scale, varying=varying)
+    bad = pos.copy()
+    bad[varying.indices[-1], 1] = np.inf
+    with pytest.raises(ValueError, match="position"):
+        writer.encode(2, 2, TIMING, bad, rot, scale, varying=varying)
+    pos, rot, scale = states[1]
+    got = writer.encode(3, 3, TIMING, pos, rot, scale, varying=varying)  # the failed frame's buffer: full again
+    assert bytes(got) == encode_frame(Frame(seq=3, t=3, timing=TIMING, position=pos, rotation=rot, scale=scale), fmt)
+
+
+@pytest.mark.parametrize("k", [3, 4, 5])
+@pytest.mark.parametrize("coords", ["flame", "unity"])
+def test_rows_kernels_equal_the_reference(kernels, k, coords) -> None:
+    rng = np.random.default_rng(k)
+    n = 2500
+    src = (rng.standard_normal((n, k)) * 3).astype(np.float32)
+    sign = np.ones(k, np.float32) if coords == "flame" else np.where(np.arange(k) % 2, -1, 1).astype(np.float32)
+    rows = VaryingRows(np.concatenate([np.arange(3, 90), rng.choice(n, 200), [n - 1]]))
+    ref = NumpyKernels()
+    for name in ("f16_rows", "f32_rows"):
+        dt = np.uint16 if name == "f16_rows" else np.float32
+        start = rng.integers(0, 60000, n * k).astype(dt) if dt == np.uint16 else rng.standard_normal(n * k).astype(dt)
+        a, b = start.copy(), start.copy()
+        assert getattr(kernels, name)(src, rows, sign, a) and getattr(ref, name)(src, rows, sign, b)
+        assert np.array_equal(a.view(np.uint8), b.view(np.uint8)), name
+        other = np.setdiff1d(np.arange(n), rows.indices)
+        assert np.array_equal(a.reshape(n, k)[other].view(np.uint8), start.reshape(n, k)[other].view(np.uint8))
+        bad = src.copy()
+        bad[rows.indices[5], k - 1] = np.nan
+        assert not getattr(kernels, name)(bad, rows, sign, a.copy())
+        assert not getattr(ref, name)(bad, rows, sign, b.copy())
+    bad = src.copy()
+    bad[rows.indices[0], 0] = 70000.0  # beyond the half range: f16 only
+    assert not kernels.f16_rows(bad, rows, sign, np.zeros(n * k, np.uint16))
+    assert kernels.f32_rows(bad, rows, sign, np.zeros(n * k, np.float32))
 
 
 def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

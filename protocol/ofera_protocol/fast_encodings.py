@@ -16,6 +16,8 @@ finite float32 state, the frame's Gaussians are ``src[gather]``, times ``sign`` 
                  [q = clip(rint((float64(p) - lo) * k), 0, 65535), see :func:`position_factors`]
     q13_rotation(src (N, 4), gather, sign (4,), dst (M,) uint32)
     q13_scale(src (N, 3), gather, thresholds (255,) f32, dst (M 3,) uint8)
+    f32_rows / f16_rows(src (N, k), rows: VaryingRows, sign, dst (N k,)) -> bool  [only the rows of `rows`;
+                 the others of dst are left as they are]
     (and, for :class:`.delta.DeltaEncoder`, delta_q13 / delta_f16: see :class:`.delta.ReferenceKernels`)
 
 The protocol package stays importable with numpy and msgpack only: the numba kernels live in the
@@ -28,6 +30,12 @@ monotonic in the scale).
 
 Buffers come from a small pool: a returned ``memoryview`` is not reused while it (or anything made from
 it) is still referenced, so it can be cached and sent later; a steady stream allocates nothing.
+
+Rows that do not change: a caller whose states leave most rows the same from frame to frame (the fast
+deformation keeps every Gaussian no expression moves at its neutral value) passes ``varying``, a
+:class:`VaryingRows` object it attaches to all such states. A pooled buffer that last held a dense f16 or f32
+frame encoded with the same object keeps its other rows, so only the varying ones are encoded again (fewer
+bytes read and written: the encode is bound by memory traffic). The bytes are those of a full encode.
 """
 
 from __future__ import annotations
@@ -90,6 +98,31 @@ def scale_thresholds(quant: Quant) -> np.ndarray:
     return hi.astype(np.uint32).view(np.float32).copy()
 
 
+class VaryingRows:
+    """The rows that may differ between the states that carry this object (its identity is the contract: outside
+    these rows, every state carrying it holds the same values). start, length (R,) int64: ascending disjoint
+    spans; indices (M,) int64: the rows themselves."""
+
+    __slots__ = ("start", "length", "indices")
+
+    def __init__(self, rows: np.ndarray) -> None:
+        rows = np.unique(np.asarray(rows, np.int64).reshape(-1))
+        if rows.size and rows[0] < 0:
+            raise ValueError("varying rows must be non-negative")
+        brk = np.flatnonzero(np.diff(rows) != 1) + 1
+        start = np.concatenate([[0], brk]).astype(np.int64) if rows.size else np.zeros(0, np.int64)
+        self.indices = rows
+        self.start = rows[start] if rows.size else start
+        self.length = np.diff(np.concatenate([start, [rows.size]])).astype(np.int64) if rows.size else start
+
+    def __len__(self) -> int:
+        return int(self.indices.size)
+
+    def end(self) -> int:
+        """One past the last row (0 if none)."""
+        return int(self.indices[-1]) + 1 if self.indices.size else 0
+
+
 class FrameKernels(Protocol):
     """The kernel interface of :class:`FrameWriter` (the module docstring says each method's contract)."""
 
@@ -104,6 +137,10 @@ class FrameKernels(Protocol):
 
     def q13_scale(self, src: np.ndarray, gather: np.ndarray | None, thresholds: np.ndarray,
                   dst: np.ndarray) -> None: ...
+
+    def f32_rows(self, src: np.ndarray, rows: VaryingRows, sign: np.ndarray, dst: np.ndarray) -> bool: ...
+
+    def f16_rows(self, src: np.ndarray, rows: VaryingRows, sign: np.ndarray, dst: np.ndarray) -> bool: ...
 
 
 class NumpyKernels:
@@ -128,6 +165,20 @@ class NumpyKernels:
         if a.size and not (-F16_MAX <= a.min() and a.max() <= F16_MAX):
             return False
         dst[...] = a.reshape(-1).astype("<f2").view(np.uint16)
+        return True
+
+    def f32_rows(self, src, rows, sign, dst) -> bool:
+        a = self._take(src, rows.indices, sign)
+        if a.size and not (-F32_MAX <= a.min() and a.max() <= F32_MAX):
+            return False
+        dst.reshape(-1, src.shape[1])[rows.indices] = a
+        return True
+
+    def f16_rows(self, src, rows, sign, dst) -> bool:
+        a = self._take(src, rows.indices, sign)
+        if a.size and not (-F16_MAX <= a.min() and a.max() <= F16_MAX):
+            return False
+        dst.reshape(-1, src.shape[1])[rows.indices] = a.astype("<f2").view(np.uint16)
         return True
 
     def q13_position(self, src, gather, sign, lo, k, dst) -> None:
@@ -170,19 +221,25 @@ class BufferPool:
         return sys.getrefcount(bufs[i])
 
     def get(self, nbytes: int) -> bytearray:
+        return self.get_slot(nbytes)[0]
+
+    def get_slot(self, nbytes: int) -> tuple[bytearray, int | None, bool]:
+        """(buffer of at least `nbytes`, its slot in the pool or None if unpooled, whether it is new: a reused
+        buffer still holds what was last written into it)."""
         with self._lock:
             for i in range(len(self._bufs)):
                 if self._count(self._bufs, i) == self._idle[i]:
-                    if len(self._bufs[i]) < nbytes:
+                    fresh = len(self._bufs[i]) < nbytes
+                    if fresh:
                         self._bufs[i] = bytearray(nbytes + (nbytes >> 4))
                         self._idle[i] = self._count(self._bufs, i)
-                    return self._bufs[i]
+                    return self._bufs[i], i, fresh
             if len(self._bufs) < self.size:
                 self._bufs.append(bytearray(nbytes + (nbytes >> 4)))
                 self._idle.append(self._count(self._bufs, len(self._bufs) - 1))
-                return self._bufs[-1]
+                return self._bufs[-1], len(self._bufs) - 1, True
             self.unpooled += 1
-            return bytearray(nbytes)
+            return bytearray(nbytes), None, True
 
 
 class FrameWriter:
@@ -192,6 +249,8 @@ class FrameWriter:
     `index` (M,) uint32 of a sparse session (None: dense frames). kernels: see the module docstring
     (default: :class:`NumpyKernels`).
     """
+
+    takes_varying = True  # encode(..., varying=) (see the module docstring)
 
     def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
                  index: np.ndarray | None = None, kernels: FrameKernels | None = None, pool: int = 4,
@@ -224,6 +283,8 @@ class FrameWriter:
         self._field_heads = [_PACK.pack(name) + _bin_header(size)
                              for name, size in zip(("position", "rotation", "scale"), self._sizes)]
         self.pool = BufferPool(pool)
+        self._held: dict[int, tuple[int, VaryingRows]] = {}  # pool slot -> (slack, varying) of the frame it holds
+        self.partial = 0  # frames whose varying rows alone were encoded
 
     def header(self, seq: int, t: int, timing: dict[str, int], member: str | None = None) -> bytes:
         keys = (9 if self.index is not None else 8) + (member is not None)
@@ -233,20 +294,32 @@ class FrameWriter:
                          _PACK.pack("n"), _PACK.pack(self.n)))
 
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
-               scale: np.ndarray, member: str | None = None) -> memoryview:
+               scale: np.ndarray, member: str | None = None, varying: VaryingRows | None = None) -> memoryview:
         """The frame message for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3); `member`: a room's frame.
         ValueError if f32/f16 values are non-finite or out of the half range (like encode_frame).
         With `stamp_encode`, the header's timing also carries "encode": the microseconds this call took up to
-        writing the header (the bytes are those of encode_frame with that timing)."""
+        writing the header (the bytes are those of encode_frame with that timing). `varying`: the state's
+        :class:`VaryingRows` (dense f16 and f32: only those rows are encoded into a buffer that holds a frame
+        encoded with the same object; other encodings ignore it)."""
         start_ns = time.perf_counter_ns()
         head = self.header(seq, t, timing, member)
         # Everything after `timing` has a fixed size: lay it out after room for the longest header, so that the
-        # header can be written last, ending where it must, once the encode time it may carry is known.
-        slack = len(head) + (_ENCODE_STAMP_BYTES if self.stamp_encode else 0)
-        total = slack + sum(len(h) for h in self._field_heads) + sum(self._sizes)
+        # header can be written last, ending where it must, once the encode time it may carry is known. The room
+        # is rounded up, so that a pooled buffer's fields usually stay where they were (see `varying`).
+        need = len(head) + (_ENCODE_STAMP_BYTES if self.stamp_encode else 0)
+        body = sum(len(h) for h in self._field_heads) + sum(self._sizes)
         if self.index is not None:
-            total += len(self._index_prefix) + self.index.nbytes
-        buf = self.pool.get(total)
+            body += len(self._index_prefix) + self.index.nbytes
+        buf, slot, fresh = self.pool.get_slot(-(-need // _SLACK_STEP) * _SLACK_STEP + body)
+        held = None if fresh or slot is None else self._held.pop(slot, None)
+        rows = varying if (varying is not None and self.gather is None and self.format.encoding != "q13") else None
+        if rows is not None and held is not None and held[1] is rows and held[0] >= need:
+            slack = held[0]  # the buffer holds a frame of the same varying rows, laid out the same way
+            self.partial += 1
+        else:
+            held = None
+            slack = -(-need // _SLACK_STEP) * _SLACK_STEP
+        total = slack + body
         mv = memoryview(buf)
         off = slack
         if self.index is not None:
@@ -270,20 +343,30 @@ class FrameWriter:
             kern.q13_rotation(rotation, self.gather, self.rsign, np.frombuffer(buf, np.uint32, rs // 4, ro))
             kern.q13_scale(scale, self.gather, self.thresholds, np.frombuffer(buf, np.uint8, ss, so))
         else:
-            fn, dt = (kern.f32, np.float32) if enc == "f32" else (kern.f16, np.uint16)
+            if held is not None:
+                fn, dt = (kern.f32_rows, np.float32) if enc == "f32" else (kern.f16_rows, np.uint16)
+            else:
+                fn, dt = (kern.f32, np.float32) if enc == "f32" else (kern.f16, np.uint16)
+            which = rows if held is not None else self.gather
             width = np.dtype(dt).itemsize
             for name, src, sign, (o, size) in (("position", position, self.psign, (po, ps)),
                                                ("rotation", rotation, self.rsign, (ro, rs)),
                                                ("scale", scale, _ONES3, (so, ss))):
-                if not fn(src, self.gather, sign, np.frombuffer(buf, dt, size // width, o)):
+                if not fn(src, which, sign, np.frombuffer(buf, dt, size // width, o)):
                     limit = F16_MAX if enc == "f16" else F32_MAX
                     raise ValueError(f"{name} has NaN, infinity or values beyond +-{limit:g} ({enc})")
+        if rows is not None and slot is not None:
+            self._held[slot] = (slack, rows)
         if self.stamp_encode:
             timing = {**timing, "encode": (time.perf_counter_ns() - start_ns) // 1000}
             head = self.header(seq, t, timing, member)
         begin = slack - len(head)
         mv[begin:slack] = head
         return mv[begin:total]
+
+
+_SLACK_STEP = 64
+"""Header room is a multiple of this (bytes): headers of one stream differ by a few bytes."""
 
 
 _ENCODE_STAMP_BYTES = len(_PACK.pack("encode")) + 9 + 2

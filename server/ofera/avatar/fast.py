@@ -55,6 +55,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from ofera_protocol.fast_encodings import VaryingRows
 
 from ..head.lbs import HeadSubject
 from ..head.lbs_fast import SubsetLBS, flame_values_kernel
@@ -98,11 +99,13 @@ class StatePool:
     """Reusable float32 GaussianStates, every one initialised to ``template``; see the module docstring.
 
     ``acquire()`` returns (state, writable position, rotation, scale): a pooled state nobody references
-    any more, else a new one (up to ``size`` pooled, beyond that unpooled). Thread-safe.
+    any more, else a new one (up to ``size`` pooled, beyond that unpooled). Thread-safe. A caller that writes
+    only rows of ``varying`` passes it: every state then carries it (:class:`.state.GaussianState`).
     """
 
-    def __init__(self, template: GaussianState, size: int = 8) -> None:
+    def __init__(self, template: GaussianState, size: int = 8, varying: VaryingRows | None = None) -> None:
         self.template = template
+        self.varying = varying  # what every state of the pool carries: the only rows anyone writes
         self.size = size
         self._entries: list[list] = []  # [state, (position, rotation, scale) writable bases, idle counts]
         self._lock = threading.Lock()
@@ -117,7 +120,7 @@ class StatePool:
             v = b.view()
             v.flags.writeable = False
             views.append(v)
-        return GaussianState(*views), bases
+        return GaussianState(*views, varying=self.varying), bases
 
     @staticmethod
     def _counts(entry: list) -> tuple[int, ...]:
@@ -267,6 +270,7 @@ class FastAvatar:
             raise TypeError(f"unknown binding {type(binding).__name__}")
         # Every frame starts from the subject's neutral Gaussians (what the reference gives at v_id).
         self.neutral = make_deformer(binding, head.faces, head.num_vertices).deform(self.subject.v_id)
+        self.varying = VaryingRows(ids)  # every session's states: the other rows stay neutral
         self._warm = False
 
     @property
@@ -310,7 +314,7 @@ class FastSession:
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
         self.face = np.zeros((cols, fast.used_faces.size), np.float32)  # face frames, one row per column
         self.edges = np.zeros((9, fast.used_faces.size), np.float64)  # face_frames_kernel's scratch
-        self.pool = StatePool(fast.neutral, pool_size)
+        self.pool = StatePool(fast.neutral, pool_size, fast.varying)
         self._expr = np.zeros(50, np.float32)
         self._rot = np.zeros((5, 3, 3), np.float32)
 

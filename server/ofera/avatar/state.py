@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ofera_protocol.fast_encodings import VaryingRows
 
 
 @dataclass(frozen=True, eq=False)
@@ -13,11 +17,14 @@ class GaussianState:
 
     position (N, 3) float32 metres; rotation (N, 4) float32 unit quaternion in the WIRE order
     (x, y, z, w); scale (N, 3) float32 linear standard deviations in metres along the rotated axes.
+    varying: None, or the rows that may differ between the states that carry the same object (outside them they
+    hold the same values; the fast path's states: the Gaussians it deforms), so an encoder can re-encode only those.
     """
 
     position: np.ndarray
     rotation: np.ndarray
     scale: np.ndarray
+    varying: VaryingRows | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         n = self.position.shape[0]

@@ -164,6 +164,50 @@ def f16_flat_kernel(src, dst):
 
 
 @nb.njit(**_NB)
+def f16_rows_kernel(src, start, length, sign, dst):
+    """Rows start[q] .. start[q] + length[q] - 1 of src (N, k) times sign -> their places in dst (N k,) as half
+    bits (the other rows of dst untouched); False if any is NaN, infinite or beyond +-65504. Spans of a flat
+    row-major src with no mirroring take one vectorised loop each; else the row kernels of :func:`f16_kernel`."""
+    k = src.shape[1]
+    flat = src.reshape(-1)
+    plain = True
+    for c in range(k):
+        plain &= sign[c] == 1.0
+    ok = True
+    for q in range(start.shape[0]):
+        a = start[q]
+        b = a + length[q]
+        if plain:
+            for i in range(np.uint64(a * k), np.uint64(b * k)):  # unsigned: no wrap-around test (vectorises)
+                v = flat[i]
+                ok &= abs(v) <= F16_MAX
+                dst[i] = f32_to_f16_bits(v)
+        elif k == 3:
+            ok &= _f16_rows3(src[a:b], _NO_GATHER, b - a, sign[0], sign[1], sign[2], dst[a * 3:b * 3])
+        elif k == 4:
+            ok &= _f16_rows4(src[a:b], _NO_GATHER, b - a, sign[0], sign[1], sign[2], sign[3], dst[a * 4:b * 4])
+        else:
+            ok &= f16_kernel_reference(src[a:b], _NO_GATHER, b - a, sign, dst[a * k:b * k])
+    return ok
+
+
+@nb.njit(**_NB)
+def f32_rows_kernel(src, start, length, sign, dst):
+    """:func:`f16_rows_kernel` for f32 (the values themselves); False if any is NaN or infinite."""
+    k = src.shape[1]
+    ok = True
+    for q in range(start.shape[0]):
+        a = start[q]
+        b = a + length[q]
+        for r in range(a, b):
+            for c in range(k):
+                v = src[r, c] * sign[c]
+                ok &= abs(v) <= F32_MAX
+                dst[r * k + c] = v
+    return ok
+
+
+@nb.njit(**_NB)
 def q13_position_kernel_reference(src, gather, count, sign, lo, k, dst):
     """uint16 q = clip(rint((float64(p) - lo) * k), 0, 65535) per axis (the reference's float64 steps): the
     plain loop :func:`q13_position_kernel` is tested against."""
@@ -353,6 +397,14 @@ class NumbaKernels:
             return bool(f16_flat_kernel(flat, dst))
         g, n = self._g(src, gather)
         return bool(f16_kernel(src, g, n, sign, dst))
+
+    def f32_rows(self, src, rows, sign, dst) -> bool:
+        return bool(f32_rows_kernel(src, rows.start, rows.length, sign, dst))
+
+    def f16_rows(self, src, rows, sign, dst) -> bool:
+        if not src.flags.c_contiguous:
+            src = np.ascontiguousarray(src)
+        return bool(f16_rows_kernel(src, rows.start, rows.length, sign, dst))
 
     def q13_position(self, src, gather, sign, lo, k, dst) -> None:
         g, n = self._g(src, gather)

@@ -241,9 +241,11 @@ def encode_computed(writer: Any, frame: ComputedFrame) -> bytes | memoryview:
     s = frame.state
     if s is None:
         raise RuntimeError(f"frame {frame.seq} was not deformed but a viewer needs its Gaussians")
-    if frame.member is None:
-        return writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale)
-    return writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale, member=frame.member)
+    extra: dict[str, Any] = {} if frame.member is None else {"member": frame.member}
+    varying = getattr(s, "varying", None)
+    if varying is not None and getattr(writer, "takes_varying", False):
+        extra["varying"] = varying  # only the rows the fast path deformed are encoded again
+    return writer.encode(frame.seq, frame.t, frame.timing, s.position, s.rotation, s.scale, **extra)
 
 
 class CodecWriter:
