@@ -244,6 +244,40 @@ def test_writer_varying_rows_refuse_non_finite_and_recover(kernels) -> None:
     assert bytes(got) == encode_frame(Frame(seq=3, t=3, timing=TIMING, position=pos, rotation=rot, scale=scale), fmt)
 
 
+@pytest.mark.parametrize("coords", ["flame", "unity"])
+def test_drafts_finished_by_the_caller_are_the_codecs_frames(kernels, coords) -> None:
+    """FrameWriter.draft lays out a dense f16 frame whose other rows hold `base`; the caller writes the varying rows
+    (here: numpy's half conversion of the state in wire coordinates) and finish() writes the header. Bytes: the
+    codec's, whether the buffer was laid out afresh, reused, abandoned in between, or the header is too long."""
+    rng = np.random.default_rng(9)
+    n = 3000
+    states, varying = varying_states(rng, n, 8)
+    base = states[0]
+    fmt = FrameFormat("f16", n, False, None)
+    writer = FrameWriter(fmt, coords, kernels=kernels, pool=2, stamp_encode=False)
+    psign, rsign = writer.psign, writer.rsign
+    kept = []
+    for i, (pos, rot, scale) in enumerate(states):
+        draft = writer.draft(varying, base)
+        rows = varying.indices
+        draft.position.reshape(n, 3)[rows] = (pos[rows] * psign).astype("<f2").view(np.uint16)
+        draft.rotation.reshape(n, 4)[rows] = (rot[rows] * rsign).astype("<f2").view(np.uint16)
+        draft.scale.reshape(n, 3)[rows] = scale[rows].astype("<f2").view(np.uint16)
+        if i == 3:
+            continue  # abandoned: its buffer is laid out afresh next time
+        timing = TIMING if i != 5 else {f"stage-number-{j}": 2**40 + j for j in range(60)}  # i = 5: > the room
+        got = writer.finish(draft, i, i, timing)
+        p, r = to_coords(pos, rot, coords)
+        assert bytes(got) == encode_frame(Frame(seq=i, t=i, timing=timing, position=p, rotation=r, scale=scale), fmt)
+        if i % 3 == 0:
+            kept.append(got)
+    with pytest.raises(ValueError, match="dense f16"):
+        FrameWriter(FrameFormat("f32", n, False, None), kernels=kernels).draft(varying, base)
+    bad = (np.full((n, 3), np.inf, np.float32), base[1], base[2])
+    with pytest.raises(ValueError, match="base position"):
+        FrameWriter(fmt, coords, kernels=kernels).draft(varying, bad)
+
+
 @pytest.mark.parametrize("k", [3, 4, 5])
 @pytest.mark.parametrize("coords", ["flame", "unity"])
 def test_rows_kernels_equal_the_reference(kernels, k, coords) -> None:

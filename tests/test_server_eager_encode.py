@@ -213,9 +213,10 @@ async def frames_of(c: Any, count: int) -> list:
     return out
 
 
-def test_a_v1_f16_session_encodes_its_frames_in_the_compute_thread(observed: Any) -> None:
+def test_a_v1_q13_session_encodes_its_frames_in_the_compute_thread(observed: Any) -> None:
+    """(A dense f16 session goes further: its deformation writes the frames, test_server_direct_f16.)"""
     async def main() -> None:
-        c = await connect(main_server().url, avatar=SMALL, encoding="f16")
+        c = await connect(main_server().url, avatar=SMALL, encoding="q13")
         frames = await frames_of(c, 5)
         (source,) = observed.sources
         assert len(source.eager) == 1  # registered for the session ...
@@ -252,7 +253,7 @@ def test_a_failed_eager_encoding_is_retried_by_the_viewer_and_the_session_stream
     observed.fail = fails_first_time
 
     async def main() -> None:
-        c = await connect(main_server().url, avatar=SMALL, encoding="f16")
+        c = await connect(main_server().url, avatar=SMALL, encoding="q13")
         frames = await frames_of(c, 4)
         await c.close()
         assert [f.seq for f in frames] == list(range(4)) and not c.errors
@@ -267,7 +268,7 @@ def test_an_encoding_that_always_fails_ends_the_session_with_the_viewers_error(o
     observed.fail = always
 
     async def main() -> None:
-        c = await connect(main_server().url, avatar=SMALL, encoding="f16")
+        c = await connect(main_server().url, avatar=SMALL, encoding="q13")
         await c.send_bs(np.full(52, 0.2, np.float32), seq=0)
         with pytest.raises(ServerError) as e:
             await c.recv_frame(timeout=WAIT)

@@ -36,6 +36,9 @@ deformation keeps every Gaussian no expression moves at its neutral value) passe
 :class:`VaryingRows` object it attaches to all such states. A pooled buffer that last held a dense f16 or f32
 frame encoded with the same object keeps its other rows, so only the varying ones are encoded again (fewer
 bytes read and written: the encode is bound by memory traffic). The bytes are those of a full encode.
+:meth:`FrameWriter.draft` goes one step further for dense f16: it hands out such a buffer's fields, and the
+caller's own kernel writes the varying rows straight into them (the fast deformation does, with no float32
+state in between); :meth:`FrameWriter.finish` writes the header.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from typing import Protocol
 
 import msgpack
@@ -242,6 +246,23 @@ class BufferPool:
             return bytearray(nbytes), None, True
 
 
+@dataclass(eq=False)
+class FrameDraft:
+    """A pooled buffer laid out for one dense f16 frame (:meth:`FrameWriter.draft`): the fields position (N 3,),
+    rotation (N 4,), scale (N 3,) as uint16 views (IEEE half bits, wire coordinates, rows in state order) for the
+    caller to write the varying rows into; the header goes before `slack`."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    scale: np.ndarray
+    varying: VaryingRows
+    buf: bytearray
+    slot: int | None
+    slack: int
+    total: int
+    spent_ns: int  # time draft() took
+
+
 class FrameWriter:
     """Encodes the frames of one wire format (FrameFormat + coords + selection) into pooled buffers.
 
@@ -364,6 +385,56 @@ class FrameWriter:
         mv[begin:slack] = head
         return mv[begin:total]
 
+
+    def draft(self, varying: VaryingRows, base: tuple[np.ndarray, np.ndarray, np.ndarray]) -> FrameDraft:
+        """A dense f16 frame to be written by the caller: a pooled buffer whose fields hold, outside `varying`, the
+        encoding of `base` (FLAME-space float32 position, rotation, scale: what every state carrying `varying`
+        holds there; encoded now unless the buffer holds a frame of the same `varying` already). The caller
+        writes the varying rows (half bits of its values in this writer's coordinates: `psign`, `rsign`), then
+        calls :meth:`finish`. ValueError for other formats, or if `base` is out of the half range."""
+        start_ns = time.perf_counter_ns()
+        if self.format.encoding != "f16" or self.gather is not None:
+            raise ValueError(f"a draft is a dense f16 frame, this writer makes {self.format.encoding} "
+                             f"{'sparse' if self.gather is not None else 'dense'} frames")
+        body = sum(len(h) for h in self._field_heads) + sum(self._sizes)
+        buf, slot, fresh = self.pool.get_slot(_DRAFT_SLACK + body)
+        held = None if fresh or slot is None else self._held.pop(slot, None)
+        slack = held[0] if held is not None and held[1] is varying else _DRAFT_SLACK
+        mv = memoryview(buf)
+        off = slack
+        fields = []
+        for h, size in zip(self._field_heads, self._sizes):
+            mv[off:off + len(h)] = h
+            off += len(h)
+            fields.append(np.frombuffer(buf, np.uint16, size // 2, off))
+            off += size
+        if held is None or held[1] is not varying:
+            for name, src, sign, dst in zip(("position", "rotation", "scale"), base,
+                                            (self.psign, self.rsign, _ONES3), fields):
+                if not self.kernels.f16(src, None, sign, dst):
+                    raise ValueError(f"base {name} has NaN, infinity or values beyond +-{F16_MAX:g} (f16)")
+        return FrameDraft(*fields, varying, buf, slot, slack, off, time.perf_counter_ns() - start_ns)
+
+    def finish(self, draft: FrameDraft, seq: int, t: int, timing: dict[str, int], member: str | None = None
+               ) -> memoryview:
+        """The message of a :meth:`draft` whose varying rows the caller wrote: its header written (with
+        `stamp_encode`, timing["encode"] = the microseconds draft() took). A draft is finished at
+        most once; one never finished (its writer failed) leaves its buffer to be laid out afresh."""
+        if self.stamp_encode:
+            timing = {**timing, "encode": draft.spent_ns // 1000}
+        head = self.header(seq, t, timing, member)
+        begin = draft.slack - len(head)
+        if begin < 0:  # a header longer than the room the draft left (not seen): one copy of the message
+            return memoryview(bytes(head) + bytes(memoryview(draft.buf)[draft.slack:draft.total]))
+        mv = memoryview(draft.buf)
+        mv[begin:draft.slack] = head
+        if draft.slot is not None:
+            self._held[draft.slot] = (draft.slack, draft.varying)
+        return mv[begin:draft.total]
+
+
+_DRAFT_SLACK = 512
+"""Header room of a draft's buffer (bytes): a frame's header is under 300."""
 
 _SLACK_STEP = 64
 """Header room is a multiple of this (bytes): headers of one stream differ by a few bytes."""

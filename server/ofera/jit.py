@@ -22,3 +22,19 @@ def f16_bits_to_f32(typingctx, h):
         return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
 
     return types.float32(h), codegen
+
+
+@intrinsic
+def f32_to_f16_bits(typingctx, x):
+    """float32 -> the uint16 bits of the nearest IEEE binary16 (round half to even; LLVM's fptrunc float -> half)."""
+    if not isinstance(x, types.Float) or x.bitwidth != 32:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(builder.fptrunc(args[0], ir.HalfType()), ir.IntType(16))
+
+    return types.uint16(x), codegen
+
+
+F16_MAX = 65504.0
+"""The largest finite IEEE binary16."""

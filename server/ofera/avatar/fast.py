@@ -5,6 +5,7 @@
     expr, rotations = session.flame(y)        # FLAME values (68,): split_flame_values, ~100x faster
     verts = session.head(expr, rotations)     # (S, 3): LBS of the vertex subset only
     state = session.deform(verts)             # GaussianState (float32, full N), from the pool
+    ok = session.deform_f16(verts, draft, psign, rsign)  # or: straight into a dense f16 frame (FrameWriter.draft)
 
 It computes what ``lbs`` + :class:`.deform.Deformer` (the REFERENCE) compute, within float rounding,
 for both binding types, when root and neck are the identity (always true for FLAME values: the client
@@ -55,7 +56,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from ofera_protocol.fast_encodings import VaryingRows
+from ofera_protocol.fast_encodings import FrameDraft, VaryingRows
 
 from ..head.lbs import HeadSubject
 from ..head.lbs_fast import SubsetLBS, flame_values_kernel
@@ -294,6 +295,11 @@ class FastAvatar:
             expr, rot = s.flame(y)
             s.deform(s.head(expr[: self.lbs.n_expr], rot))
             s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
+            if s.writes_f16:
+                a = self.arrays
+                out3, out4 = np.zeros(3 * self.count, np.uint16), np.zeros(4 * self.count, np.uint16)
+                K.triangle_f16_kernel(s.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local,
+                                      np.ones(3, np.float32), np.ones(4, np.float32), out3, out4, out3)
             self._warm = True
 
 
@@ -367,6 +373,30 @@ class FastSession:
         if self.parallel is None:
             self.choice.record(par, time.perf_counter_ns() - t0)
         return state
+
+    @property
+    def writes_f16(self) -> bool:
+        """Whether :meth:`deform_f16` can run (the triangle binding's kernel)."""
+        return self.fast.binding_type == "triangle"
+
+    def deform_f16(self, verts: np.ndarray, draft: FrameDraft, psign: np.ndarray, rsign: np.ndarray) -> bool:
+        """Subset vertices (S, 3) -> the deformed Gaussians straight into a dense f16 frame's fields (a
+        ``FrameWriter.draft`` of ``self.fast.varying``, whose other rows hold the neutral Gaussians), in wire
+        coordinates (psign (3,), rsign (4,)): the bits the f16 encoding of :meth:`deform`'s state gives, with no
+        float32 state written and read back. False if a value is out of the half range (the draft is then
+        garbage: drop it). Triangle binding only (:attr:`writes_f16`); serial."""
+        a = self.fast.arrays
+        verts = np.ascontiguousarray(verts, np.float64)
+        if verts.shape != (self.fast.lbs.count, 3):
+            raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
+        if not self.writes_f16:
+            raise ValueError("deform_f16 needs the triangle binding")
+        if draft.varying is not self.fast.varying:
+            raise ValueError("the draft was not laid out for this avatar's varying rows")
+        self.threaded = False
+        K.face_frames_kernel(verts, a.face_vids, self.edges, self.face, False)
+        return bool(K.triangle_f16_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign,
+                                          draft.position, draft.rotation, draft.scale))
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:
         return self.deform(self.head(expr, rotations))

@@ -32,6 +32,7 @@ import math
 import numba as nb
 import numpy as np
 
+from ..jit import F16_MAX, f32_to_f16_bits
 from ..jit import NB as _NB
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # fused multiply-add allowed (no reassociation)
@@ -233,6 +234,99 @@ def triangle_kernel_parallel(face, run_face, run_m, run_len, run_row, local, out
         _triangle_run(q, face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale)
 
 
+@nb.njit(**_NBC)
+def triangle_f16_kernel(face, run_face, run_m, run_len, run_row, local, psign, rsign, out_pos, out_rot, out_scale):
+    """:func:`triangle_kernel`'s values times the wire's coordinate signs, written as IEEE half bits straight into a
+    dense f16 frame's fields (out_pos (N 3,), out_rot (N 4,), out_scale (N 3,) uint16): the bits the f16 encoding of
+    triangle_kernel's state gives (the same float32 arithmetic, one rounding to half), without the state. False if
+    any value is NaN, infinite or beyond +-65504 (the rows are then unspecified)."""
+    ok = True
+    for q in range(run_face.shape[0]):
+        ok &= _triangle_run_f16(q, face, run_face, run_m, run_len, run_row, local, psign, rsign, out_pos, out_rot,
+                                out_scale)
+    return ok
+
+
+@nb.njit(inline="always", **_NBC)
+def _face_of_run(face, u):
+    """The 17 float32 frame values of used face u (R_f row-major, q_f (w, x, y, z), s_f, c_f)."""
+    return (face[R0, u], face[R0 + 1, u], face[R0 + 2, u], face[R0 + 3, u], face[R0 + 4, u], face[R0 + 5, u],
+            face[R0 + 6, u], face[R0 + 7, u], face[R0 + 8, u], face[Q0, u], face[Q0 + 1, u], face[Q0 + 2, u],
+            face[Q0 + 3, u], face[S_F, u], face[C0, u], face[C0 + 1, u], face[C0 + 2, u])
+
+
+@nb.njit(inline="always", **_NBC)
+def _triangle_gaussian(f, g):
+    """One Gaussian of the triangle binding in float32 (the face frame's float64 values rounded once, the output's
+    own precision): f = _face_of_run(..), g = its row of local -> position (3), rotation (x, y, z, w), scale (3).
+    Both writers use this function, so they compute the same bits."""
+    f0, f1, f2, f3, f4, f5, f6, f7, f8, aw, ax, ay, az, s, cx, cy, cz = f
+    px = g[L_POS]
+    py = g[L_POS + 1]
+    pz = g[L_POS + 2]
+    bw = g[L_ROT]
+    bx = g[L_ROT + 1]
+    by = g[L_ROT + 2]
+    bz = g[L_ROT + 3]
+    return ((f0 * px + f1 * py + f2 * pz) * s + cx, (f3 * px + f4 * py + f5 * pz) * s + cy,
+            (f6 * px + f7 * py + f8 * pz) * s + cz,
+            aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz,
+            g[L_SCALE] * s, g[L_SCALE + 1] * s, g[L_SCALE + 2] * s)
+
+
+@nb.njit(inline="always", **_NBC)
+def _triangle_run(q, face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale):
+    """One run of :func:`triangle_kernel`."""
+    u = np.uint64(run_face[q])  # unsigned indices: numba emits no negative-index wrap-around, which kept LLVM from
+    m0 = np.uint64(run_m[q])  # optimising this loop (~20 % of the kernel, measured)
+    r0 = np.uint64(run_row[q])
+    f = _face_of_run(face, u)
+    for j in range(np.uint64(run_len[q])):
+        row = r0 + j
+        x, y, z, rx, ry, rz, rw, sx, sy, sz = _triangle_gaussian(f, local[m0 + j])
+        out_pos[row, 0] = x
+        out_pos[row, 1] = y
+        out_pos[row, 2] = z
+        out_rot[row, 0] = rx
+        out_rot[row, 1] = ry
+        out_rot[row, 2] = rz
+        out_rot[row, 3] = rw
+        out_scale[row, 0] = sx
+        out_scale[row, 1] = sy
+        out_scale[row, 2] = sz
+
+
+@nb.njit(inline="always", **_NBC)
+def _triangle_run_f16(q, face, run_face, run_m, run_len, run_row, local, psign, rsign, out_pos, out_rot, out_scale):
+    """One run of :func:`triangle_f16_kernel`."""
+    u = np.uint64(run_face[q])
+    m0 = np.uint64(run_m[q])
+    r0 = np.uint64(run_row[q])
+    f = _face_of_run(face, u)
+    p0, p1, p2 = psign[0], psign[1], psign[2]
+    q0, q1, q2, q3 = rsign[0], rsign[1], rsign[2], rsign[3]
+    ok = True
+    for j in range(np.uint64(run_len[q])):
+        row = r0 + j
+        x, y, z, rx, ry, rz, rw, sx, sy, sz = _triangle_gaussian(f, local[m0 + j])
+        x, y, z = x * p0, y * p1, z * p2
+        rx, ry, rz, rw = rx * q0, ry * q1, rz * q2, rw * q3
+        ok &= ((abs(x) <= F16_MAX) & (abs(y) <= F16_MAX) & (abs(z) <= F16_MAX) & (abs(sx) <= F16_MAX)
+               & (abs(sy) <= F16_MAX) & (abs(sz) <= F16_MAX))  # unit quaternions: always within the half range
+        out_pos[3 * row] = f32_to_f16_bits(x)
+        out_pos[3 * row + 1] = f32_to_f16_bits(y)
+        out_pos[3 * row + 2] = f32_to_f16_bits(z)
+        out_rot[4 * row] = f32_to_f16_bits(rx)
+        out_rot[4 * row + 1] = f32_to_f16_bits(ry)
+        out_rot[4 * row + 2] = f32_to_f16_bits(rz)
+        out_rot[4 * row + 3] = f32_to_f16_bits(rw)
+        out_scale[3 * row] = f32_to_f16_bits(sx)
+        out_scale[3 * row + 1] = f32_to_f16_bits(sy)
+        out_scale[3 * row + 2] = f32_to_f16_bits(sz)
+    return ok
+
+
 @nb.njit(inline="always", **_NBC)
 def _quat_product(aw, ax, ay, az, bw, bx, by, bz, out_rot, row):
     """out_rot[row] = a (x) b written (x, y, z, w)."""
@@ -240,44 +334,6 @@ def _quat_product(aw, ax, ay, az, bw, bx, by, bz, out_rot, row):
     out_rot[row, 1] = aw * by - ax * bz + ay * bw + az * bx
     out_rot[row, 2] = aw * bz + ax * by - ay * bx + az * bw
     out_rot[row, 3] = aw * bw - ax * bx - ay * by - az * bz
-
-
-@nb.njit(inline="always", **_NBC)
-def _triangle_run(q, face, run_face, run_m, run_len, run_row, local, out_pos, out_rot, out_scale):
-    """One run, in float32 (the face frame's float64 values rounded once, the output's own precision)."""
-    u = np.uint64(run_face[q])  # unsigned indices: numba emits no negative-index wrap-around, which kept LLVM from
-    m0 = np.uint64(run_m[q])  # optimising this loop (~20 % of the kernel, measured)
-    r0 = np.uint64(run_row[q])
-    f0 = face[R0, u]
-    f1 = face[R0 + 1, u]
-    f2 = face[R0 + 2, u]
-    f3 = face[R0 + 3, u]
-    f4 = face[R0 + 4, u]
-    f5 = face[R0 + 5, u]
-    f6 = face[R0 + 6, u]
-    f7 = face[R0 + 7, u]
-    f8 = face[R0 + 8, u]
-    aw = face[Q0, u]
-    ax = face[Q0 + 1, u]
-    ay = face[Q0 + 2, u]
-    az = face[Q0 + 3, u]
-    s = face[S_F, u]
-    cx = face[C0, u]
-    cy = face[C0 + 1, u]
-    cz = face[C0 + 2, u]
-    for j in range(np.uint64(run_len[q])):
-        g = local[m0 + j]
-        row = r0 + j
-        px = g[L_POS]
-        py = g[L_POS + 1]
-        pz = g[L_POS + 2]
-        out_pos[row, 0] = (f0 * px + f1 * py + f2 * pz) * s + cx
-        out_pos[row, 1] = (f3 * px + f4 * py + f5 * pz) * s + cy
-        out_pos[row, 2] = (f6 * px + f7 * py + f8 * pz) * s + cz
-        _quat_product(aw, ax, ay, az, g[L_ROT], g[L_ROT + 1], g[L_ROT + 2], g[L_ROT + 3], out_rot, row)
-        out_scale[row, 0] = g[L_SCALE] * s
-        out_scale[row, 1] = g[L_SCALE + 1] * s
-        out_scale[row, 2] = g[L_SCALE + 2] * s
 
 
 @nb.njit(**_NBC)

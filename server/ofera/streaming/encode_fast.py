@@ -29,9 +29,6 @@ import math
 
 import numba as nb
 import numpy as np
-from llvmlite import ir
-from numba.core import types
-from numba.extending import intrinsic
 from ofera_protocol.delta import DeltaEncoder, DeltaTolerance, ReferenceKernels
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from ofera_protocol.fast_encodings import (
@@ -42,21 +39,9 @@ from ofera_protocol.fast_encodings import (
 )
 
 from ..jit import NB as _NB
-from ..jit import f16_bits_to_f32
+from ..jit import f16_bits_to_f32, f32_to_f16_bits
 
 _SQRT2_511 = np.float32(np.sqrt(2.0) * ROT_LEVELS)  # the reference's float32 constant
-
-
-@intrinsic
-def f32_to_f16_bits(typingctx, x):
-    """float32 -> the uint16 bits of the nearest IEEE binary16 (round half to even)."""
-    if not isinstance(x, types.Float) or x.bitwidth != 32:
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(builder.fptrunc(args[0], ir.HalfType()), ir.IntType(16))
-
-    return types.uint16(x), codegen
 
 
 @nb.njit(**_NB)

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 import numpy as np
 from ofera_protocol import Avatar as WireAvatar
 from ofera_protocol import Quant, make_quant, mirror_x_position, mirror_x_rotation, mirror_x_sh
+from ofera_protocol.fast_encodings import FrameDraft, VaryingRows
 
 from ..avatar.model import GaussianAvatar
 from ..avatar.state import GaussianState
@@ -251,6 +252,35 @@ class Pipeline:
             state = self.deformer.deform(verts)
         t5 = clock()
         return state, {"head": (t4 - t3) // 1000, "deform": (t5 - t4) // 1000}
+
+    @property
+    def writes_f16(self) -> bool:
+        """Whether :meth:`deform_values_f16` can run (the fast path, triangle binding)."""
+        return self.fast is not None and not self.arkit and self.fast.writes_f16
+
+    @property
+    def varying(self) -> VaryingRows | None:
+        """The rows the fast path writes (what :meth:`deform_values_f16` needs its draft laid out for)."""
+        return getattr(self.assets.fast, "varying", None)
+
+    @property
+    def neutral(self) -> GaussianState | None:
+        """The fast path's neutral Gaussians (every frame's values outside :attr:`varying`)."""
+        return getattr(self.assets.fast, "neutral", None)
+
+    def deform_values_f16(self, values: np.ndarray, draft: FrameDraft, psign: np.ndarray, rsign: np.ndarray
+                          ) -> tuple[bool, dict[str, int]]:
+        """:meth:`deform_values` written straight into a dense f16 frame (``FrameWriter.draft`` of :attr:`varying`,
+        wire signs psign, rsign): (False if a value is beyond the half range, the head and deform durations in us).
+        The bits are those of the f16 encoding of deform_values' state; no state is made."""
+        clock = time.perf_counter_ns
+        t3 = clock()
+        expr, rotations = self.fast.flame(values)
+        verts = self.fast.head(expr, rotations)
+        t4 = clock()
+        ok = self.fast.deform_f16(verts, draft, psign, rsign)
+        t5 = clock()
+        return ok, {"head": (t4 - t3) // 1000, "deform": (t5 - t4) // 1000}
 
     def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[GaussianState, dict[str, int]]:
         """`map` then `deform_values`: weights (L,) [and conf (2,)] -> (GaussianState in FLAME space, the STAGES'

@@ -98,6 +98,11 @@ class ComputedFrame:
         """The bytes of wire format `key` if some viewer made them already, else None (no lock: a dict read)."""
         return self._encoded.get(key)
 
+    def store(self, key: tuple, data: Any) -> None:
+        """Record the bytes of wire format `key`, made by the source itself (Source.direct)."""
+        with self._lock:
+            self._encoded[key] = data
+
     def encoded(self, key: tuple, make: Callable[[ComputedFrame], Any]) -> tuple[Any, bool]:
         """Bytes for wire format `key` (made once, by whoever asks first); True if made by this call."""
         with self._lock:
@@ -138,6 +143,10 @@ class Source:
         # ComputedFrame.encoded: the state is still in cache and the viewer needs no second hop to the pool.
         # Only formats whose encoding has no per-client state (not deltas: they advance per frame handed to a socket).
         self.eager: list[tuple[tuple, Callable[[ComputedFrame], Any]]] = []
+        # (key, FrameWriter) of a dense f16 format whose frames the deformation writes itself, with no float32
+        # state in between (FrameWriter.draft, Pipeline.deform_values_f16); its frames carry no state. Only for a
+        # source whose every frame goes to viewers of that one format (a v1 session and its own viewer).
+        self.direct: tuple[tuple, Any] | None = None
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
@@ -157,11 +166,22 @@ class Source:
         held = hold.held if hold is not None else 0
         args = (p.bs.w,) if conf is None else (p.bs.w, conf)
         state: GaussianState | None = None
-        if self.needs_state is None or self.needs_state():
+        draft = None
+        if self.needs_state is not None and not self.needs_state():
+            values, stages = self.pipeline.map(*args)
+        elif self.direct is not None:
+            values, stages = self.pipeline.map(*args)
+            writer = self.direct[1]
+            neutral = self.pipeline.neutral
+            draft = writer.draft(self.pipeline.varying, (neutral.position, neutral.rotation, neutral.scale))
+            ok, deformed = self.pipeline.deform_values_f16(values, draft, writer.psign, writer.rsign)
+            if not ok:  # a value beyond the half range: the state, so that the viewer's encoding reports it
+                draft = None
+                state, deformed = self.pipeline.deform_values(values)
+            stages = {**stages, **deformed}
+        else:
             state, stages = self.pipeline.run(*args)
             values = getattr(self.pipeline, "values", None)
-        else:
-            values, stages = self.pipeline.map(*args)
         if hold is not None and hold.held != held:
             self.metrics.conf_held.inc()
         end = time.monotonic_ns()
@@ -171,7 +191,12 @@ class Source:
             timing["map"] = stages["layout"] + stages["bda"]
         timing["total"] = (end - p.received_ns) // 1000
         frame = ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, values, self.member)
-        if state is not None:
+        if draft is not None:
+            t0 = time.perf_counter_ns()
+            key, writer = self.direct
+            frame.store(key, writer.finish(draft, frame.seq, frame.t, frame.timing, frame.member))
+            self.metrics.stage_of("encode").observe((draft.spent_ns + time.perf_counter_ns() - t0) * 1e-9)
+        elif state is not None:
             self._encode_eagerly(frame)
         return frame
 

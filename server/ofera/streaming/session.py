@@ -32,7 +32,7 @@ from .pipeline import AvatarAssets, Pipeline
 from .registry import AvatarRegistry
 from .roles import PendingBs, SessionFatal, Source, Viewer
 from .rooms import BYE, CLOSED, Member, Rooms, RoomViewer, new_member_id
-from .wire import make_delta_writer, make_writer, reduced_size
+from .wire import direct_f16, make_delta_writer, make_writer, reduced_size
 
 __all__ = ["ConnectionGone", "Hub", "Session", "Transport", "make_delta_writer", "make_writer", "reduced_size"]
 
@@ -243,7 +243,9 @@ class Session:
             writer = make_writer(self.conn.format, hello.coords, gather, index, s.fast)
         self.viewer = Viewer(self.t.send, writer, key, self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
-        if not self.conn.format.delta and hello.encoding != PARAMS:
+        if direct_f16(writer, self.source.pipeline):
+            self.source.direct = (key, writer)  # the deformation writes the frames: no state, no encoding pass
+        elif not self.conn.format.delta and hello.encoding != PARAMS:
             self.source.eager.append((key, self.viewer.make))
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full
@@ -263,6 +265,7 @@ class Session:
             # buffers (MBs per session) are freed now, not at the next full garbage collection.
             self.source.subscribers.clear()
             self.source.eager.clear()
+            self.source.direct = None
             self.source.demand = None
             self.viewer.on_ready = None
             m.sessions.labels("source").dec()
