@@ -53,6 +53,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numba
 import numpy as np
@@ -296,10 +297,11 @@ class FastAvatar:
             s.deform(s.head(expr[: self.lbs.n_expr], rot))
             s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
             if s.writes_f16:
-                a = self.arrays
-                out3, out4 = np.zeros(3 * self.count, np.uint16), np.zeros(4 * self.count, np.uint16)
-                K.triangle_f16_kernel(s.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local,
-                                      np.ones(3, np.float32), np.ones(4, np.float32), out3, out4, out3)
+                draft = SimpleNamespace(varying=self.varying, position=np.zeros(3 * self.count, np.uint16),
+                                        rotation=np.zeros(4 * self.count, np.uint16),
+                                        scale=np.zeros(3 * self.count, np.uint16))
+                one = np.ones(4, np.float32)
+                s.deform_f16(s.head(expr[: self.lbs.n_expr], rot), draft, one[:3].copy(), one)
             self._warm = True
 
 
@@ -323,6 +325,7 @@ class FastSession:
         self.pool = StatePool(fast.neutral, pool_size, fast.varying)
         self._expr = np.zeros(50, np.float32)
         self._rot = np.zeros((5, 3, 3), np.float32)
+        self._half_scratch: tuple[np.ndarray, ...] | None = None  # deform_f16's (made on its first call)
 
     def flame(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FLAME values (68,) -> (expr (50,), rotations (5, 3, 3)) float32, like
@@ -395,8 +398,11 @@ class FastSession:
             raise ValueError("the draft was not laid out for this avatar's varying rows")
         self.threaded = False
         K.face_frames_kernel(verts, a.face_vids, self.edges, self.face, False)
+        if self._half_scratch is None:
+            rows = K.F16_BLOCK + int(a.run_len.max(initial=0))
+            self._half_scratch = tuple(np.zeros((rows, k), np.float32) for k in (3, 4, 3))
         return bool(K.triangle_f16_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign,
-                                          draft.position, draft.rotation, draft.scale))
+                                          *self._half_scratch, draft.position, draft.rotation, draft.scale))
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:
         return self.deform(self.head(expr, rotations))
