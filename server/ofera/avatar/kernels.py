@@ -97,15 +97,16 @@ def _gather_edges(lo, hi, verts, face_vids, edges):
 
 
 @nb.njit(inline="always", **_NBC)
+def _face_edges(edges, u):
+    """(e1, e2) of face u, six float64 values."""
+    return edges[3, u], edges[4, u], edges[5, u], edges[6, u], edges[7, u], edges[8, u]
+
+
+@nb.njit(inline="always", **_NBC)
 def _face_axes(lo, hi, edges, face):
     """R_f = [a0 | a1 | a2]: a0 = normalize(e1), a1 = normalize(a0 x e2), a2 = a0 x a1."""
     for u in range(lo, hi):
-        e1x = edges[3, u]
-        e1y = edges[4, u]
-        e1z = edges[5, u]
-        e2x = edges[6, u]
-        e2y = edges[7, u]
-        e2z = edges[8, u]
+        e1x, e1y, e1z, e2x, e2y, e2z = _face_edges(edges, u)
         ll = e1x * e1x + e1y * e1y + e1z * e1z
         inv = 1.0 / math.sqrt(ll if ll > _EPS2 else _EPS2)
         a0x = e1x * inv
@@ -136,12 +137,7 @@ def _face_axes(lo, hi, edges, face):
 def _face_scale_centroid(lo, hi, edges, face):
     """s_f = (|e1| + |a2 . e2|) / 2 and the centroid c_f = v0 + (e1 + e2) / 3."""
     for u in range(lo, hi):
-        e1x = edges[3, u]
-        e1y = edges[4, u]
-        e1z = edges[5, u]
-        e2x = edges[6, u]
-        e2y = edges[7, u]
-        e2z = edges[8, u]
+        e1x, e1y, e1z, e2x, e2y, e2z = _face_edges(edges, u)
         ll = e1x * e1x + e1y * e1y + e1z * e1z
         ll = math.sqrt(ll if ll > _EPS2 else _EPS2)
         h = np.float64(face[R0 + 2, u]) * e2x + np.float64(face[R0 + 5, u]) * e2y + np.float64(face[R0 + 8, u]) * e2z
@@ -155,12 +151,7 @@ def _face_scale_centroid(lo, hi, edges, face):
 def _face_normal(lo, hi, edges, face):
     """FATE's unnormalised normal n_f = e1 x e2."""
     for u in range(lo, hi):
-        e1x = edges[3, u]
-        e1y = edges[4, u]
-        e1z = edges[5, u]
-        e2x = edges[6, u]
-        e2y = edges[7, u]
-        e2z = edges[8, u]
+        e1x, e1y, e1z, e2x, e2y, e2z = _face_edges(edges, u)
         face[N0 + 0, u] = e1y * e2z - e1z * e2y
         face[N0 + 1, u] = e1z * e2x - e1x * e2z
         face[N0 + 2, u] = e1x * e2y - e1y * e2x
