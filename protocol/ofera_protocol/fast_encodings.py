@@ -304,6 +304,7 @@ class FrameWriter:
         self._field_heads = [_PACK.pack(name) + _bin_header(size)
                              for name, size in zip(("position", "rotation", "scale"), self._sizes)]
         self.pool = BufferPool(pool)
+        self._fields_bytes = sum(len(h) for h in self._field_heads) + sum(self._sizes)  # every frame's, after `n`
         self._held: dict[int, tuple[int, VaryingRows]] = {}  # pool slot -> (slack, varying) of the frame it holds
         self.partial = 0  # frames whose varying rows alone were encoded
 
@@ -328,10 +329,11 @@ class FrameWriter:
         # header can be written last, ending where it must, once the encode time it may carry is known. The room
         # is rounded up, so that a pooled buffer's fields usually stay where they were (see `varying`).
         need = len(head) + (_ENCODE_STAMP_BYTES if self.stamp_encode else 0)
-        body = sum(len(h) for h in self._field_heads) + sum(self._sizes)
+        body = self._fields_bytes
         if self.index is not None:
             body += len(self._index_prefix) + self.index.nbytes
-        buf, slot, fresh = self.pool.get_slot(-(-need // _SLACK_STEP) * _SLACK_STEP + body)
+        room = -(-need // _SLACK_STEP) * _SLACK_STEP
+        buf, slot, fresh = self.pool.get_slot(room + body)
         held = None if fresh or slot is None else self._held.pop(slot, None)
         rows = varying if (varying is not None and self.gather is None and self.format.encoding != "q13") else None
         if rows is not None and held is not None and held[1] is rows and held[0] >= need:
@@ -339,7 +341,7 @@ class FrameWriter:
             self.partial += 1
         else:
             held = None
-            slack = -(-need // _SLACK_STEP) * _SLACK_STEP
+            slack = room
         total = slack + body
         mv = memoryview(buf)
         off = slack
@@ -396,8 +398,7 @@ class FrameWriter:
         if self.format.encoding != "f16" or self.gather is not None:
             raise ValueError(f"a draft is a dense f16 frame, this writer makes {self.format.encoding} "
                              f"{'sparse' if self.gather is not None else 'dense'} frames")
-        body = sum(len(h) for h in self._field_heads) + sum(self._sizes)
-        buf, slot, fresh = self.pool.get_slot(_DRAFT_SLACK + body)
+        buf, slot, fresh = self.pool.get_slot(_DRAFT_SLACK + self._fields_bytes)
         held = None if fresh or slot is None else self._held.pop(slot, None)
         slack = held[0] if held is not None and held[1] is varying else _DRAFT_SLACK
         mv = memoryview(buf)
