@@ -116,6 +116,23 @@ def test_procedural_head_is_deterministic_and_head_sized(head):
     assert head.landmarks["eye_left"][0] > 0  # FLAME: the left eye is on +x
 
 
+def test_basis_signs_do_not_follow_rounding():
+    """The SVD's sign of each column is LAPACK's (it differed between two CPUs for 8 of the head's 50 expression
+    columns, and so did the FLAME values an EPM trained on one machine meant): _orthogonalise fixes it by a rule
+    rounding cannot flip, even where a column's largest entries are mirrored pairs of equal size."""
+    from ofera.head.procedural import _orthogonalise
+
+    rng = np.random.default_rng(3)
+    half = rng.standard_normal((200, 3, 6))
+    fields = np.concatenate([half, half * np.array([-1.0, 1.0, 1.0])[None, :, None]])  # mirrored in x: tied sizes
+    basis = _orthogonalise(fields, 6, 1.0)
+    for noise in (1e-13, -1e-13):
+        again = _orthogonalise(fields + noise * rng.standard_normal(fields.shape), 6, 1.0)
+        np.testing.assert_allclose(again, basis, atol=1e-9)
+    flipped = _orthogonalise(-fields, 6, 1.0)  # any sign of the input columns: the same basis
+    np.testing.assert_allclose(flipped, basis, atol=1e-9)
+
+
 def test_expression_basis_is_local_and_spares_eyeballs(head):
     eyes = head.vertex_labels["eyeball_left"] | head.vertex_labels["eyeball_right"]
     assert np.abs(head.exprdirs[eyes]).max() == 0.0

@@ -344,7 +344,12 @@ def _orthogonalise(fields: np.ndarray, n: int, scale: float) -> np.ndarray:
     v = fields.shape[0]
     u, s, _ = np.linalg.svd(fields.reshape(v * 3, -1), full_matrices=False)
     u = u[:, :n] * s[:n] * scale
-    sign = np.sign(u[np.argmax(np.abs(u), axis=0), np.arange(u.shape[1])])
+    # An SVD fixes each column up to its sign, and LAPACK's choice differs between CPUs. The sign of the largest
+    # entry does not settle it: the head is symmetric, so a column's largest entries come in mirrored pairs whose
+    # order rounding decides (it did: 8 of 50 columns flipped between two machines, and with them the FLAME
+    # values an EPM trained on one machine meant). A fixed random direction is far from orthogonal to any column.
+    probe = np.random.default_rng(0).standard_normal(u.shape[0])
+    sign = np.where(probe @ u < 0, -1.0, 1.0)
     return (u * sign).reshape(v, 3, -1)
 
 
