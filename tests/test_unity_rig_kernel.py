@@ -1,13 +1,14 @@
 """The Unity client's params-mode deformation kernel (OferaRigDeform.compute), compiled and run for real.
 
-Each kernel is compiled with glslang's HLSL front end (`glslangValidator -D -V -S comp -e KERNEL`) and run on a
-CPU Vulkan device (lavapipe) through `wgpu`, as tests/test_unity_kernels.py does for the upload kernels (its
-helpers are reused). The rig words are the rig body's bins as they arrived (RigGpuWords in the C# core). The
-kernels' output in the renderer's splat buffers (position Float32; 10.10.10.2 rotation + Float32 scale) is compared
-with the golden frames of PROTOCOL.md 13.7 and, for rigs of small random avatars of both binding types (the server's
-build_rig), with the Python reference ofera_protocol.rig.deform_rig on random params. With mono, the C# core's rig
-words and its deformation (RigDeformer) are compared with the same bytes and the same reference. Skipped only
-without glslangValidator or a Vulkan adapter (CI installs both and fails instead).
+Each kernel is compiled with glslang's HLSL front end (`glslangValidator -D -V -S comp -e KERNEL`) and run on a CPU
+Vulkan device (lavapipe) through `wgpu`, as tests/test_unity_kernels.py does for the upload kernels (its helpers are
+reused). The rig words are the rig body's bins as they arrived (RigGpuWords in the C# core). The kernels' output in
+the renderer's splat buffers (position Float32; 10.10.10.2 rotation + Float32 scale) is compared with the golden
+frames of PROTOCOL.md 13.7 and, for rigs of small random avatars of both binding types (the server's build_rig),
+with the Python reference ofera_protocol.rig.deform_rig on random params, step by step (its vertices, then the
+Gaussians on the kernel's own vertices). With mono, the C# core's rig words and its deformation (RigDeformer) are
+compared with the same bytes and the same reference. Skipped only without glslangValidator or a Vulkan adapter (CI
+installs both and fails instead).
 """
 
 from __future__ import annotations
@@ -35,12 +36,16 @@ GROUP = 256
 UNIFORM = ("vertices", "expr", "pose", "faces", "gaussians", "barycentric", "index", "joints", "joints_expr",
            "template", "expr_basis", "pose_rows", "pose_basis", "weights", "face", "gaussian_face", "local",
            "normal_offset", "local_rotation", "local_scale", "server_count", "splat_count", "mirror_x")
-# float32 kernels against the float64 reference (PROTOCOL.md 13.4: within 1e-6 m); measured on these random rigs:
-# positions 2.5e-7 m, scales 2.5e-5 relative, quaternion components 1.5e-5 (8e-5 on the smallest random faces at
-# |psi| 2.5: float32 face frames of mm-sized triangles); the renderer keeps 10 bits of each component (1.4e-3)
-POS_ATOL = 1e-6
-ROT_ATOL = 2e-4
-SCALE_RTOL = 5e-5
+# float32 kernels against the float64 reference, one step at a time. The vertices (steps 1-5) against rig_vertices:
+# measured within 6e-8 m on these random rigs at |psi| 2.5. The Gaussians (steps 6-8) against rig_gaussians of the
+# kernel's own vertices: measured positions 3e-8 m, quaternion components 9e-7, scales 2.3e-7 relative. Not the two
+# at once: a sliver face's frame turns by the vertices' rounding over the face's height (a 6e-8 m vertex error
+# moved a Gaussian 7 mm off a 32:1 face by 2.3e-6 m), so no fixed tolerance bounds the whole chain on random faces.
+# The renderer keeps 10 bits of each quaternion component (1.4e-3).
+VERTEX_ATOL = 2e-7
+POS_ATOL = 1e-7
+ROT_ATOL = 5e-6
+SCALE_RTOL = 2e-6
 
 __all__ = ["device"]  # the wgpu device fixture, shared with test_unity_kernels
 
@@ -99,8 +104,9 @@ class Splats:
 
 
 def run_rig(device, spirv, words: np.ndarray, layout: dict[str, int], params: np.ndarray, perm: np.ndarray,
-            splats: Splats, mirror: bool) -> np.ndarray:
-    """One frame: the four passes in order; updates `splats`, returns the debug rotations (M, 4) float32."""
+            splats: Splats, mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+    """One frame: the four passes in order; updates `splats`, returns the debug rotations (M, 4) float32 and the
+    kernel's deformed vertices (S, 3) float32 (its scratch)."""
     import wgpu
 
     values = {**layout, "server_count": perm.size, "splat_count": splats.m, "mirror_x": int(mirror)}
@@ -136,7 +142,9 @@ def run_rig(device, spirv, words: np.ndarray, layout: dict[str, int], params: np
     device.queue.submit([enc.finish()])
     splats.pos = np.frombuffer(device.queue.read_buffer(bufs[5]), np.uint32)[: 3 * splats.m].copy()
     splats.other = np.frombuffer(device.queue.read_buffer(bufs[6]), np.uint32)[: 4 * splats.m].copy()
-    return np.frombuffer(device.queue.read_buffer(bufs[7]), np.float32)[: 4 * m].reshape(m, 4).copy()
+    vertices = np.frombuffer(device.queue.read_buffer(bufs[4]), np.float32)[layout["pose"] + 12 * 5:][: 3 * s]
+    debug = np.frombuffer(device.queue.read_buffer(bufs[7]), np.float32)[: 4 * m].reshape(m, 4)
+    return debug.copy(), vertices.reshape(s, 3).copy()
 
 
 # ----------------------------------------------------------------------------- tests
@@ -197,7 +205,7 @@ def test_rig_kernels_reproduce_the_golden_frames(device, spirv):
     perm = np.arange(v["count"], dtype=np.uint32)[::-1].copy()  # a permutation that is not the identity
     for frame in v["frames"]:
         splats = Splats(v["count"])
-        debug = run_rig(device, spirv, words, layout, np.asarray(frame["params"], np.float32), perm, splats, False)
+        debug, _ = run_rig(device, spirv, words, layout, np.asarray(frame["params"], np.float32), perm, splats, False)
         ref = (frame["position"], frame["rotation"], frame["scale"])
         _check(splats, debug, ref, index, perm, False, tol["position_m"], tol["rotation"], tol["scale_relative"])
 
@@ -211,13 +219,13 @@ def _avatar(head, kind: str, seed: int):
 @pytest.mark.parametrize("kind,mirror", [("triangle", False), ("triangle", True), ("barycentric", False),
                                          ("barycentric", True)])
 def test_rig_kernels_match_deform_rig(device, spirv, head, kind, mirror):
-    """Random avatars' rigs (the server's build_rig, through the wire encoding) and random params: the splat buffers
-    hold ofera_protocol.rig.deform_rig's Gaussians (mirrored in `unity` sessions), through a permutation with unmatched
-    Gaussians; no other splat is written."""
+    """Random avatars' rigs (the server's build_rig, through the wire encoding) and random params: the kernel's
+    vertices are ofera_protocol.rig.rig_vertices', and the splat buffers hold rig_gaussians of those vertices (mirrored
+    in `unity` sessions), through a permutation with unmatched Gaussians; no other splat is written."""
     from ofera.avatar.fast import gaussian_selection
     from ofera.avatar.rig import build_rig
     from ofera.head.lbs import HeadSubject
-    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig
+    from ofera_protocol.rig import decode_rig, encode_rig, rig_gaussians, rig_vertices
 
     avatar = _avatar(head, kind, seed=3 + int(mirror))
     rows = np.flatnonzero(gaussian_selection(avatar, "movable"))
@@ -231,8 +239,9 @@ def test_rig_kernels_match_deform_rig(device, spirv, head, kind, mirror):
     for scale in (0.0, 1.0, 2.0):
         y = random_params(rng, scale)
         splats = Splats(n_splats)
-        debug = run_rig(device, spirv, words, layout, y, perm, splats, mirror)
-        _check(splats, debug, deform_rig(rig, y), np.asarray(rig.index, np.int64), perm, mirror)
+        debug, vertices = run_rig(device, spirv, words, layout, y, perm, splats, mirror)
+        np.testing.assert_allclose(vertices, rig_vertices(rig, y), rtol=0, atol=VERTEX_ATOL)
+        _check(splats, debug, rig_gaussians(rig, vertices), np.asarray(rig.index, np.int64), perm, mirror)
 
 
 # ----------------------------------------------------------------------------- the C# core, same bytes
@@ -248,13 +257,13 @@ def csharp_rig_tool(tmp_path_factory):
 @pytest.mark.parametrize("kind", ["triangle", "barycentric"])
 def test_csharp_rig_words_and_deformation_match(device, spirv, csharp_rig_tool, head, tmp_path, kind):
     """The C# core's GPU words equal the Python layout's; its RigDeformer matches deform_rig (PROTOCOL.md 13.7's
-    tolerances) and the kernels' output."""
+    tolerances); the kernels, run on the same rig and params, pass the step-by-step checks above."""
     import subprocess
 
     from ofera.avatar.fast import gaussian_selection
     from ofera.avatar.rig import build_rig
     from ofera.head.lbs import HeadSubject
-    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig
+    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig, rig_gaussians, rig_vertices
 
     avatar = _avatar(head, kind, seed=7)
     rows = np.flatnonzero(gaussian_selection(avatar, "movable"))
@@ -279,5 +288,6 @@ def test_csharp_rig_words_and_deformation_match(device, spirv, csharp_rig_tool, 
         np.testing.assert_allclose(ours[1], rot, rtol=0, atol=1e-5)
         np.testing.assert_allclose(ours[2], scale, rtol=1e-5, atol=0)
         splats = Splats(avatar.count)
-        debug = run_rig(device, spirv, words, layout, y, perm, splats, False)
-        _check(splats, debug, ours, np.asarray(rig.index, np.int64), perm, False)
+        debug, vertices = run_rig(device, spirv, words, layout, y, perm, splats, False)
+        np.testing.assert_allclose(vertices, rig_vertices(rig, y), rtol=0, atol=VERTEX_ATOL)
+        _check(splats, debug, rig_gaussians(rig, vertices), np.asarray(rig.index, np.int64), perm, False)

@@ -5,8 +5,9 @@
 - `encode_rig` / `decode_rig`: the rig body (one msgpack map) <-> `Rig`, strictly validated;
 - `split_rig` / `RigAssembler`: the body cut into `rig` messages and put back together;
 - `deform_rig`: the plain numpy REFERENCE of the client-side deformation (float64 inside, float32 out), params
-  (68,) -> positions, rotations, scales of the rig's Gaussians in FLAME space. Other clients (browser, C#, HLSL)
-  port this function; the golden vectors `rig_tiny*` hold its inputs and outputs.
+  (68,) -> positions, rotations, scales of the rig's Gaussians in FLAME space, in two steps: `rig_vertices`, then
+  `rig_gaussians`. Other clients (browser, C#, HLSL) port it; the golden vectors `rig_tiny*` hold its inputs and
+  outputs.
 """
 
 from __future__ import annotations
@@ -269,7 +270,14 @@ def rig_vertices(rig: Rig, params: np.ndarray) -> np.ndarray:
 def deform_rig(rig: Rig, params: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """PROTOCOL.md 13.4: params (68,) -> position (M, 3) m, rotation (M, 4) (x, y, z, w), scale (M, 3) m of the
     rig's Gaussians (session ids `rig.index`), float32, FLAME space."""
-    v = rig_vertices(rig, params)
+    return rig_gaussians(rig, rig_vertices(rig, params))
+
+
+def rig_gaussians(rig: Rig, vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 6-7 of PROTOCOL.md 13.4: deformed vertices (S, 3) m -> the Gaussians' position (M, 3) m, rotation
+    (M, 4) (x, y, z, w) and scale (M, 3) m, float32. Lets a test feed a client's own vertices: a sliver face's frame
+    turns by a client's vertex rounding divided by its height, which no tolerance on the whole chain can bound."""
+    v = np.asarray(vertices, np.float64)
     corners = v[rig.face.astype(np.int64)[rig.gaussian_face.astype(np.int64)]]  # (M, 3 corners, 3)
     v0, v1, v2 = corners[:, 0], corners[:, 1], corners[:, 2]
     e1, e2 = v1 - v0, v2 - v0
