@@ -345,9 +345,10 @@ def _orthogonalise(fields: np.ndarray, n: int, scale: float) -> np.ndarray:
     u, s, _ = np.linalg.svd(fields.reshape(v * 3, -1), full_matrices=False)
     u = u[:, :n] * s[:n] * scale
     # An SVD fixes each column up to its sign, and LAPACK's choice differs between CPUs. The sign of the largest
-    # entry does not settle it: the head is symmetric, so a column's largest entries come in mirrored pairs whose
-    # order rounding decides (it did: 8 of 50 columns flipped between two machines, and with them the FLAME
-    # values an EPM trained on one machine meant). A fixed random direction is far from orthogonal to any column.
+    # entry does not settle it: the head is symmetric, so in 18 of the 50 expression columns (7 of the 20 identity
+    # ones) the largest entries are a mirrored pair of opposite signs whose order rounding decides. It did: 8
+    # columns flipped between an Intel and an AMD CPU, and with them the FLAME values an EPM trained on one meant.
+    # A fixed random direction is far from orthogonal to any column (|probe . u| / |u| >= 0.0026 here).
     probe = np.random.default_rng(0).standard_normal(u.shape[0])
     sign = np.where(probe @ u < 0, -1.0, 1.0)
     return (u * sign).reshape(v, 3, -1)
