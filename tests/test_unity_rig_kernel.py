@@ -113,7 +113,8 @@ def run_rig(device, spirv, words: np.ndarray, layout: dict[str, int], params: np
     uniform = np.array([values[k] for k in UNIFORM], np.uint32)
     uniform = np.concatenate([uniform, np.zeros(-uniform.size % 4, np.uint32)])
     s, u, m = layout["vertices"], layout["faces"], layout["gaussians"]
-    scratch = np.zeros(layout["pose"] + 12 * 5 + 3 * s + 17 * u, np.float32)
+    vertex_word = layout["pose"] + 12 * 5  # scratch: pose coefficients P | A 5 x 3 x 4 | vertices 3S | faces 17U
+    scratch = np.zeros(vertex_word + 3 * s + 17 * u, np.float32)
 
     def storage(a: np.ndarray, write: bool = False):
         data = np.ascontiguousarray(a).view(np.uint32)
@@ -142,7 +143,7 @@ def run_rig(device, spirv, words: np.ndarray, layout: dict[str, int], params: np
     device.queue.submit([enc.finish()])
     splats.pos = np.frombuffer(device.queue.read_buffer(bufs[5]), np.uint32)[: 3 * splats.m].copy()
     splats.other = np.frombuffer(device.queue.read_buffer(bufs[6]), np.uint32)[: 4 * splats.m].copy()
-    vertices = np.frombuffer(device.queue.read_buffer(bufs[4]), np.float32)[layout["pose"] + 12 * 5:][: 3 * s]
+    vertices = np.frombuffer(device.queue.read_buffer(bufs[4]), np.float32)[vertex_word:][: 3 * s]
     debug = np.frombuffer(device.queue.read_buffer(bufs[7]), np.float32)[: 4 * m].reshape(m, 4)
     return debug.copy(), vertices.reshape(s, 3).copy()
 
@@ -191,6 +192,15 @@ def _check(splats: Splats, debug_rot: np.ndarray, ref, index: np.ndarray, perm: 
     assert (splats.pos.reshape(-1, 3)[untouched] == NAN_BITS).all(), "a splat of no rig Gaussian was written"
 
 
+def _check_steps(splats: Splats, debug: np.ndarray, vertices: np.ndarray, rig, params: np.ndarray, perm: np.ndarray,
+                 mirror: bool) -> None:
+    """The kernel's vertices are rig_vertices'; its splats hold rig_gaussians of those vertices (see _check)."""
+    from ofera_protocol.rig import rig_gaussians, rig_vertices
+
+    np.testing.assert_allclose(vertices, rig_vertices(rig, params), rtol=0, atol=VERTEX_ATOL)
+    _check(splats, debug, rig_gaussians(rig, vertices), np.asarray(rig.index, np.int64), perm, mirror)
+
+
 def test_rig_kernels_reproduce_the_golden_frames(device, spirv):
     """rig_tiny_frames.json (PROTOCOL.md 13.7) within its tolerances: the kernels on the golden rig and params."""
     import json
@@ -225,7 +235,7 @@ def test_rig_kernels_match_deform_rig(device, spirv, head, kind, mirror):
     from ofera.avatar.fast import gaussian_selection
     from ofera.avatar.rig import build_rig
     from ofera.head.lbs import HeadSubject
-    from ofera_protocol.rig import decode_rig, encode_rig, rig_gaussians, rig_vertices
+    from ofera_protocol.rig import decode_rig, encode_rig
 
     avatar = _avatar(head, kind, seed=3 + int(mirror))
     rows = np.flatnonzero(gaussian_selection(avatar, "movable"))
@@ -240,8 +250,7 @@ def test_rig_kernels_match_deform_rig(device, spirv, head, kind, mirror):
         y = random_params(rng, scale)
         splats = Splats(n_splats)
         debug, vertices = run_rig(device, spirv, words, layout, y, perm, splats, mirror)
-        np.testing.assert_allclose(vertices, rig_vertices(rig, y), rtol=0, atol=VERTEX_ATOL)
-        _check(splats, debug, rig_gaussians(rig, vertices), np.asarray(rig.index, np.int64), perm, mirror)
+        _check_steps(splats, debug, vertices, rig, y, perm, mirror)
 
 
 # ----------------------------------------------------------------------------- the C# core, same bytes
@@ -263,7 +272,7 @@ def test_csharp_rig_words_and_deformation_match(device, spirv, csharp_rig_tool, 
     from ofera.avatar.fast import gaussian_selection
     from ofera.avatar.rig import build_rig
     from ofera.head.lbs import HeadSubject
-    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig, rig_gaussians, rig_vertices
+    from ofera_protocol.rig import decode_rig, deform_rig, encode_rig
 
     avatar = _avatar(head, kind, seed=7)
     rows = np.flatnonzero(gaussian_selection(avatar, "movable"))
@@ -289,5 +298,4 @@ def test_csharp_rig_words_and_deformation_match(device, spirv, csharp_rig_tool, 
         np.testing.assert_allclose(ours[2], scale, rtol=1e-5, atol=0)
         splats = Splats(avatar.count)
         debug, vertices = run_rig(device, spirv, words, layout, y, perm, splats, False)
-        np.testing.assert_allclose(vertices, rig_vertices(rig, y), rtol=0, atol=VERTEX_ATOL)
-        _check(splats, debug, rig_gaussians(rig, vertices), np.asarray(rig.index, np.int64), perm, False)
+        _check_steps(splats, debug, vertices, rig, y, perm, False)
