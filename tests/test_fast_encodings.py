@@ -342,14 +342,18 @@ def test_delta_kernels_equal_the_reference(kernels, enc, coords) -> None:
     fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
     ref = DeltaEncoder(fmt, coords, None, cand, key_interval=10)
     fast = delta_encoder(fmt, coords, None, cand, key_interval=10)
-    sizes = []
+    sizes, whole, narrow = [], 0, 0
     for f, (p, r, s) in enumerate(frames):
         a, b = ref.encode(f, 1, TIMING, p, r, s), fast.encode(f, 1, TIMING, p, r, s)
         assert a == b, f"frame {f} differs"
         sizes.append(len(a))
+        m = decode_server_message(a, fmt)
+        if isinstance(m, DeltaFrame):
+            whole, narrow = whole + len(m.position), narrow + len(m.position_delta)
     for name in ("held_p", "held_r", "held_s", "dec_p", "dec_r", "dec_s"):
         np.testing.assert_array_equal(getattr(ref, name), getattr(fast, name))
     assert ref.key_frames == 3 and min(sizes) < max(sizes) * 0.6  # key frames at 0, 10, 20; deltas are smaller
+    assert whole > 0 and narrow > 0  # positions sent both ways
 
 
 def test_delta_masks_kernel_equals_the_reference(kernels) -> None:
