@@ -233,6 +233,26 @@ def test_tcp_nodelay_on_accepted_sockets() -> None:
     run(main())
 
 
+def test_streaming_sockets_get_a_congestion_control_that_does_not_pace() -> None:
+    """Settings.tcp_congestion (cubic, else reno) on each accepted socket, whatever the system's default (BBR
+    on the machine where its pacing held frames back by 10 ms); empty: the system's own."""
+    if not hasattr(socket, "TCP_CONGESTION"):
+        pytest.skip("TCP_CONGESTION is Linux only")
+    with open("/proc/sys/net/ipv4/tcp_congestion_control") as f:
+        system = f.read().strip()
+
+    async def names(server: ServerThread) -> list[str | None]:
+        async with await connect(server.url) as c:
+            await c.send_bs(weights())
+            await c.recv_frame(timeout=30)
+            return [p.congestion() for p in server.server.connections() if isinstance(p, StreamingWebSocketProtocol)]
+
+    got = run(names(main_server()))
+    assert got and all(name in ("cubic", "reno") for name in got), got
+    with ServerThread(settings(tcp_congestion="")) as server:
+        assert run(names(server)) == [system]
+
+
 def test_shutdown_closes_sessions_with_1001() -> None:
     server = ServerThread(settings(warmup=False)).start()
 

@@ -61,6 +61,12 @@ class Settings(BaseSettings):
                                       "degrees from the held one.")
     delta_log_scale: float = Field(0.02, gt=0, description="Delta sessions: ... or a scale axis this far in ln.")
     log_level: str = Field("info", description="uvicorn log level.")
+    tcp_congestion: str = Field(
+        "cubic,reno", description="TCP congestion control of each streaming connection (Linux; tried in order, "
+        "comma-separated; the first the kernel accepts; empty: the system's). Not BBR: it paces a frame's burst at "
+        "its estimate of this app-limited stream's rate, which held back the tail of ~2 % of 100-300 kB frames by "
+        "10 ms on loopback (benchmarks/README.md). Reno is the fallback a process without CAP_NET_ADMIN may set "
+        "where cubic is not in net.ipv4.tcp_allowed_congestion_control.")
     event_loop: Literal["asyncio", "uvloop", "auto"] = Field(
         "auto", description="Event loop, chosen at start: auto (uvloop when the optional `uvloop` extra is installed: "
         "pip install 'ofera[uvloop]'; measured ~0.5 ms lower e2e p50 at 2 MB frames, benchmarks/README.md), asyncio, "

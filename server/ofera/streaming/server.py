@@ -1,5 +1,6 @@
-"""Running the app under uvicorn: per-message deflate off, TCP_NODELAY on every accepted WebSocket,
-`send` that waits for the socket to drain (so newest-wins backpressure works), clean Ctrl-C.
+"""Running the app under uvicorn: per-message deflate off, TCP_NODELAY and a congestion control that does not pace
+(``Settings.tcp_congestion``) on every accepted WebSocket, `send` that waits for the socket to drain (so
+newest-wins backpressure works), clean Ctrl-C.
 
 Binary messages skip the websockets library's frame serialisation (which copies the payload twice: into a
 BytesIO, then out of it): the protocol writes the few bytes of the WebSocket frame header, then hands the
@@ -39,6 +40,25 @@ def set_nodelay(transport: Any) -> None:
             pass
 
 
+def set_congestion(transport: Any, choices: str) -> str | None:
+    """Set the first congestion control of `choices` (comma-separated names) that the kernel accepts on a TCP
+    transport's socket; returns the one in force (None: not a TCP socket, or no TCP_CONGESTION on this OS)."""
+    sock = transport.get_extra_info("socket")
+    option = getattr(socket, "TCP_CONGESTION", None)  # Linux only
+    if sock is None or option is None or sock.family not in (socket.AF_INET, socket.AF_INET6):
+        return None
+    for name in filter(None, (c.strip() for c in choices.split(","))):
+        try:
+            sock.setsockopt(socket.IPPROTO_TCP, option, name.encode())
+            break
+        except OSError:  # not built, not allowed for this process, or the peer is gone
+            continue
+    try:
+        return sock.getsockopt(socket.IPPROTO_TCP, option, 16).split(b"\0", 1)[0].decode()
+    except OSError:
+        return None
+
+
 def ws_binary_header(length: int) -> bytes:
     """RFC 6455 header of an unmasked, unfragmented binary frame (server to client) of `length` payload bytes."""
     if length < 126:
@@ -67,12 +87,17 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
 
     def connection_made(self, transport: Any) -> None:
         set_nodelay(transport)
+        choices = getattr(getattr(self._hub(), "settings", None), "tcp_congestion", "")
+        if choices:
+            set_congestion(transport, choices)
         super().connection_made(transport)
 
+    def _hub(self) -> Any:
+        """The app's Hub (``app.state.hub``: its settings and metrics), or None (another app, or not started yet)."""
+        return getattr(getattr(getattr(self.config, "app", None), "state", None), "hub", None)
+
     def _metrics(self) -> Any:
-        """The app's Metrics (``app.state.hub.metrics``), or None (another app, or not started yet)."""
-        hub = getattr(getattr(getattr(self.config, "app", None), "state", None), "hub", None)
-        return getattr(hub, "metrics", None)
+        return getattr(self._hub(), "metrics", None)
 
     def _direct(self, message: Any) -> bool:
         """Whether this message can skip the library's framing: a binary message on an open, uncompressed,
@@ -146,6 +171,10 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
         """TCP_NODELAY as the kernel reports it for this connection (for tests and diagnostics)."""
         sock = self.transport.get_extra_info("socket")
         return bool(sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY))
+
+    def congestion(self) -> str | None:
+        """This connection's TCP congestion control as the kernel reports it (None: not known on this OS)."""
+        return set_congestion(self.transport, "")
 
 
 def uvicorn_config(settings: Settings, app: Any = None) -> uvicorn.Config:
