@@ -31,6 +31,7 @@ Kernels (``NumpyKernels.delta_q13`` / ``delta_f16`` here, the numba set in the s
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -247,11 +248,13 @@ class DeltaEncoder:
 
     :meth:`encode` must be called only for frames that are then handed to the client's socket: it advances
     the held state. ``key_interval``: a key frame every that many frames (0: only on join and resync).
+    ``stamp_encode``: each frame's timing also carries "encode", the microseconds its encoding took before the
+    message was packed.
     """
 
     def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
                  candidates: np.ndarray | None = None, rows: np.ndarray | None = None, kernels: Any = None,
-                 tolerance: DeltaTolerance | None = None, key_interval: int = 720) -> None:
+                 tolerance: DeltaTolerance | None = None, key_interval: int = 720, stamp_encode: bool = False) -> None:
         from .fast_encodings import coord_signs, position_factors, scale_thresholds
 
         if not fmt.delta or fmt.encoding not in DELTA_ENCODINGS or fmt.sparse:
@@ -273,6 +276,7 @@ class DeltaEncoder:
         self.tolerance = tolerance or DeltaTolerance()
         self.tol = self.tolerance.params()
         self.key_interval = int(key_interval)
+        self.stamp_encode = stamp_encode
         self.psign, self.rsign = coord_signs(coords)
         q13 = fmt.encoding == "q13"
         if q13:
@@ -304,7 +308,13 @@ class DeltaEncoder:
         """The next frame will be a key frame (the client sent `resync`). Safe from any thread."""
         self._key_asked = True
 
-    def _key(self, seq: int, t: int, timing: dict[str, int], position, rotation, scale) -> bytes:
+    def _stamped(self, timing: dict[str, int], start_ns: int) -> dict[str, int]:
+        """`timing`, with "encode" (us since start_ns) if this encoder stamps it."""
+        if not self.stamp_encode:
+            return timing
+        return {**timing, "encode": (time.perf_counter_ns() - start_ns) // 1000}
+
+    def _key(self, seq: int, t: int, timing: dict[str, int], position, rotation, scale, start_ns: int) -> bytes:
         k, g = self.kernels, self.gather
         if self.format.encoding == "q13":
             k.q13_position(position, g, self.psign, self.lo, self.k, self.held_p.reshape(-1))
@@ -322,16 +332,18 @@ class DeltaEncoder:
             self.dec_p[:] = half_to_f64(self.held_p[self.ids])
             self.dec_r[:] = half_to_f64(self.held_r[self.ids])
             self.dec_s[:] = half_to_f64(self.held_s[self.ids])
+        timing = self._stamped(timing, start_ns)
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": True, "n": self.format.count,
                          "position": self.held_p, "rotation": self.held_r, "scale": self.held_s})
 
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
                scale: np.ndarray) -> bytes:
         """The next frame message (key or delta) for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3)."""
+        start_ns = time.perf_counter_ns()
         self.frames += 1
         if self._key_asked or not self.has_key or (self.key_interval and self.since_key >= self.key_interval):
             self._key_asked = False
-            data = self._key(seq, t, timing, position, rotation, scale)
+            data = self._key(seq, t, timing, position, rotation, scale, start_ns)
             self.has_key = True
             self.since_key = 1
             self.key_frames += 1
@@ -348,6 +360,7 @@ class DeltaEncoder:
                                                          self.dec_p, self.dec_r, self.dec_s, *out)
         changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.ids, self._sel, self._moved,
                                                              self._wide, n, n_p)
+        timing = self._stamped(timing, start_ns)
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
                          "changed": changed, "moved_position": mp, "moved_rotation": mr, "moved_scale": ms,
                          "wide": wide, "position_delta": self._res[:n_p - w],

@@ -732,7 +732,8 @@ def delta_kernel_warm() -> None:
 
 def delta_encoder(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
                   candidates: np.ndarray | None = None, rows: np.ndarray | None = None,
-                  tolerance: DeltaTolerance | None = None, key_interval: int = 720) -> DeltaEncoder:
+                  tolerance: DeltaTolerance | None = None, key_interval: int = 720,
+                  stamp_encode: bool = False) -> DeltaEncoder:
     """A DeltaEncoder (ofera_protocol.delta) using the numba kernels."""
     return DeltaEncoder(fmt, coords, gather, candidates, rows, kernels=numba_kernels(), tolerance=tolerance,
-                        key_interval=key_interval)
+                        key_interval=key_interval, stamp_encode=stamp_encode)

@@ -103,6 +103,11 @@ class ComputedFrame:
         with self._lock:
             self._encoded[key] = data
 
+    def forget(self, key: tuple) -> None:
+        """Drop the bytes of wire format `key` (made against a state the client no longer matches)."""
+        with self._lock:
+            self._encoded.pop(key, None)
+
     def encoded(self, key: tuple, make: Callable[[ComputedFrame], Any]) -> tuple[Any, bool]:
         """Bytes for wire format `key` (made once, by whoever asks first); True if made by this call."""
         with self._lock:
@@ -141,7 +146,8 @@ class Source:
         self.on_values: Callable[[ComputedFrame], None] | None = None  # rooms: each frame's values, to the bus
         # Wire formats encoded in the compute thread right after the deformation, (key, make) as in
         # ComputedFrame.encoded: the state is still in cache and the viewer needs no second hop to the pool.
-        # Only formats whose encoding has no per-client state (not deltas: they advance per frame handed to a socket).
+        # A delta format (its encoder advances per frame handed to a socket) only where every computed frame is
+        # handed to its viewer's socket: a solo session, whose demand holds the computing while the slot is full.
         self.eager: list[tuple[tuple, Callable[[ComputedFrame], Any]]] = []
         # (key, FrameWriter) of a dense f16 format whose frames the deformation writes itself, with no float32
         # state in between (FrameWriter.draft, Pipeline.deform_values_f16); its frames carry no state. Only for a
@@ -313,6 +319,19 @@ class Viewer:
         if self.slot.put(frame):
             self.skipped += 1
             self.metrics.skipped_frame.inc()
+            self._replaced(frame)
+
+    def _replaced(self, frame: ComputedFrame) -> None:
+        """An unsent frame was just replaced by `frame`. A delta writer that encoded both eagerly (in the compute
+        thread) holds codes the client will never get, and `frame`'s bytes were made against them: `frame` is
+        encoded again, here, as a key frame. Here, on the loop and before its source's next computation, no other
+        encoding of this writer can run, so its frames stay in the order they are sent. A solo session never gets
+        here (its source computes only while the slot is empty); this keeps a client right wherever it would."""
+        request_key = getattr(self.writer, "request_key", None)
+        if request_key is not None and frame.cached(self.key) is not None:
+            request_key()
+            frame.forget(self.key)
+            encode_timed(frame, self.key, self.make, self.metrics)
 
     def make(self, frame: ComputedFrame) -> bytes | memoryview:
         """This viewer's wire format of `frame` (no cache)."""

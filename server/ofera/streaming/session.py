@@ -245,7 +245,9 @@ class Session:
         self.source.subscribers.append(self.viewer.offer)
         if direct_f16(writer, self.source.pipeline):
             self.source.direct = (key, writer)  # the deformation writes the frames: no state, no encoding pass
-        elif not self.conn.format.delta and hello.encoding != PARAMS:
+        elif hello.encoding != PARAMS:
+            # Encoded in the compute thread, a delta format included: this source computes only while its one
+            # viewer's slot is empty (demand, below), so every frame it computes is handed to this socket.
             self.source.eager.append((key, self.viewer.make))
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full

@@ -36,7 +36,8 @@ def direct_f16(writer: Any, pipeline: Any) -> bool:
 def make_delta_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, movable: tuple, settings: Settings
                       ) -> FrameEncoder:
     """The DeltaEncoder of one delta session (PROTOCOL.md 7.1): numba kernels when `settings.fast`, else the numpy
-    reference; candidates = the avatar's movable Gaussians (`movable` = (state rows, session ids))."""
+    reference; candidates = the avatar's movable Gaussians (`movable` = (state rows, session ids)). Its frames'
+    timing carries "encode"."""
     from ofera_protocol.delta import DeltaEncoder, DeltaTolerance
 
     rows, ids = movable
@@ -47,7 +48,7 @@ def make_delta_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, 
 
         kernels = numba_kernels()
     return DeltaEncoder(fmt, coords, gather, np.asarray(ids, np.int64), np.asarray(rows, np.int64), kernels=kernels,
-                        tolerance=tol, key_interval=settings.key_interval)
+                        tolerance=tol, key_interval=settings.key_interval, stamp_encode=True)
 
 
 def reduced_size(asked: int | None, count: int) -> int | None:
