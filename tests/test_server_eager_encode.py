@@ -1,7 +1,7 @@
 """Eager encoding (`Source.eager`): a v1 session's wire format is encoded in the compute thread right after the
-deformation, so that its Viewer finds `frame.cached(key)` and needs no second hop to the thread pool; delta and
-params sessions register no eager format; a format whose eager encoding raises is left to its viewer, which
-encodes it again (and reports the error, if it raises again, as before)."""
+deformation, so that its Viewer finds `frame.cached(key)` and needs no second hop to the thread pool, a delta
+session's too; params sessions register no eager format; a format whose eager encoding raises is left to its
+viewer, which encodes it again (and reports the error, if it raises again, as before)."""
 
 from __future__ import annotations
 
@@ -231,13 +231,25 @@ def test_a_v1_q13_session_encodes_its_frames_in_the_compute_thread(observed: Any
     assert observed.viewer_encodes == []  # ... in Source._compute: the viewer found every frame cached
 
 
-@pytest.mark.parametrize("kind", ["delta", "params"])
-def test_delta_and_params_sessions_register_no_eager_format(observed: Any, kind: str) -> None:
+def test_a_delta_session_encodes_its_frames_in_the_compute_thread(observed: Any) -> None:
+    """Its encoder advances per frame handed to the socket, and its source computes only while the viewer's slot
+    is empty, so each frame it encodes eagerly is sent (test_server_delta checks the threads and a replacement)."""
     async def main() -> None:
-        if kind == "delta":
-            c = await connect(main_server().url, avatar=SMALL, encoding="q13", delta=True)
-        else:
-            c = await connect(main_server().url, avatar=SMALL, encoding="params")
+        c = await connect(main_server().url, avatar=SMALL, encoding="q13", delta=True)
+        frames = await frames_of(c, 3)
+        (source,) = observed.sources
+        assert len(source.eager) == 1
+        await c.close()
+        assert [f.seq for f in frames] == [0, 1, 2] and frames[0].key
+
+    run(main())
+    assert observed.viewer_encodes == []  # every frame was cached by the compute thread
+    assert observed.writers == []  # its encoder is per client: make_delta_writer
+
+
+def test_a_params_session_registers_no_eager_format(observed: Any) -> None:
+    async def main() -> None:
+        c = await connect(main_server().url, avatar=SMALL, encoding="params")
         frames = await frames_of(c, 3)
         await c.close()
         assert len(frames) == 3 and frames[0].seq == 0  # params frames carry seq only when stamped
@@ -245,8 +257,8 @@ def test_delta_and_params_sessions_register_no_eager_format(observed: Any, kind:
     run(main())
     (source,) = observed.sources
     assert source.eager == []
-    assert observed.viewer_encodes == [0, 1, 2]  # the viewer encodes each frame itself
-    assert observed.writers == []  # their encoders are per client: make_delta_writer, params_parts
+    assert observed.viewer_encodes == [0, 1, 2]  # the viewer encodes each frame itself (on the loop)
+    assert observed.writers == []  # its encoder is per client: params_parts
 
 
 def test_a_failed_eager_encoding_is_retried_by_the_viewer_and_the_session_streams_on(observed: Any) -> None:
