@@ -574,7 +574,8 @@ def _q13_pos_code(v, lo, k):
 def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
                      held_p, held_r, held_s, dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos,
                      out_rot, out_scale):
-    """ofera_protocol.delta.delta_q13_reference in one pass over the candidates. Returns (n, n_p, w, n_r, n_s)."""
+    """ofera_protocol.delta.delta_q13_reference in one pass over the candidates (then :func:`_split_positions` over
+    the positions sent). Returns (n, n_p, w, n_r, n_s)."""
     n = n_p = n_r = n_s = 0
     for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
         r = np.uint64(rows[j])
@@ -627,8 +628,8 @@ def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, tabl
 @nb.njit(**_NB)
 def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
                      out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
-    """ofera_protocol.delta.delta_f16_reference in one pass. Returns (n, n_p, w, n_r, n_s, ok); ok False if a
-    value sent is NaN, infinite or beyond +-65504."""
+    """ofera_protocol.delta.delta_f16_reference in one pass (then :func:`_split_positions`). Returns (n, n_p, w,
+    n_r, n_s, ok); ok False if a value sent is NaN, infinite or beyond +-65504."""
     n = n_p = n_r = n_s = 0
     ok = True
     for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)

@@ -40,23 +40,32 @@ def set_nodelay(transport: Any) -> None:
             pass
 
 
-def set_congestion(transport: Any, choices: str) -> str | None:
-    """Set the first congestion control of `choices` (comma-separated names) that the kernel accepts on a TCP
-    transport's socket; returns the one in force (None: not a TCP socket, or no TCP_CONGESTION on this OS)."""
+def tcp_congestion(transport: Any) -> str | None:
+    """A TCP transport's congestion control as the kernel reports it (None: not a TCP socket, or no
+    TCP_CONGESTION on this OS)."""
     sock = transport.get_extra_info("socket")
     option = getattr(socket, "TCP_CONGESTION", None)  # Linux only
     if sock is None or option is None or sock.family not in (socket.AF_INET, socket.AF_INET6):
         return None
+    try:
+        return sock.getsockopt(socket.IPPROTO_TCP, option, 16).split(b"\0", 1)[0].decode()
+    except OSError:  # the peer may already be gone
+        return None
+
+
+def set_congestion(transport: Any, choices: str) -> str | None:
+    """Set the first congestion control of `choices` (comma-separated names) that the kernel accepts on a TCP
+    transport's socket; returns the one in force (see :func:`tcp_congestion`)."""
+    sock = transport.get_extra_info("socket")
+    if tcp_congestion(transport) is None:
+        return None
     for name in filter(None, (c.strip() for c in choices.split(","))):
         try:
-            sock.setsockopt(socket.IPPROTO_TCP, option, name.encode())
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, name.encode())
             break
         except OSError:  # not built, not allowed for this process, or the peer is gone
             continue
-    try:
-        return sock.getsockopt(socket.IPPROTO_TCP, option, 16).split(b"\0", 1)[0].decode()
-    except OSError:
-        return None
+    return tcp_congestion(transport)
 
 
 def ws_binary_header(length: int) -> bytes:
@@ -174,7 +183,7 @@ class StreamingWebSocketProtocol(WebSocketsSansIOProtocol):
 
     def congestion(self) -> str | None:
         """This connection's TCP congestion control as the kernel reports it (None: not known on this OS)."""
-        return set_congestion(self.transport, "")
+        return tcp_congestion(self.transport)
 
 
 def uvicorn_config(settings: Settings, app: Any = None) -> uvicorn.Config:
