@@ -102,8 +102,8 @@ def test_replaced_delta_frames_never_corrupt_the_client(monkeypatch: pytest.Monk
     init = R.Viewer.__init__
 
     def slow_socket(self, send, *args, **kwargs):
-        async def slow_send(data) -> None:
-            await asyncio.sleep(0.02)
+        async def slow_send(data) -> None:  # 50 ms a frame: slower than any computation here, under load too
+            await asyncio.sleep(0.05)
             await send(data)
 
         init(self, slow_send, *args, **kwargs)
