@@ -4,7 +4,9 @@ are computed but never handed to the socket (a forced drop pattern) never corrup
 
 from __future__ import annotations
 
+import asyncio
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -13,6 +15,7 @@ from ofera.streaming import offline_pipeline
 from ofera.streaming import roles as R
 from ofera.streaming.server import ServerThread
 from ofera_protocol import LAYOUTS, to_coords
+from ofera_protocol.delta import DeltaEncoder
 from test_server_support import SMALL, main_server, run, settings
 
 
@@ -74,10 +77,6 @@ def test_delta_client_reconstructs_every_frame(encoding: str, coords: str) -> No
 def test_delta_frames_encoded_in_the_compute_thread(monkeypatch: pytest.MonkeyPatch) -> None:
     """A delta session encodes in the compute thread (Source.eager): its source computes only while the viewer's
     slot is empty, so no frame it encodes is replaced before the socket. Its frames' timing carries "encode"."""
-    import threading
-
-    from ofera_protocol.delta import DeltaEncoder
-
     threads: list[str] = []
     encode = DeltaEncoder.encode
 
@@ -96,8 +95,6 @@ def test_replaced_delta_frames_never_corrupt_the_client(monkeypatch: pytest.Monk
     """Frames encoded and then replaced before reaching the socket (forced here: the source computes whatever the
     viewer's slot holds, and the viewer's socket is slow): each replacement makes the next frame sent a key
     frame, so the client stays within the tolerance of every frame it gets."""
-    import asyncio
-
     monkeypatch.setattr(R.LatestSlot, "full", property(lambda self: False))  # demand: compute every bs
     init = R.Viewer.__init__
 

@@ -30,42 +30,48 @@ from websockets.protocol import State
 from .config import Settings
 
 
+def _tcp_socket(transport: Any) -> socket.socket | None:
+    """A transport's socket if it is TCP (IPv4 or IPv6), else None."""
+    sock = transport.get_extra_info("socket")
+    return sock if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6) else None
+
+
 def set_nodelay(transport: Any) -> None:
     """Turn Nagle's algorithm off on a TCP transport's socket (asyncio usually has already)."""
-    sock = transport.get_extra_info("socket")
-    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+    sock = _tcp_socket(transport)
+    if sock is not None:
         try:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         except OSError:  # the peer may already be gone
             pass
 
 
-def tcp_congestion(transport: Any) -> str | None:
-    """A TCP transport's congestion control as the kernel reports it (None: not a TCP socket, or no
-    TCP_CONGESTION on this OS)."""
-    sock = transport.get_extra_info("socket")
-    option = getattr(socket, "TCP_CONGESTION", None)  # Linux only
-    if sock is None or option is None or sock.family not in (socket.AF_INET, socket.AF_INET6):
-        return None
-    try:
-        return sock.getsockopt(socket.IPPROTO_TCP, option, 16).split(b"\0", 1)[0].decode()
-    except OSError:  # the peer may already be gone
-        return None
+_TCP_CONGESTION = getattr(socket, "TCP_CONGESTION", None)  # Linux only
 
 
-def set_congestion(transport: Any, choices: str) -> str | None:
+def set_congestion(transport: Any, choices: str) -> None:
     """Set the first congestion control of `choices` (comma-separated names) that the kernel accepts on a TCP
-    transport's socket; returns the one in force (see :func:`tcp_congestion`)."""
-    sock = transport.get_extra_info("socket")
-    if tcp_congestion(transport) is None:
-        return None
+    transport's socket (nothing on an OS without TCP_CONGESTION)."""
+    sock = _tcp_socket(transport)
+    if sock is None or _TCP_CONGESTION is None:
+        return
     for name in filter(None, (c.strip() for c in choices.split(","))):
         try:
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_CONGESTION, name.encode())
-            break
+            sock.setsockopt(socket.IPPROTO_TCP, _TCP_CONGESTION, name.encode())
+            return
         except OSError:  # not built, not allowed for this process, or the peer is gone
             continue
-    return tcp_congestion(transport)
+
+
+def tcp_congestion(transport: Any) -> str | None:
+    """A TCP transport's congestion control as the kernel reports it (None: not TCP, or not known on this OS)."""
+    sock = _tcp_socket(transport)
+    if sock is None or _TCP_CONGESTION is None:
+        return None
+    try:
+        return sock.getsockopt(socket.IPPROTO_TCP, _TCP_CONGESTION, 16).split(b"\0", 1)[0].decode()
+    except OSError:  # the peer may already be gone
+        return None
 
 
 def ws_binary_header(length: int) -> bytes:

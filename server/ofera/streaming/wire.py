@@ -40,15 +40,14 @@ def make_delta_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, 
     timing carries "encode"."""
     from ofera_protocol.delta import DeltaEncoder, DeltaTolerance
 
-    rows, ids = movable
+    rows, ids = np.asarray(movable[0], np.int64), np.asarray(movable[1], np.int64)
     tol = DeltaTolerance(settings.delta_position_mm * 1e-3, settings.delta_rotation_deg, settings.delta_log_scale)
-    kernels = None
     if settings.fast:
-        from .encode_fast import numba_kernels
+        from .encode_fast import delta_encoder
 
-        kernels = numba_kernels()
-    return DeltaEncoder(fmt, coords, gather, np.asarray(ids, np.int64), np.asarray(rows, np.int64), kernels=kernels,
-                        tolerance=tol, key_interval=settings.key_interval, stamp_encode=True)
+        return delta_encoder(fmt, coords, gather, ids, rows, tol, settings.key_interval, stamp_encode=True)
+    return DeltaEncoder(fmt, coords, gather, ids, rows, tolerance=tol, key_interval=settings.key_interval,
+                        stamp_encode=True)
 
 
 def reduced_size(asked: int | None, count: int) -> int | None:
