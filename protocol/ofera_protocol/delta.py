@@ -17,12 +17,17 @@ the codes it has handed to *this* client's socket, decides against what the clie
 the client's error is at most max(tolerance, the encoding's own error) after any number of frames, and a
 frame that is never sent (newest-wins drop) changes nothing on either side.
 
-The selection arithmetic (all float64, +, -, *, table look-ups and comparisons, so numba reproduces it bit for
-bit), per attribute::
+The selection arithmetic (all float32, +, -, * and comparisons in a fixed order, so numba reproduces it bit for
+bit, SIMD lanes included), per attribute, against the held codes' decodings h (float32, what the client decodes)::
 
-    position moved  |p - h_p|^2 > T_p^2                          (p, h_p: position, held decoded position)
-    rotation moved  (h_r . q)^2 < cos^2(T_r / 2) |q|^2 |h_r|^2  (q, h_r: rotation, held decoded rotation)
+    position moved  |p - h_p|^2 > T_p^2
+    rotation moved  sum over i < j of (q_i h_j - q_j h_i)^2 > sin^2(T_r / 2) |q|^2 |h_r|^2
     scale moved     on some axis s > h_s e^{T_s} or s < h_s e^{-T_s}
+
+The rotation test is |q|^2 |h|^2 sin^2(angle / 2) > ... written through Lagrange's identity: its 2 x 2 minors
+are small when q and h are close, so float32 resolves the 0.45 degree threshold to a few parts per million
+(the equivalent (h . q)^2 < cos^2(T_r / 2) |q|^2 |h|^2 compares two numbers equal to 1 - 1.5e-5 and would need
+float64).
 
 Kernels (``NumpyKernels.delta_q13`` / ``delta_f16`` here, the numba set in the server) fill the selection;
 :class:`DeltaEncoder` builds messages around them. Only numpy and msgpack are needed.
@@ -61,15 +66,15 @@ class DeltaTolerance:
     log_scale: float = 0.02
 
     def params(self) -> np.ndarray:
-        """(4,) float64 given to the kernels: [T_p^2, cos^2(T_r / 2), e^{T_s}, e^{-T_s}]."""
-        return np.array([self.position_m ** 2, math.cos(math.radians(self.rotation_deg) / 2) ** 2,
-                         math.exp(self.log_scale), math.exp(-self.log_scale)], np.float64)
+        """(4,) float32 given to the kernels: [T_p^2, sin^2(T_r / 2), e^{T_s}, e^{-T_s}]."""
+        return np.array([self.position_m ** 2, math.sin(math.radians(self.rotation_deg) / 2) ** 2,
+                         math.exp(self.log_scale), math.exp(-self.log_scale)], np.float32)
 
 
 # ----------------------------------------------------------------------------- bitmasks
 
 
-# ----------------------------------------------------------------------------- decoded codes (float64)
+# ----------------------------------------------------------------------------- decoded codes
 
 
 def _rot_field_lut() -> np.ndarray:
@@ -107,32 +112,54 @@ def q13_scale_lut(fmt: FrameFormat) -> np.ndarray:
     return np.exp(lmin + np.arange(256, dtype=np.float64) * ((lmax - lmin) / SCALE_LEVELS))
 
 
-def half_to_f64(bits: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(bits, np.uint16).view(np.float16).astype(np.float64)
+def half_to_f32(bits: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(bits, np.uint16).view(np.float16).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------- reference kernels
 
 
-def _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s) -> np.ndarray:
+HELD_POSITION, HELD_ROTATION, HELD_SCALE = slice(0, 3), slice(3, 7), slice(7, 10)
+"""Rows of a DeltaEncoder's ``dec`` (10, K) float32, the decodings of the held codes, one column per candidate
+(structure of arrays: the selection reads them in SIMD lanes)."""
+
+
+def row_runs(rows: np.ndarray) -> np.ndarray:
+    """(R, 3) int64 [first state row, first candidate, length] of the runs of consecutive state rows in ``rows``
+    (K,): the fast kernels read each run's state as one contiguous block."""
+    rows = np.asarray(rows, np.int64)
+    first = np.flatnonzero(np.diff(rows, prepend=rows[:1] - 2) != 1) if rows.size else np.zeros(0, np.int64)
+    length = np.diff(np.append(first, rows.size))
+    return np.stack([rows[first], first, length], axis=1).astype(np.int64)
+
+
+def _moved(pos, rot, scale, rows, psign, rsign, tol, dec) -> np.ndarray:
     """(K, 3) bool: position, rotation, scale moved (the rule of the module docstring, vectorised: the spec)."""
-    p = (np.asarray(pos, np.float32)[rows] * psign).astype(np.float64)
-    d = p - dec_p
-    d2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+    f32 = np.float32
+    p = np.asarray(pos, f32)[rows] * psign
+    h = dec[HELD_POSITION]
+    d0, d1, d2 = p[:, 0] - h[0], p[:, 1] - h[1], p[:, 2] - h[2]
     out = np.empty((rows.size, 3), bool)
-    out[:, 0] = d2 > tol[0]
-    q = (np.asarray(rot, np.float32)[rows] * rsign).astype(np.float64)
-    dot = dec_r[:, 0] * q[:, 0] + dec_r[:, 1] * q[:, 1] + dec_r[:, 2] * q[:, 2] + dec_r[:, 3] * q[:, 3]
-    n2 = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
-    h2 = dec_r[:, 0] * dec_r[:, 0] + dec_r[:, 1] * dec_r[:, 1] + dec_r[:, 2] * dec_r[:, 2] + dec_r[:, 3] * dec_r[:, 3]
-    out[:, 1] = dot * dot < tol[1] * n2 * h2
-    s = np.asarray(scale, np.float32)[rows].astype(np.float64)
-    out[:, 2] = ((s > dec_s * tol[2]) | (s < dec_s * tol[3])).any(axis=1)
+    out[:, 0] = d0 * d0 + d1 * d1 + d2 * d2 > tol[0]
+    q = np.asarray(rot, f32)[rows] * rsign
+    q0, q1, q2, q3 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    h0, h1, h2, h3 = dec[HELD_ROTATION]
+    m01, m02, m03 = q0 * h1 - q1 * h0, q0 * h2 - q2 * h0, q0 * h3 - q3 * h0
+    m12, m13, m23 = q1 * h2 - q2 * h1, q1 * h3 - q3 * h1, q2 * h3 - q3 * h2
+    cross = m01 * m01 + m02 * m02 + m03 * m03 + m12 * m12 + m13 * m13 + m23 * m23
+    n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+    hh = h0 * h0 + h1 * h1 + h2 * h2 + h3 * h3
+    out[:, 1] = cross > tol[1] * n2 * hh
+    s = np.asarray(scale, f32)[rows]
+    hs = dec[HELD_SCALE].T
+    out[:, 2] = ((s > hs * tol[2]) | (s < hs * tol[3])).any(axis=1)
     return out
 
 
-def _select(moved, out_sel, out_moved):
-    """Write the selection; returns (sel, n, and the candidate positions of the moved positions, rotations, scales)."""
+def _select(moved, flags, out_sel, out_moved):
+    """Write the flags and the selection; returns (sel, n, and the candidate positions of the moved positions,
+    rotations, scales)."""
+    flags[:] = moved[:, 0] | (moved[:, 1].astype(np.uint8) << 1) | (moved[:, 2].astype(np.uint8) << 2)
     sel = np.flatnonzero(moved.any(axis=1))
     n = sel.size
     out_sel[:n] = sel
@@ -154,38 +181,40 @@ def _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos) -> tuple[i
     return n_p, n_p - m
 
 
-def delta_q13_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, scale_lut,
-                        rot_lut, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
+def delta_q13_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, thresholds, scale_lut,
+                        rot_lut, tol, held_p, held_r, held_s, dec, flags, work,
                         out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
-    """q13 delta kernel (reference). For the K candidates (session ids ``ids``, state rows ``rows``) with held
-    codes ``held_*`` (indexed by session id) and their float64 decodings ``dec_*`` (indexed by candidate): find
-    what moved, encode it with ``kern`` (the frame kernels), write the selection (candidate positions
-    ``out_sel[:n]``, ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``,
-    the wide position codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``,
-    update the held codes and decodings, and return (n, n_p, w, n_r, n_s)."""
-    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s)
-    sel, n, p_sel, r_sel, s_sel = _select(moved, out_sel, out_moved)
+    """q13 delta kernel (reference). For the K candidates (session ids ``ids``, state rows ``rows``, their runs
+    :func:`row_runs`) with held codes ``held_*`` (indexed by session id) and their decodings ``dec`` (10, K)
+    float32 (:data:`HELD_POSITION` ...): find what moved (``flags`` (K,) uint8: bit 0, 1, 2 = position, rotation,
+    scale), encode it with ``kern`` (the frame kernels), write the selection (candidate positions ``out_sel[:n]``,
+    ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide position
+    codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``, update the held codes
+    and decodings, and return (n, n_p, w, n_r, n_s). ``runs`` and ``work`` (3, K) int32 serve the numba kernels
+    (contiguous reads, the lists of what moved); the reference needs neither."""
+    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec)
+    sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_sel, out_moved)
     new_p = np.empty((p_sel.size, 3), np.uint16)
     kern.q13_position(pos, rows[p_sel], psign, lo, k, new_p.reshape(-1))
     n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
-    dec_p[p_sel] = lo + new_p.astype(np.float64) * step
+    dec[HELD_POSITION, p_sel] = (lo + new_p.astype(np.float64) * step).astype(np.float32).T
     n_r, n_s = r_sel.size, s_sel.size
     kern.q13_rotation(rot, rows[r_sel], rsign, out_rot[:n_r])
     held_r[ids[r_sel]] = out_rot[:n_r]
-    dec_r[r_sel] = q13_decode_rotation64(out_rot[:n_r])
+    dec[HELD_ROTATION, r_sel] = q13_decode_rotation64(out_rot[:n_r]).astype(np.float32).T
     kern.q13_scale(scale, rows[s_sel], thresholds, out_scale[:n_s].reshape(-1))
     held_s[ids[s_sel]] = out_scale[:n_s]
-    dec_s[s_sel] = scale_lut[out_scale[:n_s]]
+    dec[HELD_SCALE, s_sel] = scale_lut[out_scale[:n_s]].astype(np.float32).T
     return n, n_p, w, n_r, n_s
 
 
-def delta_f16_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s,
-                        dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale
+def delta_f16_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p, held_r, held_s,
+                        dec, flags, work, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale
                         ) -> tuple[int, ...]:
     """f16 delta kernel (reference): :func:`delta_q13_reference` with f16 bit patterns as codes. Returns
     (n, n_p, w, n_r, n_s); ValueError if a value sent is beyond the half range."""
-    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec_p, dec_r, dec_s)
-    sel, n, p_sel, r_sel, s_sel = _select(moved, out_sel, out_moved)
+    moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec)
+    sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_sel, out_moved)
     n_r, n_s = r_sel.size, s_sel.size
     new_p = np.empty((p_sel.size, 3), np.uint16)
     ok = kern.f16(pos, rows[p_sel], psign, new_p.reshape(-1))
@@ -194,11 +223,11 @@ def delta_f16_reference(kern: Any, pos, rot, scale, rows, ids, psign, rsign, tol
     if not ok:
         raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
     n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
-    dec_p[p_sel] = half_to_f64(new_p)
+    dec[HELD_POSITION, p_sel] = half_to_f32(new_p).T
     held_r[ids[r_sel]] = out_rot[:n_r]
-    dec_r[r_sel] = half_to_f64(out_rot[:n_r])
+    dec[HELD_ROTATION, r_sel] = half_to_f32(out_rot[:n_r]).T
     held_s[ids[s_sel]] = out_scale[:n_s]
-    dec_s[s_sel] = half_to_f64(out_scale[:n_s])
+    dec[HELD_SCALE, s_sel] = half_to_f32(out_scale[:n_s]).T
     return n, n_p, w, n_r, n_s
 
 
@@ -290,7 +319,10 @@ class DeltaEncoder:
         self.held_r = np.zeros(rot_shape, np.uint32 if q13 else np.uint16)
         self.held_s = np.zeros((n, 3), np.uint8 if q13 else np.uint16)
         m = self.ids.size
-        self.dec_p, self.dec_r, self.dec_s = np.zeros((m, 3)), np.zeros((m, 4)), np.zeros((m, 3))
+        self.runs = row_runs(self.rows)
+        self.dec = np.zeros((10, m), np.float32)  # decodings of the held codes (HELD_POSITION ...)
+        self._flags = np.zeros(m, np.uint8)
+        self._work = np.zeros((3, m), np.int32)
         self._sel = np.zeros(m, np.int64)
         self._moved = np.zeros((m, 3), bool)
         self._wide = np.zeros(m, bool)
@@ -320,18 +352,18 @@ class DeltaEncoder:
             k.q13_position(position, g, self.psign, self.lo, self.k, self.held_p.reshape(-1))
             k.q13_rotation(rotation, g, self.rsign, self.held_r)
             k.q13_scale(scale, g, self.thresholds, self.held_s.reshape(-1))
-            self.dec_p[:] = self.lo + self.held_p[self.ids].astype(np.float64) * self.step
-            self.dec_r[:] = q13_decode_rotation64(self.held_r[self.ids])
-            self.dec_s[:] = self.lut[self.held_s[self.ids]]
+            self.dec[HELD_POSITION] = (self.lo + self.held_p[self.ids].astype(np.float64) * self.step).T
+            self.dec[HELD_ROTATION] = q13_decode_rotation64(self.held_r[self.ids]).T
+            self.dec[HELD_SCALE] = self.lut[self.held_s[self.ids]].T
         else:
             ok = k.f16(position, g, self.psign, self.held_p.reshape(-1))
             ok &= k.f16(rotation, g, self.rsign, self.held_r.reshape(-1))
             ok &= k.f16(scale, g, np.ones(3, np.float32), self.held_s.reshape(-1))
             if not ok:
                 raise ValueError("state has NaN, infinity or values beyond +-65504 (f16)")
-            self.dec_p[:] = half_to_f64(self.held_p[self.ids])
-            self.dec_r[:] = half_to_f64(self.held_r[self.ids])
-            self.dec_s[:] = half_to_f64(self.held_s[self.ids])
+            self.dec[HELD_POSITION] = half_to_f32(self.held_p[self.ids]).T
+            self.dec[HELD_ROTATION] = half_to_f32(self.held_r[self.ids]).T
+            self.dec[HELD_SCALE] = half_to_f32(self.held_s[self.ids]).T
         timing = self._stamped(timing, start_ns)
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": True, "n": self.format.count,
                          "position": self.held_p, "rotation": self.held_r, "scale": self.held_s})
@@ -349,15 +381,15 @@ class DeltaEncoder:
             self.key_frames += 1
             return data
         self.since_key += 1
-        args = (position, rotation, scale, self.rows, self.ids, self.psign, self.rsign)
+        args = (position, rotation, scale, self.rows, self.runs, self.ids, self.psign, self.rsign)
         out = (self._sel, self._moved, self._wide, self._res, self._pos, self._rot, self._scale)
         if self.format.encoding == "q13":
             n, n_p, w, n_r, n_s = self.kernels.delta_q13(
                 *args, self.lo, self.k, self.step, self.thresholds, self.lut, ROT_FIELD64, self.tol,
-                self.held_p, self.held_r, self.held_s, self.dec_p, self.dec_r, self.dec_s, *out)
+                self.held_p, self.held_r, self.held_s, self.dec, self._flags, self._work, *out)
         else:
             n, n_p, w, n_r, n_s = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s,
-                                                         self.dec_p, self.dec_r, self.dec_s, *out)
+                                                         self.dec, self._flags, self._work, *out)
         changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.ids, self._sel, self._moved,
                                                              self._wide, n, n_p)
         timing = self._stamped(timing, start_ns)

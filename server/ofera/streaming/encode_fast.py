@@ -419,14 +419,15 @@ class NumbaKernels:
         g, n = self._g(src, gather)
         q13_scale_kernel(src, g, n, table, dst)
 
-    def delta_q13(self, pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds, *rest) -> tuple[int, ...]:
-        """ofera_protocol.delta.delta_q13_reference in one numba pass (same signature, same bytes)."""
+    def delta_q13(self, pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, thresholds, *rest
+                  ) -> tuple[int, ...]:
+        """ofera_protocol.delta.delta_q13_reference by :func:`delta_q13_kernel` (same signature, same bytes)."""
         table = self.table(thresholds)
         if table is None:
-            return ReferenceKernels().delta_q13(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, thresholds,
-                                                *rest)
-        return tuple(int(x) for x in delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table,
-                                                      *rest))
+            return ReferenceKernels().delta_q13(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step,
+                                                thresholds, *rest)
+        return tuple(int(x) for x in delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step,
+                                                      table, *rest))
 
     def delta_masks(self, count, ids, sel, moved, wide, n, n_p) -> tuple[np.ndarray, ...]:
         """ofera_protocol.delta.delta_masks_reference by :func:`delta_masks_kernel` (same bytes)."""
@@ -502,64 +503,96 @@ def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | N
 
 
 
-@nb.njit(inline="always", **_NB)
-def _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s):
-    """(position, rotation, scale) moved, by the rule of ofera_protocol.delta (same float64 operations, same order)."""
-    dx = np.float64(pos[r, 0] * psign[0]) - dec_p[j, 0]
-    dy = np.float64(pos[r, 1] * psign[1]) - dec_p[j, 1]
-    dz = np.float64(pos[r, 2] * psign[2]) - dec_p[j, 2]
-    mp = dx * dx + dy * dy + dz * dz > tol[0]
-    q0 = np.float64(rot[r, 0] * rsign[0])
-    q1 = np.float64(rot[r, 1] * rsign[1])
-    q2 = np.float64(rot[r, 2] * rsign[2])
-    q3 = np.float64(rot[r, 3] * rsign[3])
-    h0, h1, h2, h3 = dec_r[j, 0], dec_r[j, 1], dec_r[j, 2], dec_r[j, 3]
-    dot = h0 * q0 + h1 * q1 + h2 * q2 + h3 * q3
-    n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
-    hh = h0 * h0 + h1 * h1 + h2 * h2 + h3 * h3
-    mr = dot * dot < tol[1] * n2 * hh
-    ms = False
-    for c in range(3):
-        v = np.float64(scale[r, c])
-        if v > dec_s[j, c] * tol[2] or v < dec_s[j, c] * tol[3]:
-            ms = True
-    return mp, mr, ms
+@nb.njit(**_NB)
+def _flag_run(p, q, s, hp0, hp1, hp2, hr0, hr1, hr2, hr3, hs0, hs1, hs2, flags, ps, rs, tol):
+    """One run of consecutive state rows: flags[m] = position | rotation << 1 | scale << 2 moved, for the run's state
+    p, q, s (flat float32, 3 / 4 / 3 per row) against the held decodings h* (float32, one array per component), by
+    the rule of ofera_protocol.delta (same float32 operations in the same order). Branch-free over separate
+    arrays: LLVM runs it in SIMD lanes (8 Gaussians per AVX2 instruction)."""
+    s0, s1, s2 = ps[0], ps[1], ps[2]
+    r0, r1, r2, r3 = rs[0], rs[1], rs[2], rs[3]
+    t0, t1, t2, t3 = tol[0], tol[1], tol[2], tol[3]
+    for m in range(np.uint64(flags.shape[0])):
+        d0 = p[3 * m] * s0 - hp0[m]
+        d1 = p[3 * m + 1] * s1 - hp1[m]
+        d2 = p[3 * m + 2] * s2 - hp2[m]
+        mp = d0 * d0 + d1 * d1 + d2 * d2 > t0
+        q0, q1, q2, q3 = q[4 * m] * r0, q[4 * m + 1] * r1, q[4 * m + 2] * r2, q[4 * m + 3] * r3
+        h0, h1, h2, h3 = hr0[m], hr1[m], hr2[m], hr3[m]
+        m01, m02, m03 = q0 * h1 - q1 * h0, q0 * h2 - q2 * h0, q0 * h3 - q3 * h0
+        m12, m13, m23 = q1 * h2 - q2 * h1, q1 * h3 - q3 * h1, q2 * h3 - q3 * h2
+        cross = m01 * m01 + m02 * m02 + m03 * m03 + m12 * m12 + m13 * m13 + m23 * m23
+        n2 = q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3
+        hh = h0 * h0 + h1 * h1 + h2 * h2 + h3 * h3
+        mr = cross > t1 * n2 * hh
+        v0, v1, v2 = s[3 * m], s[3 * m + 1], s[3 * m + 2]
+        ms = ((v0 > hs0[m] * t2) | (v0 < hs0[m] * t3) | (v1 > hs1[m] * t2) | (v1 < hs1[m] * t3)
+              | (v2 > hs2[m] * t2) | (v2 < hs2[m] * t3))
+        flags[m] = np.uint8(mp) | (np.uint8(mr) << 1) | (np.uint8(ms) << 2)
 
 
 @nb.njit(**_NB)
-def _split_positions(ids, sel, moved, n, held_p, out_pos, out_wide, out_res):
-    """The n_p new position codes out_pos[:n_p] (in selection order) into int8 changes from the held codes
-    (out_res) and whole codes (wide: compacted in place to the front of out_pos); the held codes updated.
-    Returns w, the number sent whole.
+def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel, out_moved):
+    """What moved: the flags of every candidate (:func:`_flag_run` per run of rows), then, branch-free, the
+    selection (out_sel[:n], out_moved[:n]) and the lists (candidate positions) of the moved positions, rotations and
+    scales (lists[0, :n_p], [1, :n_r], [2, :n_s]). Returns (n, n_p, n_r, n_s)."""
+    pf, rf, sf = pos.reshape(-1), rot.reshape(-1), scale.reshape(-1)
+    for x in range(runs.shape[0]):
+        a, j, e = runs[x, 0], runs[x, 1], runs[x, 1] + runs[x, 2]
+        b = a + runs[x, 2]
+        _flag_run(pf[3 * a:3 * b], rf[4 * a:4 * b], sf[3 * a:3 * b], dec[0, j:e], dec[1, j:e], dec[2, j:e],
+                  dec[3, j:e], dec[4, j:e], dec[5, j:e], dec[6, j:e], dec[7, j:e], dec[8, j:e], dec[9, j:e],
+                  flags[j:e], psign, rsign, tol)
+    n = n_p = n_r = n_s = 0
+    for j in range(flags.shape[0]):  # each write lands on the next free slot; the count moves only if it belongs
+        f = flags[j]
+        out_sel[n] = j
+        out_moved[n, 0] = f & 1
+        out_moved[n, 1] = (f >> 1) & 1
+        out_moved[n, 2] = f >> 2
+        n += f != 0
+        lists[0, n_p] = j
+        n_p += f & 1
+        lists[1, n_r] = j
+        n_r += (f >> 1) & 1
+        lists[2, n_s] = j
+        n_s += f >> 2
+    return n, n_p, n_r, n_s
 
-    A pass of its own, once per frame, rather than an inlined helper in each delta kernel: an inlined
-    helper that writes into arrays it is passed cost 40 ns per position here, 5x the rest of its work."""
-    p = w = m = 0
-    for q in range(n):
-        if not moved[q, 0]:
-            continue
-        i = np.uint64(ids[sel[q]])
-        c0, c1, c2 = out_pos[p, 0], out_pos[p, 1], out_pos[p, 2]
+
+@nb.njit(**_NB)
+def _positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos):
+    """The moved positions (candidates moved[:n_p]): their codes (q13, else f16 bits), split into int8 changes from
+    the held codes (out_res) and whole codes (out_wide set, out_pos); held codes and decodings updated. Returns (w,
+    the number sent whole; ok: False if an f16 value is NaN, infinite or beyond +-65504)."""
+    w = m = 0
+    ok = True
+    for x in range(n_p):
+        j = np.uint64(moved[x])  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
+        r, i = np.uint64(rows[j]), np.uint64(ids[j])
+        v0, v1, v2 = pos[r, 0] * psign[0], pos[r, 1] * psign[1], pos[r, 2] * psign[2]
+        if q13:
+            c0, c1, c2 = _q13_pos_code(v0, lo[0], k[0]), _q13_pos_code(v1, lo[1], k[1]), _q13_pos_code(v2, lo[2], k[2])
+            dec[0, j] = np.float32(lo[0] + np.float64(c0) * step[0])
+            dec[1, j] = np.float32(lo[1] + np.float64(c1) * step[1])
+            dec[2, j] = np.float32(lo[2] + np.float64(c2) * step[2])
+        else:
+            ok &= abs(v0) <= F16_MAX and abs(v1) <= F16_MAX and abs(v2) <= F16_MAX
+            c0, c1, c2 = f32_to_f16_bits(v0), f32_to_f16_bits(v1), f32_to_f16_bits(v2)
+            dec[0, j], dec[1, j], dec[2, j] = f16_bits_to_f32(c0), f16_bits_to_f32(c1), f16_bits_to_f32(c2)
         d0 = np.int32(c0) - np.int32(held_p[i, 0])
         d1 = np.int32(c1) - np.int32(held_p[i, 1])
         d2 = np.int32(c2) - np.int32(held_p[i, 2])
         wide = d0 < -128 or d0 > 127 or d1 < -128 or d1 > 127 or d2 < -128 or d2 > 127
-        out_wide[p] = wide
-        if wide:  # w <= p: the front of out_pos is already read
-            out_pos[w, 0] = c0
-            out_pos[w, 1] = c1
-            out_pos[w, 2] = c2
+        out_wide[x] = wide
+        if wide:
+            out_pos[w, 0], out_pos[w, 1], out_pos[w, 2] = c0, c1, c2
             w += 1
         else:
-            out_res[m, 0] = np.int8(d0)
-            out_res[m, 1] = np.int8(d1)
-            out_res[m, 2] = np.int8(d2)
+            out_res[m, 0], out_res[m, 1], out_res[m, 2] = np.int8(d0), np.int8(d1), np.int8(d2)
             m += 1
-        held_p[i, 0] = c0
-        held_p[i, 1] = c1
-        held_p[i, 2] = c2
-        p += 1
-    return w
+        held_p[i, 0], held_p[i, 1], held_p[i, 2] = c0, c1, c2
+    return w, ok
 
 
 @nb.njit(inline="always", **_NB)
@@ -571,106 +604,71 @@ def _q13_pos_code(v, lo, k):
 
 
 @nb.njit(**_NB)
-def delta_q13_kernel(pos, rot, scale, rows, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
-                     held_p, held_r, held_s, dec_p, dec_r, dec_s, out_sel, out_moved, out_wide, out_res, out_pos,
+def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
+                     held_p, held_r, held_s, dec, flags, work, out_sel, out_moved, out_wide, out_res, out_pos,
                      out_rot, out_scale):
-    """ofera_protocol.delta.delta_q13_reference in one pass over the candidates (then :func:`_split_positions` over
-    the positions sent). Returns (n, n_p, w, n_r, n_s)."""
-    n = n_p = n_r = n_s = 0
-    for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
+    """ofera_protocol.delta.delta_q13_reference: :func:`_select`, then one pass per attribute over what moved.
+    Returns (n, n_p, w, n_r, n_s)."""
+    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
+    w, _ = _positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
+                      out_pos)
+    for x in range(n_r):
+        j = np.uint64(work[1, x])
         r = np.uint64(rows[j])
-        mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
-        if not (mp or mr or ms):
-            continue
-        i = np.uint64(ids[j])
-        out_sel[n] = j
-        out_moved[n, 0] = mp
-        out_moved[n, 1] = mr
-        out_moved[n, 2] = ms
-        n += 1
-        if mp:
-            c0 = _q13_pos_code(pos[r, 0] * psign[0], lo[0], k[0])
-            c1 = _q13_pos_code(pos[r, 1] * psign[1], lo[1], k[1])
-            c2 = _q13_pos_code(pos[r, 2] * psign[2], lo[2], k[2])
-            dec_p[j, 0] = lo[0] + np.float64(c0) * step[0]
-            dec_p[j, 1] = lo[1] + np.float64(c1) * step[1]
-            dec_p[j, 2] = lo[2] + np.float64(c2) * step[2]
-            out_pos[n_p, 0], out_pos[n_p, 1], out_pos[n_p, 2] = c0, c1, c2
-            n_p += 1
-        if mr:
-            v = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
-            out_rot[n_r] = v
-            held_r[i] = v
-            n_r += 1
-            a0 = rot_lut[(v >> 20) & 1023]
-            a1 = rot_lut[(v >> 10) & 1023]
-            a2 = rot_lut[v & 1023]
-            d = 1.0 - a0 * a0
-            d = d - a1 * a1
-            d = d - a2 * a2
-            big = math.sqrt(max(d, 0.0))
-            drop = v >> 30
-            dec_r[j, 0] = big if drop == 0 else a0
-            dec_r[j, 1] = big if drop == 1 else (a0 if drop == 0 else a1)
-            dec_r[j, 2] = big if drop == 2 else (a2 if drop == 3 else a1)
-            dec_r[j, 3] = big if drop == 3 else a2
-        if ms:
-            for c in range(3):
-                code = _scale_code(scale[r, c], table)
-                out_scale[n_s, c] = np.uint8(code)
-                held_s[i, c] = np.uint8(code)
-                dec_s[j, c] = scale_lut[code]
-            n_s += 1
-    w = _split_positions(ids, out_sel, out_moved, n, held_p, out_pos, out_wide, out_res)
+        v = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
+        out_rot[x] = v
+        held_r[np.uint64(ids[j])] = v
+        a0 = rot_lut[(v >> 20) & 1023]  # the float64 decoding of ofera_protocol.delta.q13_decode_rotation64
+        a1 = rot_lut[(v >> 10) & 1023]
+        a2 = rot_lut[v & 1023]
+        d = 1.0 - a0 * a0
+        d = d - a1 * a1
+        d = d - a2 * a2
+        big = math.sqrt(max(d, 0.0))
+        drop = v >> 30
+        dec[3, j] = np.float32(big if drop == 0 else a0)
+        dec[4, j] = np.float32(big if drop == 1 else (a0 if drop == 0 else a1))
+        dec[5, j] = np.float32(big if drop == 2 else (a2 if drop == 3 else a1))
+        dec[6, j] = np.float32(big if drop == 3 else a2)
+    for x in range(n_s):
+        j = np.uint64(work[2, x])
+        r, i = np.uint64(rows[j]), np.uint64(ids[j])
+        for c in range(3):
+            code = _scale_code(scale[r, c], table)
+            out_scale[x, c] = np.uint8(code)
+            held_s[i, c] = np.uint8(code)
+            dec[7 + c, j] = np.float32(scale_lut[code])
     return n, n_p, w, n_r, n_s
 
 
 @nb.njit(**_NB)
-def delta_f16_kernel(pos, rot, scale, rows, ids, psign, rsign, tol, held_p, held_r, held_s, dec_p, dec_r, dec_s,
+def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p, held_r, held_s, dec, flags, work,
                      out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
-    """ofera_protocol.delta.delta_f16_reference in one pass (then :func:`_split_positions`). Returns (n, n_p, w,
+    """ofera_protocol.delta.delta_f16_reference: :func:`_select`, then one pass per attribute. Returns (n, n_p, w,
     n_r, n_s, ok); ok False if a value sent is NaN, infinite or beyond +-65504."""
-    n = n_p = n_r = n_s = 0
-    ok = True
-    for j in range(np.uint64(rows.shape[0])):  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
-        r = np.uint64(rows[j])
-        mp, mr, ms = _moved(pos, rot, scale, r, j, psign, rsign, tol, dec_p, dec_r, dec_s)
-        if not (mp or mr or ms):
-            continue
-        i = np.uint64(ids[j])
-        out_sel[n] = j
-        out_moved[n, 0] = mp
-        out_moved[n, 1] = mr
-        out_moved[n, 2] = ms
-        n += 1
-        if mp:
-            v0, v1, v2 = pos[r, 0] * psign[0], pos[r, 1] * psign[1], pos[r, 2] * psign[2]
-            ok &= abs(v0) <= F16_MAX and abs(v1) <= F16_MAX and abs(v2) <= F16_MAX
-            c0, c1, c2 = f32_to_f16_bits(v0), f32_to_f16_bits(v1), f32_to_f16_bits(v2)
-            dec_p[j, 0] = np.float64(f16_bits_to_f32(c0))
-            dec_p[j, 1] = np.float64(f16_bits_to_f32(c1))
-            dec_p[j, 2] = np.float64(f16_bits_to_f32(c2))
-            out_pos[n_p, 0], out_pos[n_p, 1], out_pos[n_p, 2] = c0, c1, c2
-            n_p += 1
-        if mr:
-            for c in range(4):
-                v = rot[r, c] * rsign[c]
-                ok &= abs(v) <= F16_MAX
-                h = f32_to_f16_bits(v)
-                out_rot[n_r, c] = h
-                held_r[i, c] = h
-                dec_r[j, c] = np.float64(f16_bits_to_f32(h))
-            n_r += 1
-        if ms:
-            for c in range(3):
-                v = scale[r, c]
-                ok &= abs(v) <= F16_MAX
-                h = f32_to_f16_bits(v)
-                out_scale[n_s, c] = h
-                held_s[i, c] = h
-                dec_s[j, c] = np.float64(f16_bits_to_f32(h))
-            n_s += 1
-    w = _split_positions(ids, out_sel, out_moved, n, held_p, out_pos, out_wide, out_res)
+    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
+    w, ok = _positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
+                       out_res, out_pos)
+    for x in range(n_r):
+        j = np.uint64(work[1, x])
+        r, i = np.uint64(rows[j]), np.uint64(ids[j])
+        for c in range(4):
+            v = rot[r, c] * rsign[c]
+            ok &= abs(v) <= F16_MAX
+            h = f32_to_f16_bits(v)
+            out_rot[x, c] = h
+            held_r[i, c] = h
+            dec[3 + c, j] = f16_bits_to_f32(h)
+    for x in range(n_s):
+        j = np.uint64(work[2, x])
+        r, i = np.uint64(rows[j]), np.uint64(ids[j])
+        for c in range(3):
+            v = scale[r, c]
+            ok &= abs(v) <= F16_MAX
+            h = f32_to_f16_bits(v)
+            out_scale[x, c] = h
+            held_s[i, c] = h
+            dec[7 + c, j] = f16_bits_to_f32(h)
     return n, n_p, w, n_r, n_s, ok
 
 
@@ -704,29 +702,22 @@ def delta_masks_kernel(ids, sel, moved, wide, n, n_p, changed, out_mp, out_mr, o
 
 
 def delta_kernel_warm() -> None:
-    """Compile the delta kernels for writable and read-only float32 state arrays."""
-    from ofera_protocol.delta import ROT_FIELD64
+    """Compile the delta kernels for writable and read-only float32 state arrays: a key and a delta frame of a
+    two-Gaussian encoder per encoding (the encoder's own argument types)."""
+    from ofera_protocol import make_quant
 
     k = NumbaKernels()
-    thr = np.exp(np.linspace(-9, -2, SCALE_LEVELS)).astype(np.float32)
-    lut = np.exp(np.linspace(-9, -2, 256))
-    tol = np.array([1e-10, 0.99, 1.02, 0.98])
     for readonly in (False, True):
         p, r, s = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32), np.full((2, 3), 1e-3, np.float32)
-        r[:, 3] = 1
-        for a in (p, r, s):
+        p[1], r[:, 3] = 0.1, 1
+        moved = p + np.float32(0.01), r[::-1].copy(), s * np.float32(2)
+        for a in (p, r, s, *moved):
             a.flags.writeable = not readonly
-        rows = ids = np.arange(2, dtype=np.int64)
-        o = (np.zeros(2, np.int64), np.zeros((2, 3), bool), np.zeros(2, bool), np.zeros((2, 3), np.int8),
-             np.zeros((2, 3), np.uint16))
-        k.delta_q13(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), np.zeros(3), np.ones(3),
-                    np.ones(3), thr, lut, ROT_FIELD64, tol, np.zeros((2, 3), np.uint16), np.zeros(2, np.uint32),
-                    np.zeros((2, 3), np.uint8), np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o,
-                    np.zeros(2, np.uint32), np.zeros((2, 3), np.uint8))
-        k.delta_f16(p, r, s, rows, ids, np.ones(3, np.float32), np.ones(4, np.float32), tol,
-                    np.zeros((2, 3), np.uint16), np.zeros((2, 4), np.uint16), np.zeros((2, 3), np.uint16),
-                    np.zeros((2, 3)), np.zeros((2, 4)), np.zeros((2, 3)), *o, np.zeros((2, 4), np.uint16),
-                    np.zeros((2, 3), np.uint16))
+        for encoding in ("q13", "f16"):
+            fmt = FrameFormat(encoding, 2, False, make_quant(p, s) if encoding == "q13" else None, delta=True)
+            enc = DeltaEncoder(fmt, kernels=k)
+            enc.encode(0, 0, {}, p, r, s)
+            enc.encode(1, 0, {}, *moved)
     k.delta_masks(2, np.arange(2, dtype=np.int64), np.arange(2, dtype=np.int64), np.ones((2, 3), bool),
                   np.zeros(2, bool), 2, 2)
 
