@@ -18,8 +18,9 @@ reference encoder (:mod:`ofera_protocol.encodings`) exactly; tests compare them.
   (:func:`scale_table`), so no float32 logarithm has to match numpy's.
 
 Temporal deltas (PROTOCOL.md 7.1): :func:`delta_q13_kernel` / :func:`delta_f16_kernel` do the selection of
-``ofera_protocol.delta`` in one pass over the movable Gaussians (same float64 operations in the same order,
-so the same Gaussians are selected), encode them and update the codes the client holds.
+``ofera_protocol.delta`` (same float32 operations in the same order, so the same Gaussians are selected) in SIMD
+lanes over each run of consecutive movable rows (:func:`_flag_run`), compact what moved into per-attribute
+lists without a branch, then encode each attribute in a pass of its own and update the codes the client holds.
 The client-side decoder is in ``ofera.client.fast_decode``.
 """
 
