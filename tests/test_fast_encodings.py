@@ -24,7 +24,7 @@ from ofera_protocol import (
     encode_frame,
     to_coords,
 )
-from ofera_protocol.delta import DeltaDecoder, DeltaEncoder, DeltaTolerance
+from ofera_protocol.delta import HELD_ROTATION, DeltaDecoder, DeltaEncoder, DeltaTolerance
 from ofera_protocol.encodings import (
     F16_ROTATION_ERROR,
     Q13_ROTATION_ERROR,
@@ -643,3 +643,35 @@ def test_branch_free_q13_positions_equal_the_plain_loop(kernels, gathered) -> No
         q13_position_kernel(src, gather, n, sign, lo, k, a)
         q13_position_kernel_reference(src, gather, n, sign, lo, k, b)
         assert np.array_equal(a, b)
+
+
+def test_delta_rotation_rule_holds_its_threshold_in_float32() -> None:
+    """The float32 rotation test (Lagrange's identity, ofera_protocol.delta) decides like the exact angle between the
+    float32 rotations, computed in float64, for every angle more than 2e-5 of the threshold away from it (the
+    (h . q)^2 < cos^2 form in float32 errs up to 1 % away)."""
+    from ofera_protocol.delta import _moved
+
+    rng = np.random.default_rng(12)
+    tol, n = DeltaTolerance(), 20000
+    limit = math.radians(tol.rotation_deg)
+    h = rng.normal(size=(n, 4))
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    theta = limit * (1 + rng.choice([-1, 1], n) * 10 ** rng.uniform(-6, -1, n))
+    w, v = np.cos(theta / 2), np.sin(theta / 2)[:, None] * axis  # q = h (x) exp(theta / 2 axis), (x, y, z, w)
+    qv = h[:, 3:] * v + w[:, None] * h[:, :3] + np.cross(h[:, :3], v)
+    q = np.concatenate([qv, (h[:, 3] * w - np.sum(h[:, :3] * v, axis=1))[:, None]], axis=1).astype(np.float32)
+    h32 = h.astype(np.float32)
+    q64, h64 = q.astype(np.float64), h32.astype(np.float64)
+    dot = np.abs(np.sum(q64 * h64, axis=1))
+    angle = 2 * np.arctan2(np.sqrt(np.maximum(np.sum(q64**2, 1) * np.sum(h64**2, 1) - dot**2, 0)), dot)
+    dec = np.ones((10, n), np.float32)
+    dec[HELD_ROTATION] = h32.T
+    ones = np.ones(4, np.float32)
+    got = _moved(np.ones((n, 3), np.float32), q, np.ones((n, 3), np.float32), np.arange(n), ones[:3], ones,
+                 tol.params(), dec)
+    clear = np.abs(angle / limit - 1) > 2e-5
+    assert clear.sum() > n * 0.7 and 0 < got[:, 1].sum() < n
+    np.testing.assert_array_equal(got[clear, 1], angle[clear] > limit)
+    assert not got[:, 0].any() and not got[:, 2].any()
