@@ -332,16 +332,19 @@ def moving(rng, n, frames, candidates):
 
 @pytest.mark.parametrize("enc", ["f16", "q13"])
 @pytest.mark.parametrize("coords", ["flame", "unity"])
-def test_delta_kernels_equal_the_reference(kernels, enc, coords) -> None:
-    """The numba delta kernels select, encode and hold exactly what the numpy reference does: same bytes."""
+@pytest.mark.parametrize("gathered", [False, True])
+def test_delta_kernels_equal_the_reference(kernels, enc, coords, gathered) -> None:
+    """The numba delta kernels select, encode and hold exactly what the numpy reference does: same bytes, for a
+    session of the whole state and for one of a subset of its rows (short runs of consecutive rows)."""
     rng = np.random.default_rng(5)
     n = 3000
+    gather = np.sort(rng.choice(2 * n, n, replace=False)).astype(np.int64) if gathered else None
     cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
-    frames = moving(rng, n, 25, cand)
+    frames = moving(rng, 2 * n if gathered else n, 25, cand if gather is None else gather[cand])
     quant = make_quant(frames[0][0], frames[0][2])
     fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
-    ref = DeltaEncoder(fmt, coords, None, cand, key_interval=10)
-    fast = delta_encoder(fmt, coords, None, cand, key_interval=10)
+    ref = DeltaEncoder(fmt, coords, gather, cand, key_interval=10)
+    fast = delta_encoder(fmt, coords, gather, cand, key_interval=10)
     sizes, whole, narrow = [], 0, 0
     for f, (p, r, s) in enumerate(frames):
         a, b = ref.encode(f, 1, TIMING, p, r, s), fast.encode(f, 1, TIMING, p, r, s)

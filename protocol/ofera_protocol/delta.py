@@ -18,7 +18,7 @@ the client's error is at most max(tolerance, the encoding's own error) after any
 frame that is never sent (newest-wins drop) changes nothing on either side.
 
 The selection arithmetic (all float32, +, -, * and comparisons in a fixed order, so numba reproduces it bit for
-bit, SIMD lanes included), per attribute, against the held codes' decodings h (float32, what the client decodes)::
+bit, SIMD lanes included), per attribute, against the held codes' decodings h (rounded to float32)::
 
     position moved  |p - h_p|^2 > T_p^2
     rotation moved  sum over i < j of (q_i h_j - q_j h_i)^2 > sin^2(T_r / 2) |q|^2 |h_r|^2
@@ -69,9 +69,6 @@ class DeltaTolerance:
         """(4,) float32 given to the kernels: [T_p^2, sin^2(T_r / 2), e^{T_s}, e^{-T_s}]."""
         return np.array([self.position_m ** 2, math.sin(math.radians(self.rotation_deg) / 2) ** 2,
                          math.exp(self.log_scale), math.exp(-self.log_scale)], np.float32)
-
-
-# ----------------------------------------------------------------------------- bitmasks
 
 
 # ----------------------------------------------------------------------------- decoded codes
