@@ -678,3 +678,38 @@ def test_delta_rotation_rule_holds_its_threshold_in_float32() -> None:
     assert clear.sum() > n * 0.7 and 0 < got[:, 1].sum() < n
     np.testing.assert_array_equal(got[clear, 1], angle[clear] > limit)
     assert not got[:, 0].any() and not got[:, 2].any()
+
+
+@pytest.mark.parametrize("layout", ["contiguous", "strided", "gathered"])
+def test_q13_rotation_and_position_kernels_equal_the_reference_on_every_path(kernels, layout) -> None:
+    """q13_rotation_kernel / q13_position_kernel give NumpyKernels' codes on each of their loops: the flat
+    (vectorised) one for C-contiguous state, the row one for a strided view, the gathered one."""
+    rng = np.random.default_rng(13)
+    pos, rot, _ = state(rng)
+    rot[20:40] = np.float32([0.5, -0.5, 0.5, -0.5])  # ties between the largest components
+    rot[40:60, 1] = rot[40:60, 3] = np.float32(math.sqrt(0.5))
+    rot[40:60, 0] = rot[40:60, 2] = 0
+    if layout == "strided":
+        wide = np.zeros((N, 5), np.float32)
+        wide[:, :4] = rot
+        rot = wide[:, :4]
+        widep = np.zeros((N, 4), np.float32)
+        widep[:, :3] = pos
+        pos = widep[:, :3]
+        assert not rot.flags.c_contiguous and not pos.flags.c_contiguous
+    gather = rng.permutation(N)[: N // 2].astype(np.int64) if layout == "gathered" else None
+    n = N if gather is None else gather.size
+    quant = make_quant(pos[np.isfinite(pos).all(1)], np.ones((1, 3)))
+    from ofera_protocol.fast_encodings import position_factors
+
+    lo, k = position_factors(quant)
+    for sign4, sign3 in ((np.ones(4, np.float32), np.ones(3, np.float32)),
+                         (np.float32([1, -1, -1, 1]), np.float32([-1, 1, 1]))):
+        a, b = np.zeros(n, np.uint32), np.ones(n, np.uint32)
+        kernels.q13_rotation(rot, gather, sign4, a)
+        NumpyKernels().q13_rotation(rot, gather, sign4, b)
+        np.testing.assert_array_equal(a, b)
+        c, d = np.zeros(3 * n, np.uint16), np.ones(3 * n, np.uint16)
+        kernels.q13_position(pos, gather, sign3, lo, k, c)
+        NumpyKernels().q13_position(pos, gather, sign3, lo, k, d)
+        np.testing.assert_array_equal(c, d)

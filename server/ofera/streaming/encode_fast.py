@@ -220,15 +220,16 @@ def _pos_code(v, lo, k):
 @nb.njit(**_NB)
 def q13_position_kernel(src, gather, count, sign, lo, k, dst):
     """:func:`q13_position_kernel_reference` with the axes unrolled, the gather test hoisted and no branch in
-    the loop (it vectorises); the same codes."""
+    the loop (it vectorises); the same codes. src: C-contiguous."""
     s0, s1, s2 = sign[0], sign[1], sign[2]
     l0, l1, l2 = lo[0], lo[1], lo[2]
     k0, k1, k2 = k[0], k[1], k[2]
     if gather.shape[0] == 0:
-        for m in range(count):
-            dst[3 * m] = _pos_code(src[m, 0] * s0, l0, k0)
-            dst[3 * m + 1] = _pos_code(src[m, 1] * s1, l1, k1)
-            dst[3 * m + 2] = _pos_code(src[m, 2] * s2, l2, k2)
+        flat = src.reshape(-1)  # src C-contiguous (NumbaKernels); flat indices: see q13_rotation_kernel
+        for m in range(np.uint64(count)):
+            dst[3 * m] = _pos_code(flat[3 * m] * s0, l0, k0)
+            dst[3 * m + 1] = _pos_code(flat[3 * m + 1] * s1, l1, k1)
+            dst[3 * m + 2] = _pos_code(flat[3 * m + 2] * s2, l2, k2)
     else:
         for m in range(count):
             r = gather[m]
@@ -254,24 +255,31 @@ def _snorm10(v):
 
 @nb.njit(inline="always", **_NB)
 def pack_rotation(x, y, z, w):
-    """One (x, y, z, w) float32 quaternion -> q13 "smallest three" uint32 (reference arithmetic)."""
+    """One (x, y, z, w) float32 quaternion -> q13 "smallest three" uint32 (reference arithmetic).
+
+    Selects only, no branch and no switch (a zero, NaN or infinite norm becomes the identity by selection; the
+    largest component is picked by comparisons, not by its index): LLVM then runs a loop of it in SIMD lanes,
+    4.4 against 16.6 ns a quaternion over the capture's rotations (measured in process)."""
     n2 = x * x
     n2 = n2 + y * y
     n2 = n2 + z * z
     n2 = n2 + w * w
-    if not (math.isfinite(n2) and n2 > 0):
-        x = np.float32(0.0)
-        y = np.float32(0.0)
-        z = np.float32(0.0)
-        w = np.float32(1.0)
-        n2 = np.float32(1.0)
+    good = (n2 > 0) & (n2 <= np.float32(F32_MAX))  # finite and positive
+    zero = np.float32(0.0)
+    x = x if good else zero
+    y = y if good else zero
+    z = z if good else zero
+    w = w if good else np.float32(1.0)
+    n2 = n2 if good else np.float32(1.0)
     a0 = abs(x)
     a1 = abs(y)
     a2 = abs(z)
     a3 = abs(w)
     upper = max(a2, a3) > max(a0, a1)
-    i = np.uint32(2 * upper + ((upper and a3 > a2) or ((not upper) and a1 > a0)))
-    big = x if i == 0 else (y if i == 1 else (z if i == 2 else w))
+    hi = a3 > a2
+    lo = a1 > a0
+    i = np.uint32(2 * upper) + np.uint32((upper & hi) | ((not upper) & lo))
+    big = (w if hi else z) if upper else (y if lo else x)
     f = _SQRT2_511 / np.sqrt(n2)
     f = -f if big < 0 else f
     sx = _snorm10(x * f)
@@ -287,11 +295,14 @@ def pack_rotation(x, y, z, w):
 
 @nb.njit(**_NB)
 def q13_rotation_kernel(src, gather, count, sign, dst):
-    """dst[m] = :func:`pack_rotation` of row m (the gather test hoisted out of the loop)."""
+    """dst[m] = :func:`pack_rotation` of row m (the gather test hoisted out of the loop). src: C-contiguous."""
     s0, s1, s2, s3 = sign[0], sign[1], sign[2], sign[3]
     if gather.shape[0] == 0:
-        for m in range(count):
-            dst[m] = pack_rotation(src[m, 0] * s0, src[m, 1] * s1, src[m, 2] * s2, src[m, 3] * s3)
+        # src C-contiguous (NumbaKernels), read by flat indices: with src[m, c], LLVM versions the loop on a unit row
+        # stride and always takes its scalar copy (2.2 against 0.46 ms for 100k rotations, measured)
+        flat = src.reshape(-1)
+        for m in range(np.uint64(count)):
+            dst[m] = pack_rotation(flat[4 * m] * s0, flat[4 * m + 1] * s1, flat[4 * m + 2] * s2, flat[4 * m + 3] * s3)
     else:
         for m in range(count):
             r = gather[m]
@@ -394,11 +405,11 @@ class NumbaKernels:
 
     def q13_position(self, src, gather, sign, lo, k, dst) -> None:
         g, n = self._g(src, gather)
-        q13_position_kernel(src, g, n, sign, lo, k, dst)
+        q13_position_kernel(np.ascontiguousarray(src), g, n, sign, lo, k, dst)  # states are; a view is copied
 
     def q13_rotation(self, src, gather, sign, dst) -> None:
         g, n = self._g(src, gather)
-        q13_rotation_kernel(src, g, n, sign, dst)
+        q13_rotation_kernel(np.ascontiguousarray(src), g, n, sign, dst)
 
     def __init__(self) -> None:
         self._tables: dict[bytes, np.ndarray | None] = {}
