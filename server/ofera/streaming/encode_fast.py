@@ -584,7 +584,7 @@ def _positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec,
         r, i = np.uint64(rows[j]), np.uint64(ids[j])
         v0, v1, v2 = pos[r, 0] * psign[0], pos[r, 1] * psign[1], pos[r, 2] * psign[2]
         if q13:
-            c0, c1, c2 = _q13_pos_code(v0, lo[0], k[0]), _q13_pos_code(v1, lo[1], k[1]), _q13_pos_code(v2, lo[2], k[2])
+            c0, c1, c2 = _pos_code(v0, lo[0], k[0]), _pos_code(v1, lo[1], k[1]), _pos_code(v2, lo[2], k[2])
             dec[0, j] = np.float32(lo[0] + np.float64(c0) * step[0])
             dec[1, j] = np.float32(lo[1] + np.float64(c1) * step[1])
             dec[2, j] = np.float32(lo[2] + np.float64(c2) * step[2])
@@ -605,14 +605,6 @@ def _positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec,
             m += 1
         held_p[i, 0], held_p[i, 1], held_p[i, 2] = c0, c1, c2
     return w, ok
-
-
-@nb.njit(inline="always", **_NB)
-def _q13_pos_code(v, lo, k):
-    q = (np.float64(v) - lo) * k
-    if abs(q) < 2.0**50:
-        q = _rint(q)
-    return np.uint16(min(max(q, 0.0), POS_LEVELS))
 
 
 @nb.njit(**_NB)
@@ -659,6 +651,7 @@ def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p
     """ofera_protocol.delta.delta_f16_reference: :func:`_select`, then one pass per attribute. Returns (n, n_p, w,
     n_r, n_s, ok); ok False if a value sent is NaN, infinite or beyond +-65504."""
     n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
+    # f16: lo, k, step unused (psign stands in)
     w, ok = _positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
                        out_res, out_pos)
     for x in range(n_r):
