@@ -472,7 +472,8 @@ def bad_delta_frames(good: dict) -> list[dict]:
 
 
 def test_fast_delta_masks_equal_the_codecs(kernels) -> None:
-    """FastFrameDecoder's numba masks give codec.delta_masks' arrays and counts on random valid masks."""
+    """FastFrameDecoder's numba masks give codec.delta_masks' arrays and counts on random valid masks, and the
+    rows that carry each attribute."""
     from ofera.client.fast_decode import FastFrameDecoder, unpack_delta_masks_kernel
     from ofera_protocol.codec import delta_masks, pack_bits
 
@@ -492,12 +493,15 @@ def test_fast_delta_masks_equal_the_codecs(kernels) -> None:
                     enumerate(("moved_position", "moved_rotation", "moved_scale"))}}
             bins = [np.frombuffer(m[k], np.uint8) for k in
                     ("changed", "moved_position", "moved_rotation", "moved_scale", "wide")]
-            assert unpack_delta_masks_kernel(bins[0], count, n, *bins[1:], np.zeros(count, np.uint32),
-                                      np.zeros((n, 3), bool), np.zeros((n, 1), bool))[0]  # the kernel's own result
+            lists = np.zeros((3, count + 8), np.uint32)
+            assert unpack_delta_masks_kernel(bins[0], count, n, *bins[1:], np.zeros(count + 8, np.uint32),
+                                             np.zeros((3, count + 8), bool), lists, np.zeros(count + 8, bool))[0]
             want, got = delta_masks(m, fmt), fast._masks(m, fmt)
             for a, b in zip(want[:3], got[:3], strict=True):
                 np.testing.assert_array_equal(a, b)
             assert want[3] == got[3]
+            for c in range(3):  # the rows carrying each attribute, which the apply kernel reads
+                np.testing.assert_array_equal(lists[c, :want[3][c]], np.flatnonzero(want[1][:, c]))
 
 
 def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
@@ -546,6 +550,33 @@ def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
     got = dec.apply(decode_server_message(pack_map(good), fmt))
     assert got.index.tolist() == [0] and dec.position[0].tolist() == [15, 7, 11] and dec.scale[0].tolist() == [7, 8, 9]
     assert dec.rotation[0] == 3 << 30
+
+
+def test_fast_delta_decoder_refuses_an_f16_change_to_infinity_like_the_reference(kernels) -> None:
+    """A narrow f16 position change that lands on an infinite half (0x7BFF + 1) is refused by both decoders with
+    non_finite, and neither changes what it holds."""
+    from ofera.client.fast_decode import FastFrameDecoder
+    from ofera_protocol import ProtocolError
+    from ofera_protocol.codec import pack_map
+
+    fmt = FrameFormat("f16", 20, False, None, delta=True)
+    one, zero = np.ones(1, np.uint8), np.zeros(1, np.uint8)
+    bad = {"type": "frame", "seq": 2, "t": 0, "timing": {}, "key": False, "n": 1,
+           "changed": np.array([0, 1, 0], np.uint8), "moved_position": one, "moved_rotation": zero,
+           "moved_scale": zero, "wide": zero, "position_delta": np.array([[1, 0, 0]], np.int8),
+           "position": np.zeros((0, 3), "<f2"), "rotation": np.zeros((0, 4), "<f2"), "scale": np.zeros((0, 3), "<f2")}
+    ref, fast = DeltaDecoder(fmt), FastFrameDecoder(fmt)
+    for held in (ref, fast.delta):
+        held.has_key = True
+        held.position[8] = [0x7BFF, 7, 7]
+    with pytest.raises(ProtocolError) as want:
+        ref.apply(decode_server_message(pack_map(bad), fmt))
+    with pytest.raises(ProtocolError) as got:
+        fast.decode(pack_map(bad))
+    assert got.value.code == want.value.code == "non_finite"
+    assert fast.delta.position[8].tolist() == [0x7BFF, 7, 7] and not fast.delta.position[9:].any()
+    ok = fast.decode(pack_map(dict(bad, position_delta=np.array([[-1, 0, 0]], np.int8))))
+    assert ok.index.tolist() == [8] and ok.position[0, 0] == np.float32(np.uint16(0x7BFE).view(np.float16))
 
 
 @pytest.mark.parametrize("enc", ["f32", "f16", "q13"])

@@ -69,111 +69,178 @@ def _q13_rotation_into(v, out, j):
 
 
 @nb.njit(**_NB)
-def delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, held_p, held_r, held_s, lo, step, lut,
-                       out_p, out_r, out_s):
-    """A checked DeltaFrame (PROTOCOL.md 7.1) onto the held codes: pass 1 checks every narrow change (0 = ok, 1 = a
-    code outside 0..65535, 2 = an f16 position NaN / infinite) and changes nothing on failure; pass 2 holds the new
-    codes and decodes the carried Gaussians into out_* (n, 3 / 4 / 3) float32. q13: held_r (count,) uint32 and
-    held_s (count, 3) uint8 (viewed as rot / scl); f16: every code uint16, rot (n_r, 4), scl (n_s, 3)."""
-    p = 0
-    k = 0
-    for j in range(ids.shape[0]):
-        if moved[j, 0]:
-            if not wide[p]:
-                i = np.uint64(ids[j])  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
-                for c in range(3):
-                    v = np.int32(held_p[i, c]) + np.int32(res[k, c])
-                    if v < 0 or v > 65535:
-                        return 1
-                    if not q13 and (v & 0x7C00) == 0x7C00:
-                        return 2
-                k += 1
-            p += 1
-    p = k = w = r = s = 0
-    for j in range(ids.shape[0]):
-        i = np.uint64(ids[j])
-        if moved[j, 0]:
-            if wide[p]:
-                for c in range(3):
-                    held_p[i, c] = wpos[w, c]
-                w += 1
-            else:
-                for c in range(3):
-                    held_p[i, c] = np.uint16(np.int32(held_p[i, c]) + np.int32(res[k, c]))
-                k += 1
-            p += 1
-        if moved[j, 1]:
-            if q13:
-                held_r[i, 0] = rot[r, 0]
-            else:
-                for c in range(4):
-                    held_r[i, c] = rot[r, c]
-            r += 1
-        if moved[j, 2]:
-            for c in range(3):
-                held_s[i, c] = scl[s, c]
-            s += 1
-        for c in range(3):
-            if q13:
-                out_p[j, c] = np.float32(lo[c] + np.float64(held_p[i, c]) * step[c])
-                out_s[j, c] = lut[held_s[i, c]]
-            else:
-                out_p[j, c] = f16_bits_to_f32(np.uint16(held_p[i, c]))
-                out_s[j, c] = f16_bits_to_f32(np.uint16(held_s[i, c]))
-        if q13:
-            _q13_rotation_into(np.uint32(held_r[i, 0]), out_r, j)
-        else:
-            for c in range(4):
-                out_r[j, c] = f16_bits_to_f32(np.uint16(held_r[i, c]))
+def delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot, scl, held_p, held_r, held_s, lo, step,
+                       lut, out_p, out_r, out_s):
+    """A checked DeltaFrame (PROTOCOL.md 7.1) onto the held codes. Every array is flat (C order): ids (n,) the
+    changed Gaussians; lists (4, >= n) the rows j carrying a position / rotation / scale (n_p, n_r, n_s of them:
+    unpack_delta_masks_kernel), then scratch; wide (n_p,) bool, nw of them set; res (3 (n_p - nw),) int8; wpos
+    (3 nw,), rot (n_r rw,), scl (3 n_s,)
+    the codes sent whole; held_p (3 count,) uint16, held_r (rw count,), held_s (3 count,) the held codes (q13:
+    rw = 1, uint32 rotations, uint8 scales; f16: rw = 4, every code uint16). Pass 1 checks every narrow change
+    (0 = ok, 1 = a code outside 0..65535, 2 = an f16 position NaN / infinite) and changes nothing on failure; pass
+    2 holds the new codes; pass 3 decodes the n carried Gaussians into out_p (3 n,), out_r (4 n,), out_s (3 n,)
+    float32. Unsigned indices throughout (no wrap-around code: see ofera.avatar.kernels)."""
+    three, rw = np.uint64(3), np.uint64(1 if q13 else 4)
+    narrow = lists[0, :n_p]  # the rows carrying a narrow position: all of them unless some are wide
+    if nw:
+        narrow = lists[3]
+        q = np.uint64(0)
+        for p in range(np.uint64(n_p)):  # branch-free compaction
+            narrow[q] = lists[0, p]
+            q += np.uint64(not wide[p])
+    out = np.int32(0)  # any bit above 15 (or the sign) set: a code outside 0..65535
+    nan = np.int32(0)
+    for q in range(np.uint64(n_p - nw)):
+        i = three * np.uint64(ids[narrow[q]])
+        for c in range(three):
+            v = np.int32(held_p[i + c]) + np.int32(res[three * q + c])
+            out |= v
+            nan |= np.int32((v & 0x7C00) == 0x7C00)
+    if out >> 16:
+        return 1
+    if nan and not q13:
+        return 2
+    for q in range(np.uint64(n_p - nw)):
+        i = three * np.uint64(ids[narrow[q]])
+        for c in range(three):
+            held_p[i + c] = np.uint16(np.int32(held_p[i + c]) + np.int32(res[three * q + c]))
+    w = np.uint64(0)
+    for p in range(np.uint64(n_p) if nw else np.uint64(0)):
+        if wide[p]:
+            i = three * np.uint64(ids[lists[0, p]])
+            for c in range(three):
+                held_p[i + c] = wpos[three * w + c]
+            w += np.uint64(1)
+    for r in range(np.uint64(n_r)):
+        i = rw * np.uint64(ids[lists[1, r]])
+        for c in range(rw):
+            held_r[i + c] = rot[rw * r + c]
+    for t in range(np.uint64(n_s)):
+        i = three * np.uint64(ids[lists[2, t]])
+        for c in range(three):
+            held_s[i + c] = scl[three * t + c]
+    if q13:
+        _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
+    else:
+        _f16_gathered(ids, held_p, held_r, held_s, out_p, out_r, out_s)
     return 0
 
 
-@nb.njit(inline="always", **_NB)
-def _unpack_mask(buf, n, out, col):
-    """Bits 0..n-1 of buf (LSB first) into out[:n, col]; the number set, or -1 if buf's length is not ceil(n / 8)
-    or a padding bit is set."""
-    if buf.shape[0] != (n + 7) // 8:
-        return -1
-    if n & 7 and buf[n >> 3] >> (n & 7):
-        return -1
-    ones = 0
-    for j in range(n):
-        b = (buf[j >> 3] >> (j & 7)) & 1
-        out[j, col] = b
-        ones += b
-    return ones
+@nb.njit(**_NB)
+def _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
+    """Held q13 codes of rows ids -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic). The rotation's
+    four components are stored by computed slot (the largest at its index, the three small ones around it in
+    order): selects on the index compile to branches here, which random indices mispredict (2.3x the time)."""
+    kf = np.float32(math.sqrt(0.5) / ROT_LEVELS)
+    one, three, four = np.uint64(1), np.uint64(3), np.uint64(4)
+    for j in range(np.uint64(ids.shape[0])):
+        i = np.uint64(ids[j])
+        for c in range(three):
+            out_p[three * j + c] = np.float32(lo[c] + np.float64(held_p[three * i + c]) * step[c])
+            out_s[three * j + c] = lut[held_s[three * i + c]]
+        v = held_r[i]
+        a0 = _q13_field(v, 20) * kf
+        a1 = _q13_field(v, 10) * kf
+        a2 = _q13_field(v, 0) * kf
+        d = a0 * a0
+        d = d + a1 * a1
+        d = d + a2 * a2
+        b, big = four * j, np.uint64(v >> np.uint32(30))
+        out_r[b + np.uint64(big < one)] = a0
+        out_r[b + one + np.uint64(big <= one)] = a1
+        out_r[b + np.uint64(2) + np.uint64(big <= np.uint64(2))] = a2
+        out_r[b + big] = np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
 
 
 @nb.njit(**_NB)
-def unpack_delta_masks_kernel(changed, count, n, mpos, mrot, mscale, wide_bits, index, moved, wide):
-    """A delta frame's masks (PROTOCOL.md 7.1) unpacked and checked in one go: the changed Gaussians into index
-    (count,) uint32, the moved bits into moved (n, 3) bool, the wide bits into wide (n, 1) bool. Returns (ok,
-    n_p, n_r, n_s, wide ones); ok False for any fault codec.delta_masks reports (it then names it)."""
-    if changed.shape[0] != (count + 7) // 8 or (count & 7 and changed[count >> 3] >> (count & 7)):
+def _f16_gathered(ids, held_p, held_r, held_s, out_p, out_r, out_s):
+    """Held f16 codes of rows ids -> float32."""
+    three, four = np.uint64(3), np.uint64(4)
+    for j in range(np.uint64(ids.shape[0])):
+        i = np.uint64(ids[j])
+        for c in range(three):
+            out_p[three * j + c] = f16_bits_to_f32(np.uint16(held_p[three * i + c]))
+            out_s[three * j + c] = f16_bits_to_f32(np.uint16(held_s[three * i + c]))
+        for c in range(four):
+            out_r[four * j + c] = f16_bits_to_f32(np.uint16(held_r[four * i + c]))
+
+
+def _bit_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For every byte value: its 8 bits LSB first as 8 bools in one little-endian uint64 (256,), the positions of
+    its set bits first (256, 8) uint32 (the rest 0), and how many are set (256,) uint64."""
+    bits = ((np.arange(256)[:, None] >> np.arange(8)) & 1).astype(bool)
+    where = np.zeros((256, 8), np.uint32)
+    for v in range(256):
+        on = np.flatnonzero(bits[v])
+        where[v, :on.size] = on
+    return bits.view("<u8")[:, 0].copy(), where, bits.sum(axis=1).astype(np.uint64)
+
+
+BITS8, SET_BITS, ONES = _bit_tables()
+
+
+@nb.njit(inline="always", **_NB)
+def _padding_ok(buf, n):
+    """buf holds ceil(n / 8) bytes and no bit past n is set."""
+    return buf.shape[0] == (n + 7) // 8 and not (n & 7 and buf[n >> 3] >> (n & 7))
+
+
+@nb.njit(inline="always", **_NB)
+def _set_bits(buf, out):
+    """The positions of buf's set bits (LSB first) into out (>= their number + 8 long: written without a branch,
+    8 per byte, the next byte's overwriting the unset). Returns the number set. (Unsigned counters: a signed index
+    costs a wrap-around select per store, 2.5x the time.)"""
+    k = np.uint64(0)
+    for b in range(np.uint64(buf.shape[0])):
+        v = buf[b]
+        base = np.uint32(8 * b)
+        for t in range(np.uint64(8)):
+            out[k + t] = base + SET_BITS[v, t]
+        k += ONES[v]
+    return k
+
+
+@nb.njit(inline="always", **_NB)
+def _unpack_bits(buf, out):
+    """buf's bits (LSB first) into out (>= len(buf),) uint64, 8 bools per word (a bool array's memory). Returns the
+    number set."""
+    k = np.uint64(0)
+    for b in range(np.uint64(buf.shape[0])):
+        out[b] = BITS8[buf[b]]
+        k += ONES[buf[b]]
+    return k
+
+
+@nb.njit(**_NB)
+def unpack_delta_masks_kernel(changed, count, n, mpos, mrot, mscale, wide_bits, index, moved, lists, wide):
+    """A delta frame's masks (PROTOCOL.md 7.1) unpacked and checked in one go, 8 bits at a time by table: the
+    changed Gaussians into index (>= count + 8,) uint32; the moved bits into the rows of moved (3, >= n / 8 + 1)
+    uint64 (the memory of bool rows), the rows j that carry each into lists (3, >= n + 8) uint32; the wide bits
+    into wide (>= n / 8 + 1,) uint64 (bools).
+    Returns (ok, n_p, n_r, n_s, wide ones); ok False for any fault codec.delta_masks reports (it then names it)."""
+    if not _padding_ok(changed, count) or n > count:
         return False, 0, 0, 0, 0
-    k = 0
-    for b in range(changed.shape[0]):
-        byte = changed[b]
-        if byte == 0:
-            continue
-        for bit in range(8):
-            if (byte >> bit) & 1:
-                if k == n:
-                    return False, 0, 0, 0, 0
-                index[k] = b * 8 + bit
-                k += 1
-    if k != n:
+    if _set_bits(changed, index) != n or not (_padding_ok(mpos, n) and _padding_ok(mrot, n) and _padding_ok(mscale, n)):
         return False, 0, 0, 0, 0
-    n_p = _unpack_mask(mpos, n, moved, 0)
-    n_r = _unpack_mask(mrot, n, moved, 1)
-    n_s = _unpack_mask(mscale, n, moved, 2)
-    if n_p < 0 or n_r < 0 or n_s < 0:
-        return False, 0, 0, 0, 0
-    for j in range(n):
-        if not (moved[j, 0] or moved[j, 1] or moved[j, 2]):
+    for b in range(mpos.shape[0]):  # every changed Gaussian carries something
+        full = 255 if 8 * b + 8 <= n else (1 << (n & 7)) - 1
+        if (mpos[b] | mrot[b] | mscale[b]) != full:
             return False, 0, 0, 0, 0
-    nw = _unpack_mask(wide_bits, n_p, wide, 0)
-    return nw >= 0, n_p, n_r, n_s, nw
+    n_p = np.int64(_set_bits(mpos, lists[0]))
+    n_r = np.int64(_set_bits(mrot, lists[1]))
+    n_s = np.int64(_set_bits(mscale, lists[2]))
+    _unpack_bits(mpos, moved[0])
+    _unpack_bits(mrot, moved[1])
+    _unpack_bits(mscale, moved[2])
+    if not _padding_ok(wide_bits, n_p):
+        return False, 0, 0, 0, 0
+    return True, n_p, n_r, n_s, np.int64(_unpack_bits(wide_bits, wide))
+
+
+def _codes(a: np.ndarray) -> np.ndarray:
+    """A DeltaFrame's codes as flat unsigned integers (f16 arrays: their bits)."""
+    a = a.reshape(-1)
+    return a.view(np.uint16) if a.dtype == np.float16 else a
 
 
 _Z3 = np.zeros(3)
@@ -188,18 +255,20 @@ def decoder_warm() -> None:
     q13_decode_kernel(np.frombuffer(raw, "<u2", 6), np.frombuffer(raw, "<u4", 2), np.frombuffer(raw, np.uint8, 6),
                       np.zeros(3), np.ones(3), np.ones(256, np.float32), out3, out4, out3.copy())
     one = np.frombuffer(b"\x01", np.uint8)
-    unpack_delta_masks_kernel(one, 1, 1, one, one, one, np.frombuffer(b"\x00", np.uint8), np.zeros(1, np.uint32),
-                       np.zeros((1, 3), bool), np.zeros((1, 1), bool))
-    ids, moved, wide = np.zeros(1, np.uint32), np.ones((1, 3), bool), np.zeros(1, bool)  # ids: a DeltaFrame's index
-    res = np.frombuffer(raw, np.int8, 3).reshape(1, 3)
-    wpos = np.frombuffer(raw, "<u2", 0).reshape(0, 3)
+    index, moved, lists, wide = np.zeros(9, np.uint32), np.zeros((3, 1), np.uint64), np.zeros((4, 9), np.uint32), \
+        np.zeros(1, np.uint64)
+    unpack_delta_masks_kernel(one, 1, 1, one, one, one, np.frombuffer(b"\x00", np.uint8), index, moved, lists, wide)
+    ids = np.zeros(1, np.uint32)  # the types of a DeltaFrame's arrays (read-only views of the message)
+    res = np.frombuffer(raw, np.int8, 3)
     for q13 in (True, False):
-        rot = np.frombuffer(raw, "<u4", 1).reshape(1, 1) if q13 else np.frombuffer(raw, "<u2", 4).reshape(1, 4)
-        scl = np.frombuffer(raw, np.uint8 if q13 else "<u2", 3).reshape(1, 3)
-        held_r = np.zeros((1, 1), np.uint32) if q13 else np.zeros((1, 4), np.uint16)
-        held_s = np.zeros((1, 3), np.uint8 if q13 else np.uint16)
-        delta_apply_kernel(q13, ids, moved, wide, res, wpos, rot, scl, np.zeros((1, 3), np.uint16), held_r, held_s,
-                           np.zeros(3), np.ones(3), np.ones(256, np.float32), out3[:1], out4[:1], out3[:1].copy())
+        wpos = np.frombuffer(raw, "<u2", 3)
+        rot = np.frombuffer(raw, "<u4", 1) if q13 else np.frombuffer(raw, "<u2", 4)
+        scl = np.frombuffer(raw, np.uint8 if q13 else "<u2", 3)
+        held_r = np.zeros(1, np.uint32) if q13 else np.zeros(4, np.uint16)
+        held_s = np.zeros(3, np.uint8 if q13 else np.uint16)
+        delta_apply_kernel(q13, ids, lists, 1, 1, 1, 0, wide.view(bool)[:1], res, wpos, rot, scl,
+                           np.zeros(3, np.uint16), held_r, held_s, np.zeros(3), np.ones(3), np.ones(256, np.float32),
+                           out3[0], out4[0], out3[1])
 
 
 class FastFrameDecoder:
@@ -229,10 +298,12 @@ class FastFrameDecoder:
             lmin, lmax = float(q.log_scale[0]), float(q.log_scale[1])
             codes = np.arange(256, dtype=np.float64)
             self._lut = np.exp(lmin + codes * ((lmax - lmin) / SCALE_LEVELS)).astype(np.float32)
-        if fmt.delta:  # the masks' buffers, reused (a DeltaFrame holds views until the next frame)
-            self._index = np.zeros(n, np.uint32)
-            self._moved = np.zeros((n, 3), bool)
-            self._wide = np.zeros((n, 1), bool)
+        if fmt.delta:  # the masks' buffers, reused (a DeltaFrame holds views until the next frame); the kernels
+            self._index = np.zeros(n + 8, np.uint32)  # write 8 entries per mask byte
+            self._lists = np.zeros((4, n + 8), np.uint32)  # + the apply kernel's scratch
+            self._moved = np.zeros((3, n // 8 + 1), np.uint64)  # bools, 8 to a word
+            self._wide = np.zeros(n // 8 + 1, np.uint64)
+            self._counts = (0, 0, 0, 0)
 
     def _masks(self, m: dict, fmt: FrameFormat) -> Any:
         """codec.delta_masks by unpack_delta_masks_kernel into this decoder's buffers; the codec's own on any fault (it
@@ -248,10 +319,12 @@ class FastFrameDecoder:
         ok = n <= fmt.count
         if ok:
             ok, n_p, n_r, n_s, nw = unpack_delta_masks_kernel(bins[0], fmt.count, n, *bins[1:], self._index,
-                                                              self._moved, self._wide)
+                                                              self._moved, self._lists, self._wide)
         if not ok:
             return delta_masks(m, fmt)
-        return self._index[:n].copy(), self._moved[:n], self._wide[:n_p, 0], (n_p, n_r, n_s, nw)  # index: kept
+        self._counts = (n_p, n_r, n_s, nw)  # the rows in self._lists that _apply_delta reads
+        moved, wide = self._moved.view(bool)[:, :n].T, self._wide.view(bool)[:n_p]
+        return self._index[:n].copy(), moved, wide, (n_p, n_r, n_s, nw)  # index: kept
 
     def _apply_delta(self, d: DeltaFrame) -> Frame:
         """The numba twin of ofera_protocol.delta.DeltaDecoder.apply (same checks, same values)."""
@@ -263,13 +336,11 @@ class FastFrameDecoder:
         q13 = fmt.encoding == "q13"
         n = d.n
         p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
-        rot = d.rotation.view(np.uint32).reshape(-1, 1) if q13 else d.rotation.view(np.uint16).reshape(-1, 4)
-        scl = d.scale.view(np.uint8 if q13 else np.uint16).reshape(-1, 3)
-        held_r = dd.rotation.reshape(-1, 1) if q13 else dd.rotation
         lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
-        code = delta_apply_kernel(q13, d.index, d.moved, d.wide, d.position_delta,
-                                  d.position.view(np.uint16).reshape(-1, 3), rot, scl, dd.position, held_r, dd.scale,
-                                  lo, step, lut, p, r, s)
+        code = delta_apply_kernel(q13, d.index, self._lists, *self._counts, d.wide, d.position_delta.reshape(-1),
+                                  _codes(d.position), _codes(d.rotation), _codes(d.scale), dd.position.reshape(-1),
+                                  dd.rotation.reshape(-1), dd.scale.reshape(-1), lo, step, lut, p.reshape(-1),
+                                  r.reshape(-1), s.reshape(-1))
         if code == 1:
             raise ProtocolError(BAD_FIELD, "frame: 'position_delta' takes a code outside 0..65535")
         if code == 2:
