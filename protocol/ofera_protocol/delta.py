@@ -187,8 +187,8 @@ def delta_q13_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsig
     scale), encode it with ``kern`` (the frame kernels), write the selection (candidate positions ``out_sel[:n]``,
     ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide position
     codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``, update the held codes
-    and decodings, and return (n, n_p, w, n_r, n_s). ``runs`` and ``work`` (3, K) int32 serve the numba kernels
-    (contiguous reads, the lists of what moved); the reference needs neither."""
+    and decodings, and return (n, n_p, w, n_r, n_s). ``runs`` and ``work`` (7, K) int32 serve the numba kernels
+    (contiguous reads, the lists of what moved, a float32 scratch); the reference needs neither."""
     moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec)
     sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_sel, out_moved)
     new_p = np.empty((p_sel.size, 3), np.uint16)
@@ -319,7 +319,7 @@ class DeltaEncoder:
         self.runs = row_runs(self.rows)
         self.dec = np.zeros((10, m), np.float32)  # decodings of the held codes (HELD_POSITION ...)
         self._flags = np.zeros(m, np.uint8)
-        self._work = np.zeros((3, m), np.int32)
+        self._work = np.zeros((7, m), np.int32)  # the numba kernels' lists and scratch
         self._sel = np.zeros(m, np.int64)
         self._moved = np.zeros((m, 3), bool)
         self._wide = np.zeros(m, bool)

@@ -431,15 +431,17 @@ class NumbaKernels:
         g, n = self._g(src, gather)
         q13_scale_kernel(src, g, n, table, dst)
 
-    def delta_q13(self, pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, thresholds, *rest
-                  ) -> tuple[int, ...]:
-        """ofera_protocol.delta.delta_q13_reference by :func:`delta_q13_kernel` (same signature, same bytes)."""
+    def delta_q13(self, pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, thresholds, scale_lut, rot_lut,
+                  tol, held_p, held_r, held_s, dec, flags, work, *out) -> tuple[int, ...]:
+        """ofera_protocol.delta.delta_q13_reference by :func:`delta_q13_kernel` (same signature, same bytes).
+        work: (7, K) int32, rows 0-2 the lists of what moved, rows 3-6 the kernel's float32 scratch."""
+        args = (pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step)
+        held = (held_p, held_r, held_s, dec, flags, work)
         table = self.table(thresholds)
         if table is None:
-            return ReferenceKernels().delta_q13(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step,
-                                                thresholds, *rest)
-        return tuple(int(x) for x in delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step,
-                                                      table, *rest))
+            return ReferenceKernels().delta_q13(*args, thresholds, scale_lut, rot_lut, tol, *held, *out)
+        gathered = work[3:].view(np.float32).reshape(-1)
+        return tuple(int(x) for x in delta_q13_kernel(*args, table, scale_lut, rot_lut, tol, *held, *out, gathered))
 
     def delta_masks(self, count, ids, sel, moved, wide, n, n_p) -> tuple[np.ndarray, ...]:
         """ofera_protocol.delta.delta_masks_reference by :func:`delta_masks_kernel` (same bytes)."""
@@ -608,19 +610,22 @@ def _positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec,
 
 
 @nb.njit(**_NB)
-def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
-                     held_p, held_r, held_s, dec, flags, work, out_sel, out_moved, out_wide, out_res, out_pos,
-                     out_rot, out_scale):
-    """ofera_protocol.delta.delta_q13_reference: :func:`_select`, then one pass per attribute over what moved.
-    Returns (n, n_p, w, n_r, n_s)."""
-    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
-    w, _ = _positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
-                      out_pos)
-    for x in range(n_r):
-        j = np.uint64(work[1, x])
-        r = np.uint64(rows[j])
-        v = pack_rotation(rot[r, 0] * rsign[0], rot[r, 1] * rsign[1], rot[r, 2] * rsign[2], rot[r, 3] * rsign[3])
-        out_rot[x] = v
+def _rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot):
+    """The moved rotations (candidates moved[:n_r]): their q13 codes (out_rot), held codes and decodings updated.
+    Three loops: the rows gathered into `gathered` ((4 n_r) float32, signs applied), :func:`pack_rotation` over
+    them in SIMD lanes, then the scatter. Packing the rows where they lie ran scalar, 2x slower in all."""
+    s0, s1, s2, s3 = rsign[0], rsign[1], rsign[2], rsign[3]
+    for x in range(np.uint64(n_r)):
+        r = np.uint64(rows[np.uint64(moved[x])])
+        gathered[4 * x] = rot[r, 0] * s0
+        gathered[4 * x + 1] = rot[r, 1] * s1
+        gathered[4 * x + 2] = rot[r, 2] * s2
+        gathered[4 * x + 3] = rot[r, 3] * s3
+    for x in range(np.uint64(n_r)):
+        out_rot[x] = pack_rotation(gathered[4 * x], gathered[4 * x + 1], gathered[4 * x + 2], gathered[4 * x + 3])
+    for x in range(np.uint64(n_r)):
+        j = np.uint64(moved[x])
+        v = out_rot[x]
         held_r[np.uint64(ids[j])] = v
         a0 = rot_lut[(v >> 20) & 1023]  # the float64 decoding of ofera_protocol.delta.q13_decode_rotation64
         a1 = rot_lut[(v >> 10) & 1023]
@@ -634,6 +639,18 @@ def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step
         dec[4, j] = np.float32(big if drop == 1 else (a0 if drop == 0 else a1))
         dec[5, j] = np.float32(big if drop == 2 else (a2 if drop == 3 else a1))
         dec[6, j] = np.float32(big if drop == 3 else a2)
+
+
+@nb.njit(**_NB)
+def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
+                     held_p, held_r, held_s, dec, flags, work, out_sel, out_moved, out_wide, out_res, out_pos,
+                     out_rot, out_scale, gathered):
+    """ofera_protocol.delta.delta_q13_reference: :func:`_select`, then one pass per attribute over what moved
+    (gathered: (4 K) float32 scratch). Returns (n, n_p, w, n_r, n_s)."""
+    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
+    w, _ = _positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
+                      out_pos)
+    _rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot)
     for x in range(n_s):
         j = np.uint64(work[2, x])
         r, i = np.uint64(rows[j]), np.uint64(ids[j])
