@@ -131,3 +131,16 @@ def test_transport_smoke(tmp_path) -> None:
             assert run["n"] == 20 and 0 < run["min"] <= run["p50"] <= run["p99"] and run["cpu_ms"] >= 0
         assert set(r["ratios"][size]) == {"websockets_over_fast", "fast_over_socket"}
     assert r["cpu"]["client_cores"] is not None and r["cpu"]["server_cores"] is not None
+
+
+@pytest.mark.timeout(120)
+def test_cold_cache_smoke(tmp_path) -> None:
+    out = tmp_path / "cold_cache.json"
+    load("cold_cache").main(["--gaps", "0.5,2", "--reps", "5", "--sleep", "--json", str(out)])
+    r = check_outputs(out)
+    assert r["gaps_ms"] == [0.5, 2.0] and len(r["results"]) == 5
+    for name, series in r["results"].items():
+        assert set(series) == {"back_to_back", "after_0.5ms", "after_2ms", "sleep_0.5ms", "sleep_2ms"}, name
+        assert series["back_to_back"]["n"] == 4 * 5 and series["after_2ms"]["n"] == 5
+        assert all(0 < s["min"] <= s["p50"] <= s["p99"] for s in series.values())
+        assert set(r["ratios"][name]) == set(series) - {"back_to_back"}

@@ -315,6 +315,24 @@ def test_bs_lengths_and_values() -> None:
         raises("non_finite", client, GOOD_BS | {"w": w.tobytes()}, "arkit52")
 
 
+@settings(max_examples=300, deadline=None)
+@given(hnp.arrays(np.float32, st.integers(0, 300), elements=st.floats(width=32)), st.booleans())
+def test_field_arrays_refuse_nan_and_infinity_exactly_like_numpy(values: np.ndarray, extremes: bool) -> None:
+    """get_array's Python check of small float32 arrays (a float64 sum) and numpy's of larger ones say the same
+    as np.isfinite, also for the largest finite values, which must not overflow the sum."""
+    from ofera_protocol._fields import get_array
+
+    if extremes:
+        values = np.where(np.isfinite(values), np.float32(3.4028235e38), values).astype(np.float32)
+    m = {"a": values.tobytes()}
+    if np.isfinite(values).all():
+        assert np.array_equal(get_array(m, "a", "t", "<f4", values.shape), values)
+    else:
+        with pytest.raises(ProtocolError) as e:
+            get_array(m, "a", "t", "<f4", values.shape)
+        assert e.value.code == "non_finite"
+
+
 HELLO = {"type": "hello", "protocol": 1, "layout": "arkit52"}
 
 

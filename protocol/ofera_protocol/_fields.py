@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection
 from typing import Any
 
@@ -90,18 +91,39 @@ def get_bin(m: dict[str, Any], key: str, where: str, required: bool = True) -> A
     return v
 
 
+SMALL_ARRAY = 256
+"""float32 arrays of at most this many values are checked for NaN and infinity in Python, not by numpy: a bs
+message's weights are checked once per frame, with the CPU's caches cold, where a small numpy call costs 30-110 us
+against 3-8 us back to back and a sum over a memoryview about a third of that (benchmarks/cold_cache.py)."""
+
+
+def _small_f32_finite(buf: bytes) -> bool:
+    """Whether packed native float32 values (at most SMALL_ARRAY) are all finite: their float64 sum is finite exactly
+    when every value is (NaN and infinities propagate; 256 finite float32 values cannot overflow it)."""
+    return math.isfinite(sum(memoryview(buf).cast("f")))
+
+
+_DTYPES: dict[str, np.dtype] = {}
+
+
 def get_array(m: dict[str, Any], key: str, where: str, dtype: str, shape: tuple[int, ...],
               finite: bool = True, required: bool = True) -> Any:
     """bin field of packed little-endian `dtype` values -> read-only numpy view of `shape`."""
     buf = get_bin(m, key, where, required)
     if buf is None:
         return None
-    dt = np.dtype(dtype)
-    need = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+    dt = _DTYPES.get(dtype)
+    if dt is None:  # (a dtype is falsy: len() counts its fields)
+        dt = _DTYPES[dtype] = np.dtype(dtype)
+    need = math.prod(shape) * dt.itemsize
     if len(buf) != need:
         raise ProtocolError(BAD_LENGTH, f"{where}: field {key!r} has {len(buf)} bytes, expected {need} "
                             f"({'x'.join(map(str, shape)) or '1'} {dt.name})")
-    a = np.frombuffer(buf, dtype=dt).reshape(shape)
-    if finite and dt.kind == "f" and not np.isfinite(a).all():
-        raise ProtocolError(NON_FINITE, f"{where}: field {key!r} holds NaN or infinity")
+    a = np.frombuffer(buf, dtype=dt)
+    if len(shape) != 1:
+        a = a.reshape(shape)
+    if finite and dt.kind == "f":
+        small = need <= 4 * SMALL_ARRAY and dt.char == "f" and dt.isnative
+        if not (_small_f32_finite(buf) if small else np.isfinite(a).all()):
+            raise ProtocolError(NON_FINITE, f"{where}: field {key!r} holds NaN or infinity")
     return a

@@ -412,7 +412,7 @@ def decode_bs(m: dict[str, Any], layout: str | None) -> Blendshapes:
                             f"{n} float32 = {4 * n} bytes")
     weights = F.get_array(m, "w", w, "<f4", (n,))
     conf = F.get_array(m, "conf", w, "<f4", (2,), required=False)
-    if conf is not None and not ((conf >= 0.0) & (conf <= 1.0)).all():
+    if conf is not None and not all(0.0 <= v <= 1.0 for v in conf.tolist()):  # Python: see _fields.SMALL_ARRAY
         raise ProtocolError(BAD_FIELD, f"bs: field 'conf' = [{conf[0]:g}, {conf[1]:g}] (lower, upper face "
                             "confidence) is outside [0, 1]")
     return Blendshapes(seq=seq, t=t, w=weights, conf=conf)
