@@ -180,7 +180,7 @@ class SessionCore:
         w = msg.w.tolist()  # a few Python builtins: cheaper than numpy calls on a cold CPU (_fields.SMALL_ARRAY)
         if w and (max(w) > WEIGHT_LIMIT or min(w) < -WEIGHT_LIMIT):  # finite but huge: see WEIGHT_LIMIT
             msg = replace(msg, w=np.clip(msg.w, -WEIGHT_LIMIT, WEIGHT_LIMIT))
-        return [*counts, Compute(msg, now_ns)]
+        return [Compute(msg, now_ns), *counts]  # to the source first, then the counters
 
     def _allow(self, now_ns: int) -> bool:
         return self.bucket.take(now_ns * 1e-9)

@@ -117,8 +117,8 @@ class Session:
             elif isinstance(a, Compute):
                 if self.source is not None:
                     self.source.offer(PendingBs(a.bs, a.received_ns, (time.monotonic_ns() - a.received_ns) // 1000))
-            elif isinstance(a, Count):
-                getattr(self.metrics, a.metric).inc()
+            elif isinstance(a, Count):  # after the loop's next steps (a bs's source hands it to the pool first)
+                asyncio.get_running_loop().call_soon(getattr(self.metrics, a.metric).inc)
             elif isinstance(a, KeyFrame):
                 request = getattr(getattr(self.viewer, "writer", None), "request_key", None)
                 if request is not None:
