@@ -21,6 +21,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ofera.client import connect
+from ofera.client import transport as transport_module
 from ofera.client.transport import (
     OP_BINARY,
     OP_CLOSE,
@@ -31,6 +32,7 @@ from ofera.client.transport import (
     Control,
     FrameReader,
     HandshakeError,
+    MaskKeys,
     Message,
     ProtocolViolation,
     WebSocket,
@@ -376,6 +378,18 @@ def test_frame_bytes_is_a_masked_final_frame_of_the_right_length_form(n: int) ->
     assert len(keys) > 1  # a fresh key per frame (RFC 6455 5.3)
     b0, _, _, body, _ = parse_client_frame(frame_bytes(OP_PONG, b"echo"))
     assert b0 == 0x80 | OP_PONG and body == b"echo"
+
+
+def test_mask_keys_come_four_random_bytes_at_a_time_across_refills(monkeypatch) -> None:
+    reads: list[int] = []
+    real = transport_module.os.urandom
+    monkeypatch.setattr(transport_module.os, "urandom", lambda n: reads.append(n) or real(n))
+    pool = MaskKeys()
+    keys = [pool.take() for _ in range(2 * MaskKeys.SIZE // 4 + 3)]  # three pools
+    assert reads == [MaskKeys.SIZE] * 3 and all(len(k) == 4 for k in keys)
+    assert len(set(keys)) > len(keys) - 5  # random 32-bit keys: (almost) never equal
+    b0, _, key, body, _ = parse_client_frame(frame_bytes(OP_BINARY, b"payload", keys[0]))
+    assert key == keys[0] and body == b"payload"
 
 
 def test_close_payload_keeps_reasons_valid_utf8() -> None:

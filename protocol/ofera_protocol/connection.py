@@ -20,6 +20,7 @@ from .codec import (
     decode_server_message,
     encode,
     encode_avatar_chunk,
+    encode_bs,
     encode_frame,
     frame_format,
     member_format,
@@ -358,7 +359,7 @@ class ClientConnection:
             conf = np.asarray(conf, dtype=np.float32).reshape(-1)
             if conf.shape != (2,) or not ((conf >= 0.0) & (conf <= 1.0)).all():
                 raise ConnectionUsageError(f"conf must be 2 values [lower, upper] in [0, 1], got {conf.tolist()}")
-        return encode(Blendshapes(seq=seq, t=t, w=w, conf=conf))
+        return encode_bs(Blendshapes(seq=seq, t=t, w=w, conf=conf))
 
     def ping(self, t: int) -> bytes:
         if self.state is ClientState.CLOSED:
