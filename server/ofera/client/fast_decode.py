@@ -52,16 +52,22 @@ def q13_decode_kernel(pos, rot, scale, lo, step, scale_lut, out_pos, out_rot, ou
 
 
 @nb.njit(inline="always", **_NB)
-def _q13_rotation_into(v, out, j):
+def _q13_components(v):
+    """One q13 rotation code -> (the three kept components in index order, the largest one), float32."""
     kf = np.float32(math.sqrt(0.5) / ROT_LEVELS)
-    i = v >> 30
     a0 = _q13_field(v, 20) * kf
     a1 = _q13_field(v, 10) * kf
     a2 = _q13_field(v, 0) * kf
     d = a0 * a0
     d = d + a1 * a1
     d = d + a2 * a2
-    big = np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
+    return a0, a1, a2, np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
+
+
+@nb.njit(inline="always", **_NB)
+def _q13_rotation_into(v, out, j):
+    i = v >> 30
+    a0, a1, a2, big = _q13_components(v)
     out[j, 0] = big if i == 0 else a0
     out[j, 1] = big if i == 1 else (a0 if i == 0 else a1)
     out[j, 2] = big if i == 2 else (a2 if i == 3 else a1)
@@ -131,7 +137,6 @@ def _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_
     """Held q13 codes of rows ids -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic). The rotation's
     four components are stored by computed slot (the largest at its index, the three small ones around it in
     order): selects on the index compile to branches here, which random indices mispredict (2.3x the time)."""
-    kf = np.float32(math.sqrt(0.5) / ROT_LEVELS)
     one, three, four = np.uint64(1), np.uint64(3), np.uint64(4)
     for j in range(np.uint64(ids.shape[0])):
         i = np.uint64(ids[j])
@@ -139,17 +144,12 @@ def _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_
             out_p[three * j + c] = np.float32(lo[c] + np.float64(held_p[three * i + c]) * step[c])
             out_s[three * j + c] = lut[held_s[three * i + c]]
         v = held_r[i]
-        a0 = _q13_field(v, 20) * kf
-        a1 = _q13_field(v, 10) * kf
-        a2 = _q13_field(v, 0) * kf
-        d = a0 * a0
-        d = d + a1 * a1
-        d = d + a2 * a2
+        a0, a1, a2, largest = _q13_components(v)
         b, big = four * j, np.uint64(v >> np.uint32(30))
         out_r[b + np.uint64(big < one)] = a0
         out_r[b + one + np.uint64(big <= one)] = a1
         out_r[b + np.uint64(2) + np.uint64(big <= np.uint64(2))] = a2
-        out_r[b + big] = np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
+        out_r[b + big] = largest
 
 
 @nb.njit(**_NB)
