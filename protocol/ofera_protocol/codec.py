@@ -397,6 +397,12 @@ def decode_hello(m: dict[str, Any]) -> Hello:
     )
 
 
+def conf_in_range(conf: np.ndarray) -> bool:
+    """Whether a bs confidence's values all lie in [0, 1] (NaN does not). By Python builtins, not numpy: checked once
+    per frame on a cold CPU (see _fields.SMALL_ARRAY)."""
+    return all(0.0 <= v <= 1.0 for v in conf.tolist())
+
+
 def decode_bs(m: dict[str, Any], layout: str | None) -> Blendshapes:
     w = "bs"
     seq = F.get_int(m, "seq", w, lo=0)
@@ -414,7 +420,7 @@ def decode_bs(m: dict[str, Any], layout: str | None) -> Blendshapes:
                             f"{n} float32 = {4 * n} bytes")
     weights = F.get_array(m, "w", w, "<f4", (n,))
     conf = F.get_array(m, "conf", w, "<f4", (2,), required=False)
-    if conf is not None and not all(0.0 <= v <= 1.0 for v in conf.tolist()):  # Python: see _fields.SMALL_ARRAY
+    if conf is not None and not conf_in_range(conf):
         raise ProtocolError(BAD_FIELD, f"bs: field 'conf' = [{conf[0]:g}, {conf[1]:g}] (lower, upper face "
                             "confidence) is outside [0, 1]")
     return Blendshapes(seq=seq, t=t, w=weights, conf=conf)

@@ -16,6 +16,7 @@ import numpy as np
 
 from .avatar import DEFAULT_CHUNK_BYTES, Avatar, AvatarAssembler, GaussianState, split_avatar
 from .codec import (
+    conf_in_range,
     decode_client_message,
     decode_server_message,
     encode,
@@ -357,7 +358,7 @@ class ClientConnection:
             raise ConnectionUsageError(f"layout {self.sent_hello.layout} needs {n} weights, got {w.shape[0]}")
         if conf is not None:
             conf = np.asarray(conf, dtype=np.float32).reshape(-1)
-            if conf.shape != (2,) or not ((conf >= 0.0) & (conf <= 1.0)).all():
+            if conf.shape != (2,) or not conf_in_range(conf):
                 raise ConnectionUsageError(f"conf must be 2 values [lower, upper] in [0, 1], got {conf.tolist()}")
         return encode_bs(Blendshapes(seq=seq, t=t, w=w, conf=conf))
 

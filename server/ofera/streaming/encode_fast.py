@@ -436,12 +436,12 @@ class NumbaKernels:
         """ofera_protocol.delta.delta_q13_reference by :func:`delta_q13_kernel` (same signature, same bytes).
         work: (7, K) int32, rows 0-2 the lists of what moved, rows 3-6 the kernel's float32 scratch."""
         args = (pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step)
-        held = (held_p, held_r, held_s, dec, flags, work)
+        state = (held_p, held_r, held_s, dec, flags, work)
         table = self.table(thresholds)
         if table is None:
-            return ReferenceKernels().delta_q13(*args, thresholds, scale_lut, rot_lut, tol, *held, *out)
+            return ReferenceKernels().delta_q13(*args, thresholds, scale_lut, rot_lut, tol, *state, *out)
         gathered = work[3:].view(np.float32).reshape(-1)
-        return tuple(int(x) for x in delta_q13_kernel(*args, table, scale_lut, rot_lut, tol, *held, *out, gathered))
+        return tuple(int(x) for x in delta_q13_kernel(*args, table, scale_lut, rot_lut, tol, *state, *out, gathered))
 
     def delta_masks(self, count, ids, sel, moved, wide, n, n_p) -> tuple[np.ndarray, ...]:
         """ofera_protocol.delta.delta_masks_reference by :func:`delta_masks_kernel` (same bytes)."""
