@@ -13,7 +13,9 @@ other processes hits them alike.
 
 Steps: the server's `decode` stage (``SessionCore.receive`` of one ``bs``), ``msgpack.unpackb`` of it, one small
 numpy call (``np.isfinite(w).all()``, 52 weights), the same check in Python (a float sum over a memoryview,
-``ofera_protocol._fields``), and a numba kernel over 5 000 q13 rotations (80 kB in, 20 kB out).
+``ofera_protocol._fields``), a numba kernel over 5 000 q13 rotations (80 kB in, 20 kB out), and an empty parallel
+region on numba's threads (one add per thread: what any prange kernel pays to wake the pool; the fast path's
+``kernel_threads`` setting).
 
 Prints a table; writes --json and a PNG next to it. JSON: {"gaps_ms", "reps", "results": {step: {"back_to_back":
 {p50, p99, min}, "after_<G>ms": {...}, "sleep_<G>ms": {...}}}, "ratios": {step: {gap: p50 after / p50 back to
@@ -30,10 +32,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
+
+
+@numba.njit(parallel=True, cache=True)
+def parallel_region(per_thread: np.ndarray) -> None:
+    """One add per thread of numba's pool: a parallel region with (almost) nothing in it."""
+    for i in numba.prange(per_thread.size):
+        per_thread[i] += 1.0
 
 
 def steps() -> dict[str, Callable[[], Any]]:
@@ -54,6 +64,8 @@ def steps() -> dict[str, Callable[[], Any]]:
     codes = np.zeros(5000, np.uint32)
     none, one = np.zeros(0, np.int64), np.ones(4, np.float32)
     q13_rotation_kernel(rot, none, 5000, one, codes)  # compiled (or loaded from numba's cache) before timing
+    per_thread = np.zeros(numba.get_num_threads())
+    parallel_region(per_thread)
     buf = w.tobytes()
     return {
         "server bs decode (SessionCore.receive)": lambda: core.receive(bs, next(clock) * 14_000_000),
@@ -61,6 +73,7 @@ def steps() -> dict[str, Callable[[], Any]]:
         "np.isfinite(w).all() (52)": lambda: np.isfinite(w).all(),
         "Python finite check (52)": lambda: math.isfinite(sum(memoryview(buf).cast("f"))),
         "numba: 5k q13 rotations": lambda: q13_rotation_kernel(rot, none, 5000, one, codes),
+        f"numba: empty parallel region ({numba.get_num_threads()} threads)": lambda: parallel_region(per_thread),
     }
 
 

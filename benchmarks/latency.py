@@ -166,8 +166,8 @@ def summarise(run: dict) -> dict:
 
 def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
     stamped = C.params_stamped_every_frame() if args.encoding == "params" else contextlib.nullcontext()
-    with stamped, C.ServerProcess(avatars, impl=impl, threads=args.threads,
-                                  extra={"event_loop": args.event_loop}) as server:
+    extra = {"event_loop": args.event_loop, "kernel_threads": args.kernel_threads}
+    with stamped, C.ServerProcess(avatars, impl=impl, threads=args.threads, extra=extra) as server:
         with C.CpuMeter(server.proc.pid) as cpu:
             run = asyncio.run(run_session(server.url, weights, layout, args.rate, args.seconds, args.warmup,
                                           args.encoding, args.sparse, args.client_decode, args.delta))
@@ -232,6 +232,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta: key frames, then only what "
                     "moved; f16 or q13): the compact stream")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
+    ap.add_argument("--kernel-threads", default="serial", choices=["serial", "auto", "parallel"],
+                    help="the server's kernel_threads setting (the fast path's deformation on numba's threads)")
     ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
                     help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2, help="server compute threads")
@@ -281,6 +283,7 @@ def main(argv: list[str] | None = None) -> dict:
         "transport_floor_ms": floor,
         "impl": impls[0] if len(impls) == 1 else "fast",
         "event_loop": fast.get("event_loop"),
+        "kernel_threads": args.kernel_threads,
         "input": {"layout": layout, "capture": str(C.CAPTURE) if C.CAPTURE.is_file() else None, "fps": fps},
         "definitions": {
             "e2e_ms": "client clock: frame decoded - scheduled send time of its bs (loopback, same machine); a "

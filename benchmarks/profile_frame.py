@@ -97,7 +97,8 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
 
 
 def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
-    with C.ServerProcess(avatars, impl=impl, threads=args.threads, extra={"event_loop": args.event_loop},
+    with C.ServerProcess(avatars, impl=impl, threads=args.threads,
+                         extra={"event_loop": args.event_loop, "kernel_threads": args.kernel_threads},
                          pythonpath=args.server_path) as server:
         http = f"http://127.0.0.1:{server.port}"
         before = C.stage_histograms(C.metrics_text(http))
@@ -163,6 +164,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sparse", action="store_true")
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta; f16 or q13)")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
+    ap.add_argument("--kernel-threads", default="serial", choices=["serial", "auto", "parallel"],
+                    help="the server's kernel_threads setting (the fast path's deformation on numba's threads)")
     ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
                     help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2)
@@ -191,7 +194,8 @@ def main(argv: list[str] | None = None) -> dict:
         floor = C.transport_floor(first["bytes_per_frame"], args.rate, 3.0)
     report = {"benchmark": "profile_frame", "gaussians": first["count"], "rate_hz": args.rate,
               "encoding": args.encoding, "sparse": args.sparse, "delta": args.delta, "order": list(ORDER),
-              "server_path": args.server_path, "event_loop": args.event_loop, "client_transport": args.client_transport,
+              "server_path": args.server_path, "event_loop": args.event_loop, "kernel_threads": args.kernel_threads,
+              "client_transport": args.client_transport,
               "results": results, "transport_floor_ms": floor,
               "definitions": {"stages": __doc__.split("\n\n")[2], "percentiles": "per stage over the frames that "
                               "arrived; e2e_ms includes skipped bs (first later frame), answered_e2e_ms does not",

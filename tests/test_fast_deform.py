@@ -303,3 +303,18 @@ def test_auto_sessions_fall_back_to_one_thread_when_not_alone(head, subject) -> 
     assert not b.threaded  # a computed a frame within the window: b runs on one thread
     a.run(expr, rot)
     assert not a.threaded
+
+
+def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.MonkeyPatch) -> None:
+    """OFERA_KERNEL_THREADS -> Settings.kernel_threads -> the avatar's assets -> each pipeline's fast session."""
+    from ofera.streaming.config import Settings
+    from ofera.streaming.registry import AvatarRegistry
+
+    assert Settings().kernel_threads == "serial"
+    monkeypatch.setenv("OFERA_KERNEL_THREADS", "auto")
+    settings = Settings()
+    assert settings.kernel_threads == "auto"
+    assets = AvatarRegistry(settings).get("default")
+    assert assets.parallel is None and assets.pipeline("arkit52").fast.parallel is None
+    with pytest.raises(ValueError, match="kernel_threads"):
+        Settings(kernel_threads="two")

@@ -93,12 +93,13 @@ def test_a_frame_the_kernel_cannot_write_takes_the_state_path(monkeypatch: pytes
     assert frame.state is not None and frame.cached(source.direct[0]) is None
 
 
-def test_deform_f16_writes_the_bits_of_the_encoded_state() -> None:
-    """The kernel against deform + FrameWriter.encode on the default avatar, for both sign conventions, and a draft
-    laid out for other varying rows is refused."""
+@pytest.mark.parametrize("parallel", [False, True])
+def test_deform_f16_writes_the_bits_of_the_encoded_state(parallel: bool) -> None:
+    """The kernel (serial, or over numba's threads) against deform + FrameWriter.encode on the default avatar, for
+    both sign conventions, and a draft laid out for other varying rows is refused."""
     avatar = load_avatar("default")
     fast = FastAvatar(avatar, HeadSubject.create(avatar.head))
-    session = fast.session()
+    session = fast.session(parallel=parallel)
     rng = np.random.default_rng(4)
     for coords in ("flame", "unity"):
         writer = frame_writer(FrameFormat("f16", avatar.count, False, None), coords)
@@ -113,9 +114,29 @@ def test_deform_f16_writes_the_bits_of_the_encoded_state() -> None:
             n = fast.neutral
             draft = writer.draft(fast.varying, (n.position, n.rotation, n.scale))
             assert session.deform_f16(verts, draft, writer.psign, writer.rsign)
+            assert session.threaded is parallel
             assert bytes(writer.finish(draft, k, k, {"total": k})) == want
     other = FastAvatar(avatar, fast.subject, gaussians="all")
     n = other.neutral
     with pytest.raises(ValueError, match="varying rows"):
         session.deform_f16(verts, writer.draft(other.varying, (n.position, n.rotation, n.scale)), writer.psign,
                            writer.rsign)
+
+
+def test_f16_blocks_cover_the_runs_in_row_order() -> None:
+    """Each block of the f16 writer is consecutive runs on consecutive rows, closed once it holds F16_BLOCK rows."""
+    from ofera.avatar.kernels import F16_BLOCK, f16_blocks
+
+    rng = np.random.default_rng(5)
+    run_len = rng.integers(1, 40, 500)
+    gaps = rng.random(500) < 0.05  # a row gap before 5 % of the runs
+    run_row = np.cumsum(run_len + gaps * rng.integers(1, 9, 500)) - run_len
+    blocks = f16_blocks(run_row, run_len)
+    assert blocks[0] == 0 and blocks[-1] == 500 and np.all(np.diff(blocks) > 0)
+    for lo, hi in zip(blocks[:-1], blocks[1:]):
+        rows = run_len[lo:hi].sum()
+        assert np.array_equal(run_row[lo + 1:hi], run_row[lo] + np.cumsum(run_len[lo:hi])[:-1])  # no gap inside
+        assert rows - run_len[hi - 1] < F16_BLOCK  # it grew only while below F16_BLOCK rows
+        if hi < 500 and run_row[hi] == run_row[lo] + rows:  # closed without a gap: it was full
+            assert rows >= F16_BLOCK
+    assert f16_blocks(np.zeros(0, np.int64), np.zeros(0, np.int64)).tolist() == [0]

@@ -29,8 +29,9 @@ still references it or any view of its arrays (CPython reference counts), so the
 hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
 nothing. States are read-only.
 
-Threads: single-threaded by default. ``session(parallel=None)`` ("auto") may run the face frames and the
-triangle kernel with prange over numba's threads, only while (1) its session is the only one of the process
+Threads: single-threaded by default (the server's ``kernel_threads`` setting chooses). ``session(parallel=None)``
+("auto") may run the face frames and the triangle kernel (or the f16 writer's blocks) with prange over numba's
+threads, only while (1) its session is the only one of the process
 that computed a frame in the last :data:`ACTIVITY` window (several sessions already keep every core busy),
 (2) the machine is not busy (1-minute load average below the thread count: other processes hold the
 cores), and (3) its own recent parallel frames were faster than its serial ones (:class:`ThreadChoice`: a
@@ -41,8 +42,10 @@ whichever thread runs it).
 Why not "auto" by default: on the 2-core machine, shared, at 72 Hz with the caches cold between frames, a
 lone session's deformation took p50 1.3 ms / p99 2.1 ms serial, 0.9 / 16 ms parallel and 1.6 / 10 ms auto
 (load average 0.9): a parallel region now and then waits a scheduler quantum for a worker thread whose core
-is busy, which costs the p99 more than the median gains. On a machine with idle cores, "auto" is the
-choice (benchmarks/profile_frame.py and scaling.py measure both).
+is busy, which costs the p99 more than the median gains. On the AMD EPYC VM (December 2026) even an empty
+parallel region took 0.15 ms p50 / 7.9 ms p99 after a 13.9 ms gap (waking the sleeping worker), 3 us back to back
+(benchmarks/cold_cache.py), and the f16 writer took 1.3 ms serial, 2.1 ms (p99 16 ms) on two threads. On a machine
+with idle cores, "auto" is the choice (benchmarks/profile_frame.py --kernel-threads measures the modes).
 """
 
 from __future__ import annotations
@@ -273,7 +276,8 @@ class FastAvatar:
         # Every frame starts from the subject's neutral Gaussians (what the reference gives at v_id).
         self.neutral = make_deformer(binding, head.faces, head.num_vertices).deform(self.subject.v_id)
         self.varying = VaryingRows(ids)  # every session's states: the other rows stay neutral
-        self._warm = False
+        self.f16_blocks = K.f16_blocks(run_row, run_len)  # deform_f16's blocks of runs
+        self._warm: set[bool] = set()  # the thread modes warm_up has run
 
     @property
     def moving(self) -> int:
@@ -286,11 +290,13 @@ class FastAvatar:
         busy, see the module docstring)."""
         return FastSession(self, pool_size, parallel)
 
-    def warm_up(self) -> None:
-        """Compile (or load from the on-disk cache) every kernel now, not on the first frame."""
-        if not self._warm:
-            # Serial kernels only: the parallel ones (and numba's thread pool) load on a session's first threaded frame.
-            s = self.session(pool_size=1)
+    def warm_up(self, threads: bool = False) -> None:
+        """Compile (or load from the on-disk cache) every serial kernel now, not on the first frame; ``threads``: the
+        parallel ones too, and numba's thread pool (else they load on a session's first threaded frame)."""
+        for parallel in (False, True):
+            if parallel in self._warm or (parallel and not threads):
+                continue
+            s = self.session(pool_size=1, parallel=parallel)
             y = np.zeros(68, np.float32)
             y[50:] = [1, 0, 0, 0, 1, 0] * 3
             expr, rot = s.flame(y)
@@ -302,7 +308,7 @@ class FastAvatar:
                                         scale=np.zeros(3 * self.count, np.uint16))
                 one = np.ones(4, np.float32)
                 s.deform_f16(s.head(expr[: self.lbs.n_expr], rot), draft, one[:3].copy(), one)
-            self._warm = True
+            self._warm.add(parallel)
 
 
 _EYE2 = np.broadcast_to(np.eye(3), (2, 3, 3))
@@ -325,7 +331,7 @@ class FastSession:
         self.pool = StatePool(fast.neutral, pool_size, fast.varying)
         self._expr = np.zeros(50, np.float32)
         self._rot = np.zeros((5, 3, 3), np.float32)
-        self._half_scratch: tuple[np.ndarray, ...] | None = None  # deform_f16's (made on its first call)
+        self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
 
     def flame(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """FLAME values (68,) -> (expr (50,), rotations (5, 3, 3)) float32, like
@@ -387,7 +393,7 @@ class FastSession:
         ``FrameWriter.draft`` of ``self.fast.varying``, whose other rows hold the neutral Gaussians), in wire
         coordinates (psign (3,), rsign (4,)): the bits the f16 encoding of :meth:`deform`'s state gives, with no
         float32 state written and read back. False if a value is out of the half range (the draft is then
-        garbage: drop it). Triangle binding only (:attr:`writes_f16`); serial."""
+        garbage: drop it). Triangle binding only (:attr:`writes_f16`); threads as :meth:`deform` (the same bits)."""
         a = self.fast.arrays
         verts = np.ascontiguousarray(verts, np.float64)
         if verts.shape != (self.fast.lbs.count, 3):
@@ -396,13 +402,20 @@ class FastSession:
             raise ValueError("deform_f16 needs the triangle binding")
         if draft.varying is not self.fast.varying:
             raise ValueError("the draft was not laid out for this avatar's varying rows")
-        self.threaded = False
-        K.face_frames_kernel(verts, a.face_vids, self.edges, self.face, False)
-        if self._half_scratch is None:
-            rows = K.F16_BLOCK + int(a.run_len.max(initial=0))
-            self._half_scratch = tuple(np.zeros((rows, k), np.float32) for k in (3, 4, 3))
-        return bool(K.triangle_f16_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign,
-                                          *self._half_scratch, draft.position, draft.rotation, draft.scale))
+        if self._half_scratch is None:  # (threads, rows, 3 | 4 | 3) float32; the serial kernel takes thread 0's
+            shape = (numba.config.NUMBA_NUM_THREADS, K.F16_BLOCK + int(a.run_len.max(initial=0)))
+            per_thread = tuple(np.zeros((*shape, k), np.float32) for k in (3, 4, 3))
+            self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
+        par = self._threads()
+        t0 = time.perf_counter_ns()
+        frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
+        frames(verts, a.face_vids, self.edges, self.face, False)
+        kernel = K.triangle_f16_kernel_parallel if par else K.triangle_f16_kernel
+        ok = kernel(self.face, self.fast.f16_blocks, a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign,
+                    *self._half_scratch[par], draft.position, draft.rotation, draft.scale)
+        if self.parallel is None:
+            self.choice.record(par, time.perf_counter_ns() - t0)
+        return bool(ok)
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:
         return self.deform(self.head(expr, rotations))

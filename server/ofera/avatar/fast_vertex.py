@@ -145,13 +145,14 @@ class FastVertexAvatar:
 
     deformed_count = moving
 
-    def session(self, pool_size: int = 8, parallel: bool = False) -> FastVertexSession:
+    def session(self, pool_size: int = 8, parallel: bool | None = False) -> FastVertexSession:
         """Per-stream buffers (``parallel`` is accepted for interface parity and ignored: both kernels are
         memory-bound and well under a millisecond)."""
         return FastVertexSession(self, pool_size)
 
-    def warm_up(self) -> None:
-        """Compile (or load from the on-disk cache) both kernels now, not on the first frame."""
+    def warm_up(self, threads: bool = False) -> None:
+        """Compile (or load from the on-disk cache) both kernels now, not on the first frame (``threads``: accepted
+        for interface parity; both kernels are serial)."""
         if not self._warm:
             s = self.session(pool_size=1)
             w = np.zeros(self.n_expr, np.float32)

@@ -32,6 +32,9 @@ from ..mapping.layouts import LayoutAdapter
 from ..mapping.runtime import Mapper
 from .confidence import DEFAULT_THRESHOLD, RegionHold
 
+KERNEL_THREADS: dict[str, bool | None] = {"serial": False, "auto": None, "parallel": True}
+"""The kernel_threads setting -> `AvatarAssets.parallel` (`ofera.avatar.fast.FastAvatar.session`'s `parallel`)."""
+
 STAGES: tuple[str, ...] = ("layout", "bda", "epm", "head", "deform")
 """Stage names of `Pipeline.run` timings, in order (microseconds): layout adapter, BDA, EPM (with the
 split into expression and rotations; ~0 for an arkit51 avatar, which skips it), head model (LBS; arkit51:
@@ -54,9 +57,9 @@ class FastStream(Protocol):
 class FastPath(Protocol):
     """An avatar's shared, read-only fast path (`ofera.avatar.fast.FastAvatar`, `.fast_vertex.FastVertexAvatar`)."""
 
-    def session(self) -> FastStream: ...
+    def session(self, pool_size: int = 8, parallel: bool | None = False) -> FastStream: ...
 
-    def warm_up(self) -> None: ...
+    def warm_up(self, threads: bool = False) -> None: ...
 
 
 @dataclass
@@ -70,13 +73,15 @@ class AvatarAssets:
     # None for an arkit51 avatar (driven by the aligned ARKit weights themselves: no EPM)
     bda: BDA  # the avatar's own BDA (sibling <id>.bda.npz) or identity; a device profile overrides it
     fast: FastPath | None = None  # shared, read-only; None: the numpy reference
+    parallel: bool | None = False  # the fast path's threads per session: False, True, None (auto); KERNEL_THREADS
     _cache: dict[tuple, Any] = field(default_factory=dict, repr=False)
 
     @classmethod
     def create(cls, avatar_id: str, avatar: GaussianAvatar, mapper: Mapper | None, bda: BDA | None = None,
-               fast: bool = True) -> AvatarAssets:
+               fast: bool = True, parallel: bool | None = False) -> AvatarAssets:
         """`fast`: deform with `ofera.avatar.fast` (subset LBS + numba kernels; vertex-bound avatars:
-        `ofera.avatar.fast_vertex`) instead of the reference."""
+        `ofera.avatar.fast_vertex`) instead of the reference; `parallel`: its sessions' threads (False: one, True:
+        numba's, None: automatic; `ofera.avatar.fast`)."""
         subject = HeadSubject.create(avatar.head)  # the avatar's identity is baked into its head's template
         if mapper is None and getattr(avatar, "expression", "flame68") != "arkit51":
             raise ValueError(f"avatar {avatar_id!r} is driven by FLAME values and needs an EPM")
@@ -90,7 +95,8 @@ class AvatarAssets:
             from ..avatar.fast import FastAvatar
 
             fast_avatar = FastAvatar(avatar, subject)
-        return cls(avatar_id, avatar, subject, mapper, bda if bda is not None else BDA.identity(), fast_avatar)
+        return cls(avatar_id, avatar, subject, mapper, bda if bda is not None else BDA.identity(), fast_avatar,
+                   parallel)
 
     @property
     def count(self) -> int:
@@ -197,7 +203,7 @@ class Pipeline:
         self.arkit = assets.expression == "arkit51"
         self.mapper = Mapper(base.session, None, source=base.source) if not self.arkit else None
         # Head model + deformation: the fast path's per-stream buffers, or the reference deformer.
-        self.fast = assets.fast.session() if assets.fast is not None else None
+        self.fast = assets.fast.session(parallel=assets.parallel) if assets.fast is not None else None
         self.deformer = assets.avatar.deformer() if self.fast is None else None
         if self.arkit and self.fast is None:  # the reference morph-target blend (numpy)
             from ..avatar.fast_vertex import morph_blend_reference
@@ -292,7 +298,7 @@ class Pipeline:
     def warm_up(self, frames: int = 3) -> None:
         """Run a few frames so that first-use costs (allocation, ONNX graph set-up) are paid now."""
         if self.assets.fast is not None:
-            self.assets.fast.warm_up()  # compiles (or loads cached) numba kernels
+            self.assets.fast.warm_up(threads=self.assets.parallel is not False)  # compiles (or loads) the kernels
         w = np.zeros(self.adapter.layout.length, np.float32)
         for _ in range(frames):
             self.run(w)

@@ -21,7 +21,7 @@ from ..avatar.state import GaussianState
 from ..mapping.bda import BDA
 from ..mapping.runtime import Mapper
 from .config import Settings
-from .pipeline import AvatarAssets, Pipeline
+from .pipeline import KERNEL_THREADS, AvatarAssets, Pipeline
 
 DEFAULT = "default"
 
@@ -129,7 +129,8 @@ class AvatarRegistry:
         else:
             mapper = Mapper.load(src.epm) if src.epm is not None else Mapper.default()
         bda = BDA.load(src.bda) if src.bda is not None else None
-        return AvatarAssets.create(src.id, avatar, mapper, bda, fast=self.settings.fast)
+        return AvatarAssets.create(src.id, avatar, mapper, bda, fast=self.settings.fast,
+                                   parallel=KERNEL_THREADS[self.settings.kernel_threads])
 
     def device_bda(self, device: str) -> BDA | None:
         """The BDA profile named `device`, or None if the server has none by that name."""
