@@ -339,7 +339,7 @@ def test_delta_kernels_equal_the_reference(kernels, enc, coords, gathered) -> No
     rng = np.random.default_rng(5)
     n = 3000
     gather = np.sort(rng.choice(2 * n, n, replace=False)).astype(np.int64) if gathered else None
-    cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
+    cand = np.sort(rng.choice(n, 1997, replace=False)).astype(np.int64)  # not a multiple of 8: the selection's tail
     frames = moving(rng, 2 * n if gathered else n, 25, cand if gather is None else gather[cand])
     quant = make_quant(frames[0][0], frames[0][2])
     fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)

@@ -316,9 +316,10 @@ one threshold and one comparison finishes the lookup."""
 
 
 def scale_table(thresholds: np.ndarray) -> np.ndarray:
-    """Lookup table of :func:`_scale_code` from the 255 thresholds: int64 (B + 2, 2) rows
+    """Lookup table of :func:`_scale_code` from the 255 thresholds: int32 (B + 1, 2) rows
     [count of thresholds below the bucket, bits of the bucket's threshold or +inf]; row 0 holds the
-    first and last bucket numbers."""
+    first and last bucket numbers. int32, not int64: half the cache lines for the delta encoder's scattered
+    lookups (every value fits: counts <= 255, bits <= 0x7F800001)."""
     bits = np.asarray(thresholds, np.float32).view(np.int32).astype(np.int64)
     b0, b1 = bits[0] >> SCALE_BUCKET_SHIFT, bits[-1] >> SCALE_BUCKET_SHIFT
     buckets = np.arange(b0, b1 + 1)
@@ -330,7 +331,7 @@ def scale_table(thresholds: np.ndarray) -> np.ndarray:
     nxt[inside] = bits[below[inside]]
     if np.any(np.diff(bits >> SCALE_BUCKET_SHIFT) == 0):
         raise ValueError("two scale thresholds share a lookup bucket (log-scale range too narrow)")
-    table = np.empty((buckets.size + 1, 2), np.int64)
+    table = np.empty((buckets.size + 1, 2), np.int32)
     table[0] = b0, b1
     table[1:, 0] = below
     table[1:, 1] = nxt
@@ -350,8 +351,8 @@ def _scale_code(v, table):
         return 0
     if bucket > table[0, 1]:
         return SCALE_LEVELS
-    row = bucket - table[0, 0] + 1
-    return table[row, 0] + (1 if b >= table[row, 1] else 0)
+    row = bucket - np.int64(table[0, 0]) + 1
+    return np.int64(table[row, 0]) + (1 if b >= table[row, 1] else 0)
 
 
 @nb.njit(**_NB)
@@ -445,8 +446,9 @@ class NumbaKernels:
 
     def delta_masks(self, count, ids, sel, moved, wide, n, n_p) -> tuple[np.ndarray, ...]:
         """ofera_protocol.delta.delta_masks_reference by :func:`delta_masks_kernel` (same bytes)."""
-        out = (np.zeros((count + 7) // 8, np.uint8), *(np.empty((n + 7) // 8, np.uint8) for _ in range(3)),
-               np.empty((n_p + 7) // 8, np.uint8))
+        a, b, c = (count + 7) // 8, (n + 7) // 8, (n_p + 7) // 8
+        buf = np.empty(a + 3 * b + c, np.uint8)  # one allocation (each numpy call costs ~50 us on a cold CPU)
+        out = buf[:a], buf[a:a + b], buf[a + b:a + 2 * b], buf[a + 2 * b:a + 3 * b], buf[a + 3 * b:]
         delta_masks_kernel(ids, sel, moved, wide, n, n_p, *out)
         return out
 
@@ -557,8 +559,21 @@ def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel
         _flag_run(pf[3 * a:3 * b], rf[4 * a:4 * b], sf[3 * a:3 * b], dec[0, j:e], dec[1, j:e], dec[2, j:e],
                   dec[3, j:e], dec[4, j:e], dec[5, j:e], dec[6, j:e], dec[7, j:e], dec[8, j:e], dec[9, j:e],
                   flags[j:e], psign, rsign, tol)
-    n = n_p = n_r = n_s = 0
-    for j in range(flags.shape[0]):  # each write lands on the next free slot; the count moves only if it belongs
+    counts = (0, 0, 0, 0)
+    words = flags.shape[0] >> 3
+    word = flags[: words << 3].view(np.uint64)  # 8 flags a word: a word of zeros (nothing moved) is skipped whole
+    for b in range(words):
+        if word[b] != 0:
+            counts = _compact(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
+    return _compact(flags, words << 3, flags.shape[0], counts, lists, out_sel, out_moved)
+
+
+@nb.njit(inline="always", **_NB)
+def _compact(flags, lo, hi, counts, lists, out_sel, out_moved):
+    """Flags lo..hi-1 into the selection and the lists, branch-free: each write lands on the next free slot; the
+    count moves only if it belongs. counts: (n, n_p, n_r, n_s) so far -> after."""
+    n, n_p, n_r, n_s = counts
+    for j in range(lo, hi):
         f = flags[j]
         out_sel[n] = j
         out_moved[n, 0] = f & 1
@@ -712,8 +727,9 @@ def _pack_column(bits, c, n, out):
 
 @nb.njit(**_NB)
 def delta_masks_kernel(ids, sel, moved, wide, n, n_p, changed, out_mp, out_mr, out_ms, out_wide):
-    """ofera_protocol.delta.delta_masks_reference into zeroed `changed` (ceil(count / 8)) and the other outputs
+    """ofera_protocol.delta.delta_masks_reference into `changed` (ceil(count / 8), zeroed here) and the other outputs
     (ceil(n / 8), ceil(n_p / 8)): the bits written straight from the selection, no (count,) bool array."""
+    changed[:] = 0
     for j in range(n):
         i = np.uint64(ids[sel[j]])
         changed[i >> 3] |= np.uint8(1) << (i & 7)
