@@ -617,3 +617,16 @@ def test_a_room_publisher_must_name_its_avatar_nil_is_absent(avatar) -> None:
     with pytest.raises(ProtocolError) as e:
         decode_client_message(msgpack.packb(m))
     assert e.value.code == "bad_field" and "avatar" in e.value.message
+
+
+def test_pack_map_packs_arrays_as_bin_and_refuses_what_is_not_a_field_array() -> None:
+    """pack_map's one msgpack call: arrays of any shape and dtype (empty ones too) are their raw bytes as bin, in key
+    order; a non-contiguous array and a numpy scalar (it exports a buffer too) are refused, not packed."""
+    a = np.arange(12, dtype="<u2").reshape(4, 3)
+    data = pack_map({"z": 1, "a": a, "e": np.zeros((0, 3), np.int8), "t": {"x": 2}})
+    assert list(msgpack.unpackb(data)) == ["z", "a", "e", "t"]
+    assert msgpack.unpackb(data) == {"z": 1, "a": a.tobytes(), "e": b"", "t": {"x": 2}}
+    with pytest.raises(ValueError, match="C-contiguous"):
+        pack_map({"a": a[:, :2]})
+    with pytest.raises(TypeError, match="int64"):
+        pack_map({"n": np.int64(3)})

@@ -79,39 +79,19 @@ from .messages import (
 # ============================================================================= packing
 
 
-def _bin_header(n: int) -> bytes:
-    if n < 0x100:
-        return b"\xc4" + n.to_bytes(1, "big")
-    if n < 0x10000:
-        return b"\xc5" + n.to_bytes(2, "big")
-    return b"\xc6" + n.to_bytes(4, "big")
-
-
-def _map_header(n: int) -> bytes:
-    return (0x80 | n).to_bytes(1, "big") if n < 16 else b"\xde" + n.to_bytes(2, "big")
-
-
-def _pack_into(parts: list[Any], value: Any) -> None:
-    if isinstance(value, dict):
-        parts.append(_map_header(len(value)))
-        for k, v in value.items():
-            parts.append(msgpack.packb(k))
-            _pack_into(parts, v)
-    elif isinstance(value, np.ndarray):
-        # C-contiguous little-endian array: its raw bytes are the bin payload (no copy until join).
-        parts.append(_bin_header(value.nbytes))
-        if not value.flags.c_contiguous:
-            raise ValueError("arrays must be C-contiguous to be packed as bin")
-        parts.append(value.reshape(-1).view(np.uint8))
-    else:
-        parts.append(msgpack.packb(value, use_bin_type=True))
+def _as_bin(value: Any) -> memoryview:
+    """msgpack's ``default`` in :func:`pack_map`: a C-contiguous numpy array -> its raw bytes (a bin, no copy)."""
+    if not isinstance(value, np.ndarray):  # numpy scalars too: they export buffers, but are not fields' arrays
+        raise TypeError(f"cannot pack a {type(value).__name__}")
+    if not value.flags.c_contiguous:
+        raise ValueError("arrays must be C-contiguous to be packed as bin")
+    return memoryview(value).cast("B") if value.size else b""  # (a view with a zero in its shape cannot be cast)
 
 
 def pack_map(items: dict[str, Any]) -> bytes:
-    """msgpack a map in key order; numpy arrays (C-contiguous, little-endian) become `bin`."""
-    parts: list[Any] = []
-    _pack_into(parts, items)
-    return b"".join(parts)
+    """msgpack a map in key order; numpy arrays (C-contiguous, little-endian) become `bin`. One msgpack call: a
+    frame's message is packed on a cold CPU, where a call per field cost ~80 us more (benchmarks/cold_cache.py)."""
+    return msgpack.packb(items, use_bin_type=True, default=_as_bin)
 
 
 def pack_bits(mask: np.ndarray) -> np.ndarray:
@@ -154,8 +134,7 @@ def encode_hello(m: Hello) -> bytes:
 
 
 def encode_bs(m: Blendshapes) -> bytes:
-    """The same bytes as pack_map, in one msgpack call: a client sends one per frame, on a cold CPU, where each of
-    pack_map's small calls costs tens of microseconds (benchmarks/cold_cache.py)."""
+    """A bs message (pack_map's bytes; the weights copied as bytes, no hook call)."""
     w = np.ascontiguousarray(m.w, dtype="<f4")
     if w.ndim != 1:
         raise ValueError(f"bs.w must be 1-D, got shape {w.shape}")
