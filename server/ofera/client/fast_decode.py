@@ -84,8 +84,8 @@ def delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot,
     the codes sent whole; held_p (3 count,) uint16, held_r (rw count,), held_s (3 count,) the held codes (q13:
     rw = 1, uint32 rotations, uint8 scales; f16: rw = 4, every code uint16). Pass 1 checks every narrow change
     (0 = ok, 1 = a code outside 0..65535, 2 = an f16 position NaN / infinite) and changes nothing on failure; pass
-    2 holds the new codes; pass 3 decodes the n carried Gaussians into out_p (3 n,), out_r (4 n,), out_s (3 n,)
-    float32. Unsigned indices throughout (no wrap-around code: see ofera.avatar.kernels)."""
+    2 holds the new codes; pass 3 decodes the n carried Gaussians into the first 3 n / 4 n / 3 n entries of out_p,
+    out_r, out_s float32. Unsigned indices throughout (no wrap-around code: see ofera.avatar.kernels)."""
     three, rw = np.uint64(3), np.uint64(1 if q13 else 4)
     narrow = lists[0, :n_p]  # the rows carrying a narrow position: all of them unless some are wide
     if nw:
@@ -290,6 +290,9 @@ class FastFrameDecoder:
             from ofera_protocol.delta import DeltaDecoder
 
             self.delta = DeltaDecoder(fmt)
+            d = self.delta  # flat views, made once (its held codes change in place; numpy calls cost on a cold CPU)
+            self._held_flat = (d.position.reshape(-1), d.rotation.reshape(-1), d.scale.reshape(-1))
+        self._out_flat = (self._pos.reshape(-1), self._rot.reshape(-1), self._scale.reshape(-1))  # rows 0..n-1 first
         if fmt.encoding == "q13":
             assert fmt.quant is not None
             q = fmt.quant
@@ -338,9 +341,8 @@ class FastFrameDecoder:
         p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
         lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
         code = delta_apply_kernel(q13, d.index, self._lists, *self._counts, d.wide, d.position_delta.reshape(-1),
-                                  _codes(d.position), _codes(d.rotation), _codes(d.scale), dd.position.reshape(-1),
-                                  dd.rotation.reshape(-1), dd.scale.reshape(-1), lo, step, lut, p.reshape(-1),
-                                  r.reshape(-1), s.reshape(-1))
+                                  _codes(d.position), _codes(d.rotation), _codes(d.scale), *self._held_flat, lo, step,
+                                  lut, *self._out_flat)
         if code == 1:
             raise ProtocolError(BAD_FIELD, "frame: 'position_delta' takes a code outside 0..65535")
         if code == 2:
