@@ -182,6 +182,16 @@ def test_root_or_neck_rotation_is_refused(head, subject) -> None:
     rot = pose_rotations(1, neck=np.array([0.0, 0.2, 0.0]))[0]
     with pytest.raises(ValueError, match="root and neck"):
         session.head(np.zeros(10), rot)
+    root = pose_rotations(1)[0].copy()
+    root[0, 0, 0] = np.nextafter(1.0, 2.0)  # one ulp off the identity: refused too
+    for bad in (root, root[:4], np.full((5, 3, 3), np.nan)):  # and a wrong shape, and NaN
+        with pytest.raises(ValueError, match="root and neck"):
+            session.head(np.zeros(10), bad)
+    ok = pose_rotations(1, jaw=np.array([0.3, 0.0, 0.0]))[0]  # (float64; its float32 rounding gives others)
+    want = session.head(np.zeros(10), ok).copy()  # (head's output buffer is reused by the next call)
+    for same in (ok[None], ok.tolist()):  # another shape and type of the same rotations
+        np.testing.assert_array_equal(session.head(np.zeros(10), same), want)
+    assert not np.array_equal(session.head(np.zeros(10), ok.astype(np.float32)), want)  # really another input
 
 
 def test_pool_never_rewrites_a_state_in_use(head, subject) -> None:

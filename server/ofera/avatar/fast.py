@@ -63,7 +63,7 @@ import numpy as np
 from ofera_protocol.fast_encodings import FrameDraft, VaryingRows
 
 from ..head.lbs import HeadSubject
-from ..head.lbs_fast import SubsetLBS, flame_values_kernel
+from ..head.lbs_fast import SubsetLBS, flame_values_kernel, root_neck_identity
 from . import kernels as K
 from .binding import BarycentricBinding, TriangleBinding, normalize_quaternions
 from .deform import make_deformer
@@ -311,9 +311,6 @@ class FastAvatar:
             self._warm.add(parallel)
 
 
-_EYE2 = np.broadcast_to(np.eye(3), (2, 3, 3))
-
-
 class FastSession:
     """Per-stream buffers of a :class:`FastAvatar`. Not thread-safe: one frame at a time."""
 
@@ -337,7 +334,8 @@ class FastSession:
         """FLAME values (68,) -> (expr (50,), rotations (5, 3, 3)) float32, like
         :func:`ofera.mapping.flame_values.split_flame_values` (to float rounding) in one numba call
         (about 100x faster); buffers reused by the next call."""
-        y = np.asarray(y, np.float32).reshape(-1)
+        if not (isinstance(y, np.ndarray) and y.dtype == np.float32 and y.ndim == 1):  # (what the pipeline passes)
+            y = np.asarray(y, np.float32).reshape(-1)
         if y.shape != (68,):
             raise ValueError(f"FLAME values must have 68 entries, got {y.shape}")
         flame_values_kernel(y, 50, self._expr, self._rot)
@@ -346,11 +344,13 @@ class FastSession:
     def head(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """Subset LBS: expr (n,), rotations (5, 3, 3) with root and neck the identity -> (S, 3) float64
         (a buffer reused by the next call)."""
-        rot = np.asarray(rotations)
-        if rot.shape[-3:] != (5, 3, 3) or not np.array_equal(rot.reshape(5, 3, 3)[:2], _EYE2):
+        rot = rotations if isinstance(rotations, np.ndarray) else np.asarray(rotations)
+        if rot.shape != (5, 3, 3):
+            rot = rot.reshape(5, 3, 3) if rot.size == 45 and rot.shape[-2:] == (3, 3) else None
+        if rot is None or not root_neck_identity(rot):
             raise ValueError("the fast path needs rotations (5, 3, 3) with root and neck the identity "
                              "(FLAME values: the client owns head pose); use the reference lbs otherwise")
-        return self.lbs.forward(expr, rot.reshape(5, 3, 3))
+        return self.lbs.forward(expr, rot)
 
     def _threads(self) -> bool:
         """This frame's thread choice (``parallel``, or automatic: see the module docstring)."""

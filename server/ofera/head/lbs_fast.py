@@ -135,6 +135,18 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
 
 
 @nb.njit(**_NB)
+def root_neck_identity(rot):
+    """Whether rotations (K >= 2, 3, 3) have root and neck exactly the identity (one call: np.array_equal's several
+    numpy calls cost ~0.1 ms on a cold CPU)."""
+    for k in range(2):
+        for i in range(3):
+            for c in range(3):
+                if rot[k, i, c] != (1.0 if i == c else 0.0):
+                    return False
+    return True
+
+
+@nb.njit(**_NB)
 def flame_values_kernel(y, n_expr, expr, rot):
     """FLAME values y (68,) -> expr (n_expr,) and rotations (5, 3, 3): root and neck identity; jaw and eyes
     from their 6D (pytorch3d rows: Gram-Schmidt of the two rows, third = cross), computed in float64."""
@@ -233,21 +245,29 @@ class SubsetLBS:
         """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3).
         Single-threaded: a prange over vertex blocks was slower at 5k vertices (the blend is bound by reading
         the basis, 3 MB)."""
-        expr = np.asarray(expr).reshape(-1)
-        if expr.dtype not in (np.float32, np.float64):
-            expr = expr.astype(np.float64)
+        expr, rot = _floats(expr, 1), _floats(rotations, 3)  # (no numpy call for what the fast session passes)
         if expr.shape[0] > self.n_expr:
             raise ValueError(f"{expr.shape[0]} expression coefficients, this subset LBS uses {self.n_expr}")
-        rot = np.asarray(rotations)
-        if rot.dtype not in (np.float32, np.float64):
-            rot = rot.astype(np.float64)
-        rot = rot.reshape(-1, 3, 3)
-        if rot.shape[0] != self.num_joints:
+        if rot.shape != (self.num_joints, 3, 3):
             raise ValueError(f"rotations must be ({self.num_joints}, 3, 3), got {rot.shape}")
-        _subset_lbs(np.ascontiguousarray(expr), np.ascontiguousarray(rot), self._coef, self.v_id, self.basis_t,
+        _subset_lbs(expr, rot, self._coef, self.v_id, self.basis_t,
                     self.pose_rows, self.j_id, self.j_expr, self.parents, self.weights, self._joints, self._a,
                     self._acc, self._nz, self.out)
         return self.out
+
+
+_FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+def _floats(a, ndim: int) -> np.ndarray:
+    """``a`` as a C-contiguous float32 / float64 array of ``ndim`` dimensions (1: flattened; 3: (.., 3, 3)), itself
+    when it already is one (other dtypes become float64)."""
+    if isinstance(a, np.ndarray) and a.ndim == ndim and a.dtype in _FLOATS and a.flags.c_contiguous:
+        return a
+    a = np.asarray(a)
+    if a.dtype not in _FLOATS:
+        a = a.astype(np.float64)
+    return np.ascontiguousarray(a.reshape(-1) if ndim == 1 else a.reshape(-1, 3, 3))
 
 
 def subset_lbs_reference(subject: HeadSubject, expr: np.ndarray, rotations: np.ndarray,
