@@ -311,6 +311,13 @@ class FastAvatar:
             self._warm.add(parallel)
 
 
+def _f64(a: np.ndarray) -> np.ndarray:
+    """``a`` as a C-contiguous float64 array: itself when it is one (head's output; no numpy call on the frame path)."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous:
+        return a
+    return np.ascontiguousarray(a, np.float64)
+
+
 class FastSession:
     """Per-stream buffers of a :class:`FastAvatar`. Not thread-safe: one frame at a time."""
 
@@ -364,7 +371,7 @@ class FastSession:
     def deform(self, verts: np.ndarray) -> GaussianState:
         """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""
         a = self.fast.arrays
-        verts = np.ascontiguousarray(verts, np.float64)
+        verts = _f64(verts)
         if verts.shape != (self.fast.lbs.count, 3):
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
         state, pos, rot, scale = self.pool.acquire()
@@ -395,7 +402,7 @@ class FastSession:
         float32 state written and read back. False if a value is out of the half range (the draft is then
         garbage: drop it). Triangle binding only (:attr:`writes_f16`); threads as :meth:`deform` (the same bits)."""
         a = self.fast.arrays
-        verts = np.ascontiguousarray(verts, np.float64)
+        verts = _f64(verts)
         if verts.shape != (self.fast.lbs.count, 3):
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
         if not self.writes_f16:
