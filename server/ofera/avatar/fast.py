@@ -417,9 +417,12 @@ class FastSession:
         t0 = time.perf_counter_ns()
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
         frames(verts, a.face_vids, self.edges, self.face, False)
-        kernel = K.triangle_f16_kernel_parallel if par else K.triangle_f16_kernel
-        ok = kernel(self.face, self.fast.f16_blocks, a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign,
-                    *self._half_scratch[par], draft.position, draft.rotation, draft.scale)
+        args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
+                draft.position, draft.rotation, draft.scale)
+        if par:
+            ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, *args)
+        else:
+            ok = K.triangle_f16_kernel(self.face, *args)
         if self.parallel is None:
             self.choice.record(par, time.perf_counter_ns() - t0)
         return bool(ok)

@@ -245,8 +245,8 @@ def f16_blocks(run_row: np.ndarray, run_len: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(**_NBC)
-def triangle_f16_kernel(face, blocks, run_face, run_m, run_len, run_row, local, psign, rsign, scratch_pos,
-                        scratch_rot, scratch_scale, out_pos, out_rot, out_scale):
+def triangle_f16_kernel(face, run_face, run_m, run_len, run_row, local, psign, rsign, scratch_pos, scratch_rot,
+                        scratch_scale, out_pos, out_rot, out_scale):
     """:func:`triangle_kernel`'s values times the wire's coordinate signs, written as IEEE half bits straight into a
     dense f16 frame's fields (out_pos (N 3,), out_rot (N 4,), out_scale (N 3,) uint16): the bits the f16 encoding of
     triangle_kernel's state gives (the same float32 arithmetic, one rounding to half), without the state. False if
@@ -257,14 +257,14 @@ def triangle_f16_kernel(face, blocks, run_face, run_m, run_len, run_row, local, 
     each value as it is computed (one scalar conversion and a 2-byte store each) made the kernel 1.5x slower than
     the float32 one, and gained nothing over writing the state."""
     ok = True
+    signs = (psign[0], psign[1], psign[2], rsign[0], rsign[1], rsign[2], rsign[3])  # values: never reloaded
     runs = run_face.shape[0]
     q = 0
     while q < runs:  # the blocks of f16_blocks, found on the way (reading `blocks` was 2-8 % slower, cold)
         first = run_row[q]
         count = 0
         while q < runs and run_row[q] == first + count and count < F16_BLOCK:
-            _f16_run(q, count, face, run_face, run_m, run_len, local, psign, rsign, scratch_pos, scratch_rot,
-                     scratch_scale)
+            _f16_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot, scratch_scale)
             count += run_len[q]
             q += 1
         ok &= _to_half(count, first, scratch_pos, out_pos)
@@ -277,14 +277,15 @@ def triangle_f16_kernel(face, blocks, run_face, run_m, run_len, run_row, local, 
 def triangle_f16_kernel_parallel(face, blocks, run_face, run_m, run_len, run_row, local, psign, rsign, scratch_pos,
                                  scratch_rot, scratch_scale, out_pos, out_rot, out_scale):
     """:func:`triangle_f16_kernel` over numba's threads: prange over its blocks (``blocks``, :func:`f16_blocks`:
-    disjoint rows), the scratch (threads, .., 3 | 4 | 3) one per thread."""
+    disjoint rows), the scratch (threads, .., 3 | 4 | 3) one per thread. Same arguments, and ``blocks`` second."""
     bad = 0
+    signs = (psign[0], psign[1], psign[2], rsign[0], rsign[1], rsign[2], rsign[3])
     for b in nb.prange(blocks.shape[0] - 1):
         t = nb.get_thread_id()
         first = run_row[blocks[b]]
         count = 0
         for q in range(blocks[b], blocks[b + 1]):
-            _f16_run(q, count, face, run_face, run_m, run_len, local, psign, rsign, scratch_pos[t], scratch_rot[t],
+            _f16_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos[t], scratch_rot[t],
                      scratch_scale[t])
             count += run_len[q]
         ok = _to_half(count, first, scratch_pos[t], out_pos)
@@ -295,21 +296,23 @@ def triangle_f16_kernel_parallel(face, blocks, run_face, run_m, run_len, run_row
 
 
 @nb.njit(inline="always", **_NBC)
-def _f16_run(q, count, face, run_face, run_m, run_len, local, psign, rsign, scratch_pos, scratch_rot, scratch_scale):
-    """Run q of the f16 writer, times the wire signs, into rows count.. of its block's float32 scratch."""
+def _f16_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot, scratch_scale):
+    """Run q of the f16 writer, times the wire signs (a tuple: loaded once, where array elements would be reloaded
+    after every store to the scratch, which might alias them), into rows count.. of its block's float32 scratch."""
+    p0, p1, p2, q0, q1, q2, q3 = signs
     u = np.uint64(run_face[q])
     m0 = np.uint64(run_m[q])
     f = _face_of_run(face, u)
     for j in range(np.uint64(run_len[q])):
         x, y, z, rx, ry, rz, rw, sx, sy, sz = _triangle_gaussian(f, local[m0 + j])
         c = np.uint64(count) + j
-        scratch_pos[c, 0] = x * psign[0]
-        scratch_pos[c, 1] = y * psign[1]
-        scratch_pos[c, 2] = z * psign[2]
-        scratch_rot[c, 0] = rx * rsign[0]
-        scratch_rot[c, 1] = ry * rsign[1]
-        scratch_rot[c, 2] = rz * rsign[2]
-        scratch_rot[c, 3] = rw * rsign[3]
+        scratch_pos[c, 0] = x * p0
+        scratch_pos[c, 1] = y * p1
+        scratch_pos[c, 2] = z * p2
+        scratch_rot[c, 0] = rx * q0
+        scratch_rot[c, 1] = ry * q1
+        scratch_rot[c, 2] = rz * q2
+        scratch_rot[c, 3] = rw * q3
         scratch_scale[c, 0] = sx
         scratch_scale[c, 1] = sy
         scratch_scale[c, 2] = sz
