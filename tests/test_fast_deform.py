@@ -328,3 +328,20 @@ def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.Mo
     assert assets.parallel is None and assets.pipeline("arkit52").fast.parallel is None
     with pytest.raises(ValueError, match="kernel_threads"):
         Settings(kernel_threads="two")
+
+
+def test_flame_head_is_head_of_flame(head, subject) -> None:
+    """The fused call (FLAME split + subset LBS, one numba call) gives head(flame(y)) bit for bit, and its split."""
+    rng = np.random.default_rng(13)
+    session = FastAvatar(random_avatar(head, "triangle", rng, n=300), subject).session()
+    for _ in range(5):
+        y = neutral_flame_values(1)[0]
+        y[:50] = rng.normal(0, 1, 50)
+        y[50:] += rng.normal(0, 0.3, 18).astype(np.float32)
+        expr, rot = (a.copy() for a in session.flame(y))
+        want = session.head(expr, rot).copy()
+        np.testing.assert_array_equal(session.flame_head(y), want)
+        np.testing.assert_array_equal(session._expr, expr)
+        np.testing.assert_array_equal(session._rot, rot)
+    with pytest.raises(ValueError, match="68 entries"):
+        session.flame_head(np.zeros(67, np.float32))

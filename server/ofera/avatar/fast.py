@@ -301,6 +301,8 @@ class FastAvatar:
             y[50:] = [1, 0, 0, 0, 1, 0] * 3
             expr, rot = s.flame(y)
             s.deform(s.head(expr[: self.lbs.n_expr], rot))
+            if self.lbs.n_expr >= 50:
+                s.flame_head(y)
             s.head(np.zeros(self.lbs.n_expr), np.broadcast_to(np.eye(3), (self.lbs.num_joints, 3, 3)))
             if s.writes_f16:
                 draft = SimpleNamespace(varying=self.varying, position=np.zeros(3 * self.count, np.uint16),
@@ -337,15 +339,23 @@ class FastSession:
         self._rot = np.zeros((5, 3, 3), np.float32)
         self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
 
-    def flame(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """FLAME values (68,) -> (expr (50,), rotations (5, 3, 3)) float32, like
-        :func:`ofera.mapping.flame_values.split_flame_values` (to float rounding) in one numba call
-        (about 100x faster); buffers reused by the next call."""
+    def flame_head(self, y: np.ndarray) -> np.ndarray:
+        """:meth:`head` of :meth:`flame` (y (68,) FLAME values -> (S, 3) float64), the same values in one numba call
+        (the split is left in the buffers :meth:`flame` returns)."""
+        return self.lbs.forward_flame(self._values(y), self._expr, self._rot)
+
+    def _values(self, y: np.ndarray) -> np.ndarray:
         if not (isinstance(y, np.ndarray) and y.dtype == np.float32 and y.ndim == 1):  # (what the pipeline passes)
             y = np.asarray(y, np.float32).reshape(-1)
         if y.shape != (68,):
             raise ValueError(f"FLAME values must have 68 entries, got {y.shape}")
-        flame_values_kernel(y, 50, self._expr, self._rot)
+        return y
+
+    def flame(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """FLAME values (68,) -> (expr (50,), rotations (5, 3, 3)) float32, like
+        :func:`ofera.mapping.flame_values.split_flame_values` (to float rounding) in one numba call
+        (about 100x faster); buffers reused by the next call."""
+        flame_values_kernel(self._values(y), 50, self._expr, self._rot)
         return self._expr, self._rot
 
     def head(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
@@ -415,10 +425,10 @@ class FastSession:
             self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
         par = self._threads()
         t0 = time.perf_counter_ns()
-        frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
-        frames(verts, a.face_vids, self.edges, self.face, False)
         args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
                 draft.position, draft.rotation, draft.scale)
+        frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
+        frames(verts, a.face_vids, self.edges, self.face, False)
         if par:
             ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, *args)
         else:

@@ -135,6 +135,15 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
 
 
 @nb.njit(**_NB)
+def flame_subset_lbs(y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz,
+                     out):
+    """:func:`flame_values_kernel` (y (68,) -> expr (50,), rot (5, 3, 3)) then :func:`_subset_lbs` of them, in one
+    call: no check of rotations that are the identity by construction (root and neck), no second dispatch."""
+    flame_values_kernel(y, expr.shape[0], expr, rot)
+    _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz, out)
+
+
+@nb.njit(**_NB)
 def root_neck_identity(rot):
     """Whether rotations (K >= 2, 3, 3) have root and neck exactly the identity (one call: np.array_equal's several
     numpy calls cost ~0.1 ms on a cold CPU)."""
@@ -240,6 +249,15 @@ class SubsetLBS:
     @property
     def count(self) -> int:
         return int(self.vertex_ids.size)
+
+    def forward_flame(self, y: np.ndarray, expr: np.ndarray, rot: np.ndarray) -> np.ndarray:
+        """FLAME values y (68,) float32 -> vertices (S, 3), as :meth:`forward` of their split (root and neck the
+        identity), in one numba call; the split is left in expr (50,) and rot (5, 3, 3) float32. Needs n_expr >= 50."""
+        if self.n_expr < expr.shape[0]:
+            raise ValueError(f"{expr.shape[0]} expression coefficients, this subset LBS uses {self.n_expr}")
+        flame_subset_lbs(y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr,
+                         self.parents, self.weights, self._joints, self._a, self._acc, self._nz, self.out)
+        return self.out
 
     def forward(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3).

@@ -241,19 +241,17 @@ class Pipeline:
         referenced (fresh arrays on the reference path, a pooled read-only state on the fast path)."""
         clock = time.perf_counter_ns
         t3 = clock()
-        if self.arkit:
-            expr, rotations = np.asarray(values, np.float32), _IDENTITY5
-        elif self.fast is not None:  # the fast path's own split: one numba call (split_flame_values: ~0.3 ms)
-            expr, rotations = self.fast.flame(values)
-        else:
-            expr, rotations = split_flame_values(np.asarray(values, np.float32))
-        if self.fast is not None:
-            verts = self.fast.head(expr, rotations)
+        if self.fast is not None:  # FLAME values: the fast path's split and LBS in one numba call; arkit51: morphs
+            verts = (self.fast.head(np.asarray(values, np.float32), _IDENTITY5) if self.arkit
+                     else self.fast.flame_head(values))
             t4 = clock()
             state = self.fast.deform(verts)
         else:
-            verts = (self._morph(self.assets.avatar.head, expr) if self.arkit  # what lbs gives: no joints move
-                     else lbs(self.assets.subject, expr[None], rotations[None])[0][0])
+            if self.arkit:  # what lbs gives: no joints move
+                verts = self._morph(self.assets.avatar.head, np.asarray(values, np.float32))
+            else:
+                expr, rotations = split_flame_values(np.asarray(values, np.float32))
+                verts = lbs(self.assets.subject, expr[None], rotations[None])[0][0]
             t4 = clock()
             state = self.deformer.deform(verts)
         t5 = clock()
@@ -281,8 +279,7 @@ class Pipeline:
         The bits are those of the f16 encoding of deform_values' state; no state is made."""
         clock = time.perf_counter_ns
         t3 = clock()
-        expr, rotations = self.fast.flame(values)
-        verts = self.fast.head(expr, rotations)
+        verts = self.fast.flame_head(values)
         t4 = clock()
         ok = self.fast.deform_f16(verts, draft, psign, rsign)
         t5 = clock()
