@@ -246,13 +246,19 @@ def test_rotation_matrices_from_axis_angle_match(head, subject) -> None:
     assert_same_state(fast.session().run(expr, rot), reference_frame(avatar, subject, expr, rot))
 
 
+def random_flame_values(rng, pose_sd: float) -> np.ndarray:
+    """(68,) float32 FLAME values: normal expression, 6D rotations near the neutral ones (sd ``pose_sd``)."""
+    y = neutral_flame_values(1)[0]
+    y[:50] = rng.normal(0, 1, 50)
+    y[50:] += rng.normal(0, pose_sd, 18).astype(np.float32)
+    return y
+
+
 def test_flame_values_split_matches_reference(head, subject) -> None:
     rng = np.random.default_rng(10)
     session = FastAvatar(random_avatar(head, "triangle", rng, n=100), subject).session()
     for _ in range(20):
-        y = neutral_flame_values(1)[0]
-        y[:50] = rng.normal(0, 1, 50)
-        y[50:] += rng.normal(0, 0.5, 18).astype(np.float32)
+        y = random_flame_values(rng, 0.5)
         expr, rot = session.flame(y)
         ref_expr, ref_rot = split_flame_values(y)
         np.testing.assert_array_equal(expr, ref_expr)
@@ -335,9 +341,7 @@ def test_flame_head_is_head_of_flame(head, subject) -> None:
     rng = np.random.default_rng(13)
     session = FastAvatar(random_avatar(head, "triangle", rng, n=300), subject).session()
     for _ in range(5):
-        y = neutral_flame_values(1)[0]
-        y[:50] = rng.normal(0, 1, 50)
-        y[50:] += rng.normal(0, 0.3, 18).astype(np.float32)
+        y = random_flame_values(rng, 0.3)
         expr, rot = (a.copy() for a in session.flame(y))
         want = session.head(expr, rot).copy()
         np.testing.assert_array_equal(session.flame_head(y), want)
