@@ -6,7 +6,7 @@ A server in a subprocess (``_common.ServerProcess``: its own interpreter and GIL
 1/--rate s carrying its scheduled time. Every stage is measured where it happens, per frame where it can be:
 
   client   bs_send      scheduled time -> bs written to the client's socket (loop lateness + bs encoding;
-                        the sender spins the last 1.5 ms: _common.sleep_until)
+                        the sender spins the last 3 ms: _common.sleep_until)
   server   decode       bs bytes received -> decoded and validated          (frame.timing, per frame)
            queue        decoded -> computation starts (thread pool hand-off) (frame.timing)
            layout, bda, epm, head, deform                                    (frame.timing)

@@ -15,6 +15,7 @@ from ofera.avatar.fast import FastAvatar
 from ofera.client import connect
 from ofera.head.lbs import HeadSubject
 from ofera.streaming import roles
+from ofera.streaming.direct import DirectF16
 from ofera.streaming.encode_fast import frame_writer
 from ofera.streaming.metrics import Metrics
 from ofera.streaming.roles import Source
@@ -55,7 +56,7 @@ def test_a_dense_f16_session_gets_the_frames_the_state_path_gives(observed: Any,
             await c.send_bs(np.full(52, 0.15 * k, np.float32), seq=k)
             got.append(await c.recv_frame(timeout=WAIT))
         (source,) = observed.sources
-        assert source.direct is not None and source.eager == []
+        assert isinstance(source.direct, DirectF16)
         await c.close()
 
     run(main())
@@ -85,12 +86,12 @@ def test_a_frame_the_kernel_cannot_write_takes_the_state_path(monkeypatch: pytes
     pipe = Pipeline(assets, "arkit52")
     writer = frame_writer(FrameFormat("f16", avatar.count, False, None))
     source = Source(pipe, None, Metrics())
-    source.direct = (("f16", "flame", False, None), writer)
+    source.direct = DirectF16(("f16", "flame", False, None), writer)
     frame = source._compute(pending(1))
-    assert frame.state is None and frame.cached(source.direct[0]) is not None
+    assert frame.state is None and frame.cached(source.direct.key) is not None
     monkeypatch.setattr(pipe, "deform_values_f16", lambda *a: (False, {"head": 0, "deform": 0}))
     frame = source._compute(pending(2))
-    assert frame.state is not None and frame.cached(source.direct[0]) is None
+    assert frame.state is not None and frame.cached(source.direct.key) is None
 
 
 @pytest.mark.parametrize("parallel", [False, True])

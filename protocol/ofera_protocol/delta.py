@@ -365,28 +365,46 @@ class DeltaEncoder:
         return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": True, "n": self.format.count,
                          "position": self.held_p, "rotation": self.held_r, "scale": self.held_s})
 
+    @property
+    def next_is_key(self) -> bool:
+        """Whether the next frame will be a key frame (join, resync, key interval)."""
+        return self._key_asked or not self.has_key or bool(self.key_interval and self.since_key >= self.key_interval)
+
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
                scale: np.ndarray) -> bytes:
         """The next frame message (key or delta) for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3)."""
         start_ns = time.perf_counter_ns()
-        self.frames += 1
-        if self._key_asked or not self.has_key or (self.key_interval and self.since_key >= self.key_interval):
+        if self.next_is_key:
+            self.frames += 1
             self._key_asked = False
             data = self._key(seq, t, timing, position, rotation, scale, start_ns)
             self.has_key = True
             self.since_key = 1
             self.key_frames += 1
             return data
-        self.since_key += 1
         args = (position, rotation, scale, self.rows, self.runs, self.ids, self.psign, self.rsign)
         out = (self._sel, self._moved, self._wide, self._res, self._pos, self._rot, self._scale)
         if self.format.encoding == "q13":
-            n, n_p, w, n_r, n_s = self.kernels.delta_q13(
+            counts = self.kernels.delta_q13(
                 *args, self.lo, self.k, self.step, self.thresholds, self.lut, ROT_FIELD64, self.tol,
                 self.held_p, self.held_r, self.held_s, self.dec, self._flags, self._work, *out)
         else:
-            n, n_p, w, n_r, n_s = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s,
-                                                         self.dec, self._flags, self._work, *out)
+            counts = self.kernels.delta_f16(*args, self.tol, self.held_p, self.held_r, self.held_s, self.dec,
+                                            self._flags, self._work, *out)
+        return self.encode_selected(seq, t, timing, counts, start_ns)
+
+    def encode_selected(self, seq: int, t: int, timing: dict[str, int], counts: tuple[int, ...], start_ns: int
+                        ) -> bytes:
+        """The delta frame message of a selection a kernel has just made in this encoder's buffers and held state
+        (``counts`` = (n, n_p, w, n_r, n_s), what the delta kernels return; :meth:`encode` runs them on a state, the
+        server's deformation may run its own: ``ofera.streaming.direct_delta``). ``start_ns``: when the frame's
+        encoding began (perf_counter_ns), for the "encode" stamp. Only where :attr:`next_is_key` was False before the
+        kernel ran (a resync asked since then applies to the next frame)."""
+        if not self.has_key:
+            raise RuntimeError("no key frame was sent yet: encode() the first frame from the state")
+        n, n_p, w, n_r, n_s = counts
+        self.frames += 1
+        self.since_key += 1
         changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.ids, self._sel, self._moved,
                                                              self._wide, n, n_p)
         timing = self._stamped(timing, start_ns)

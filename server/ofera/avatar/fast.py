@@ -378,12 +378,28 @@ class FastSession:
         self.threaded = par
         return par
 
-    def deform(self, verts: np.ndarray) -> GaussianState:
-        """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""
-        a = self.fast.arrays
+    def _verts(self, verts: np.ndarray) -> np.ndarray:
         verts = _f64(verts)
         if verts.shape != (self.fast.lbs.count, 3):
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
+        return verts
+
+    def deform_delta(self, verts: np.ndarray, select) -> tuple[int, ...]:
+        """``select(verts, parallel)`` with this frame's thread choice (as :meth:`deform`, timed for the automatic
+        choice) for subset vertices (S, 3): a kernel that deforms from them and writes a delta frame
+        (``ofera.streaming.direct_delta.DirectDelta.select``); returns what it returns."""
+        verts = self._verts(verts)
+        par = self._threads()
+        t0 = time.perf_counter_ns()
+        out = select(verts, par)
+        if self.parallel is None:
+            self.choice.record(par, time.perf_counter_ns() - t0)
+        return out
+
+    def deform(self, verts: np.ndarray) -> GaussianState:
+        """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""
+        a = self.fast.arrays
+        verts = self._verts(verts)
         state, pos, rot, scale = self.pool.acquire()
         bary = a.inv_canonical is not None
         par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
@@ -412,9 +428,7 @@ class FastSession:
         float32 state written and read back. False if a value is out of the half range (the draft is then
         garbage: drop it). Triangle binding only (:attr:`writes_f16`); threads as :meth:`deform` (the same bits)."""
         a = self.fast.arrays
-        verts = _f64(verts)
-        if verts.shape != (self.fast.lbs.count, 3):
-            raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
+        verts = self._verts(verts)
         if not self.writes_f16:
             raise ValueError("deform_f16 needs the triangle binding")
         if draft.varying is not self.fast.varying:

@@ -78,6 +78,10 @@ def warm_up(hub: Hub) -> None:
         from .encode_fast import numba_kernels
 
         numba_kernels(warm=True)  # compiles (or loads cached) frame-encoding kernels
+        if getattr(assets.fast, "binding_type", None) == "triangle":  # a delta session's frames (direct_delta)
+            from .direct_delta import warm_up as warm_direct_delta
+
+            warm_direct_delta(assets.fast, threads=assets.parallel is not False)
     hub.warm = True
 
 

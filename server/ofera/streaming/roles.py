@@ -33,6 +33,7 @@ from ofera_protocol import Blendshapes, Frame, FrameFormat, ProtocolError, encod
 from ofera_protocol import errors as E
 
 from ..avatar.state import GaussianState
+from .direct import DirectWriter
 from .metrics import Metrics
 from .pipeline import Pipeline
 
@@ -91,6 +92,7 @@ class ComputedFrame:
     received_ns: int
     values: np.ndarray | None = None  # the avatar's expression values (68 FLAME values; arkit51: 51 weights)
     member: str | None = None  # rooms: whose avatar (frame.member)
+    restate: Callable[[], GaussianState] | None = None  # a frame written with no state (Source.direct): deforms it
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -149,10 +151,10 @@ class Source:
         # A delta format (its encoder advances per frame handed to a socket) only where every computed frame is
         # handed to its viewer's socket: a solo session, whose demand holds the computing while the slot is full.
         self.eager: list[tuple[tuple, Callable[[ComputedFrame], Any]]] = []
-        # (key, FrameWriter) of a dense f16 format whose frames the deformation writes itself, with no float32
-        # state in between (FrameWriter.draft, Pipeline.deform_values_f16); its frames carry no state. Only for a
-        # source whose every frame goes to viewers of that one format (a v1 session and its own viewer).
-        self.direct: tuple[tuple, Any] | None = None
+        # A wire format whose frames the deformation writes itself, with no float32 state in between (direct.py:
+        # dense f16, or a delta session's delta frames); such frames carry no state. Only for a source whose every
+        # frame goes to viewers of that one format (a v1 session and its own viewer).
+        self.direct: DirectWriter | None = None
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
@@ -172,17 +174,13 @@ class Source:
         held = hold.held if hold is not None else 0
         args = (p.bs.w,) if conf is None else (p.bs.w, conf)
         state: GaussianState | None = None
-        draft = None
+        written = None
         if self.needs_state is not None and not self.needs_state():
             values, stages = self.pipeline.map(*args)
-        elif self.direct is not None:
+        elif self.direct is not None and self.direct.ready():
             values, stages = self.pipeline.map(*args)
-            writer = self.direct[1]
-            neutral = self.pipeline.neutral
-            draft = writer.draft(self.pipeline.varying, (neutral.position, neutral.rotation, neutral.scale))
-            ok, deformed = self.pipeline.deform_values_f16(values, draft, writer.psign, writer.rsign)
-            if not ok:  # a value beyond the half range: the state, so that the viewer's encoding reports it
-                draft = None
+            written, deformed = self.direct.deform(self.pipeline, values)
+            if written is None:  # the kernel could not write it: the state, whose encoding reports why
                 state, deformed = self.pipeline.deform_values(values)
             stages = {**stages, **deformed}
         else:
@@ -197,11 +195,12 @@ class Source:
             timing["map"] = stages["layout"] + stages["bda"]
         timing["total"] = (end - p.received_ns) // 1000
         frame = ComputedFrame(p.bs.seq, p.bs.t, state, timing, p.received_ns, values, self.member)
-        if draft is not None:
+        if written is not None:
             t0 = time.perf_counter_ns()
-            key, writer = self.direct
-            frame.store(key, writer.finish(draft, frame.seq, frame.t, frame.timing, frame.member))
-            self.metrics.stage_of("encode").observe((draft.spent_ns + time.perf_counter_ns() - t0) * 1e-9)
+            data, spent_ns = self.direct.finish(written, frame)
+            frame.store(self.direct.key, data)
+            frame.restate = lambda: self.pipeline.deform_values(values)[0]
+            self.metrics.stage_of("encode").observe((spent_ns + time.perf_counter_ns() - t0) * 1e-9)
         elif state is not None:
             self._encode_eagerly(frame)
         return frame
@@ -330,12 +329,15 @@ class Viewer:
         """An unsent frame was just replaced by `frame`. A delta writer that encoded both eagerly (in the compute
         thread) holds codes the client will never get, and `frame`'s bytes were made against them: `frame` is
         encoded again, here, as a key frame. Here, on the loop and before its source's next computation, no other
-        encoding of this writer can run, so its frames stay in the order they are sent. A solo session never gets
-        here (its source computes only while the slot is empty); this keeps a client right wherever it would."""
+        encoding of this writer can run, so its frames stay in the order they are sent. A frame the deformation wrote
+        is deformed again from its values first (its source is between computations here). A solo session never
+        gets here (its source computes only while the slot is empty); this keeps a client right wherever it would."""
         request_key = getattr(self.writer, "request_key", None)
         if request_key is not None and frame.cached(self.key) is not None:
             request_key()
             frame.forget(self.key)
+            if frame.state is None and frame.restate is not None:  # written by the deformation (Source.direct)
+                frame.state = frame.restate()
             encode_timed(frame, self.key, self.make, self.metrics)
 
     def make(self, frame: ComputedFrame) -> bytes | memoryview:

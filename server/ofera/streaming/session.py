@@ -26,13 +26,14 @@ from .bus import MemberInfo, RoomBus
 from .config import Settings
 from .core import Action, Close, Compute, Count, KeyFrame, SessionCore, Start
 from .core import Send as SendAction
+from .direct import direct_writer
 from .member_wire import PARAMS, params_parts, params_rig_size
 from .metrics import Metrics
 from .pipeline import AvatarAssets, Pipeline
 from .registry import AvatarRegistry
 from .roles import PendingBs, SessionFatal, Source, Viewer
 from .rooms import BYE, CLOSED, Member, Rooms, RoomViewer, new_member_id
-from .wire import direct_f16, make_delta_writer, make_writer, reduced_size
+from .wire import make_delta_writer, make_writer, reduced_size
 
 __all__ = ["ConnectionGone", "Hub", "Session", "Transport", "make_delta_writer", "make_writer", "reduced_size"]
 
@@ -243,11 +244,12 @@ class Session:
             writer = make_writer(self.conn.format, hello.coords, gather, index, s.fast)
         self.viewer = Viewer(self.t.send, writer, key, self.hub.executor, self.metrics)
         self.source.subscribers.append(self.viewer.offer)
-        if direct_f16(writer, self.source.pipeline):
-            self.source.direct = (key, writer)  # the deformation writes the frames: no state, no encoding pass
-        elif hello.encoding != PARAMS:
-            # Encoded in the compute thread, a delta format included: this source computes only while its one
-            # viewer's slot is empty (demand, below), so every frame it computes is handed to this socket.
+        if hello.encoding != PARAMS:
+            # The deformation writes the frames where it can (direct.py: no state, no encoding pass); a frame with a
+            # state (a delta session's key frames, any frame elsewhere) is encoded in the compute thread, a delta
+            # format included: this source computes only while its one viewer's slot is empty (demand, below), so
+            # every frame it computes is handed to this socket (a delta frame is never replaced unsent).
+            self.source.direct = direct_writer(key, writer, self.source.pipeline)
             self.source.eager.append((key, self.viewer.make))
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full

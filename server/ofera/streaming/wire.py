@@ -4,7 +4,6 @@ may ask for (rooms: `member_wire`)."""
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 from ofera_protocol import FrameFormat
@@ -23,14 +22,6 @@ def make_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, index:
 
         return frame_writer(fmt, coords, gather, index, stamp_encode=stamp_encode)
     return CodecWriter(fmt, coords, gather, index)
-
-
-def direct_f16(writer: Any, pipeline: Any) -> bool:
-    """Whether `pipeline`'s deformation can write `writer`'s frames itself (``FrameWriter.draft``): a fast writer of
-    dense f16 frames and a fast pipeline whose kernel writes f16 (the triangle binding)."""
-    fmt = getattr(writer, "format", None)
-    return (hasattr(writer, "draft") and fmt is not None and fmt.encoding == "f16" and writer.gather is None
-            and getattr(pipeline, "writes_f16", False))
 
 
 def make_delta_writer(fmt: FrameFormat, coords: str, gather: np.ndarray | None, movable: tuple, settings: Settings

@@ -1,0 +1,344 @@
+"""The deformation writes a solo session's delta frames (PROTOCOL.md 7.1): no float32 state in between.
+
+A delta frame needs, per candidate Gaussian (the avatar's movable ones), its deformed position, rotation and scale
+only long enough to compare them with what the client holds and to encode what moved. :class:`DirectDelta` runs
+the fast path's per-Gaussian deformation (``ofera.avatar.kernels``, the same float32 arithmetic) block by block
+into a scratch that stays in the first-level cache, and the delta encoder's selection and encoding passes
+(``ofera.streaming.encode_fast``, the same functions) over each block straight away: the bytes and the held codes
+are those of ``DeltaEncoder.encode`` on ``FastSession.deform``'s state, with 5 MB less memory traffic a frame (the
+state written, then read back by the encoder).
+
+    direct = DirectDelta(fast_avatar, encoder)          # once per session: candidate runs, chunks, blocks
+    if not encoder.next_is_key:                         # key frames (join, resync, key_interval) take the state
+        counts = session.deform_delta(verts, direct.select)          # FastSession: its thread choice
+        data = encoder.encode_selected(seq, t, timing, counts, start_ns)
+
+Both cores: the candidates are cut into chunks (one a thread, :func:`split_blocks`), each with its own list of faces
+(:func:`chunk_faces`), scratch and outputs, so a chunk on another core reads nothing another chunk writes; the
+serial kernel runs the same chunks one after another, and both gather the chunks' outputs in candidate order.
+
+The plain reference is ``DeltaEncoder.encode(FastSession.deform(verts))``; tests compare them byte for byte.
+Triangle binding only (the barycentric binding's positions are float64 sums of vertices: the state path runs).
+"""
+
+from __future__ import annotations
+
+import numba
+import numba as nb
+import numpy as np
+from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
+
+from ..avatar import kernels as K
+from ..jit import F16_MAX, f16_bits_to_f32, f32_to_f16_bits
+from ..jit import NB as _NB
+from .encode_fast import _compact, _flag_run, _positions, _rotations_q13, _scale_code
+
+_NBC = {**_NB, "fastmath": {"contract"}}  # as the deformation kernels: the same fused multiply-adds, the same bits
+BLOCK = K.F16_BLOCK
+"""Candidates a block deforms into the scratch before the selection runs over them (plus the last run's rest)."""
+
+
+def candidate_runs(fast_ids: np.ndarray, gface: np.ndarray, rows: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Runs of consecutive candidates j (state rows ``rows`` (K,)) whose deformed rows (their places m in the fast
+    path's ascending ``fast_ids`` (M,)) are consecutive and on one face (``gface`` (M,) used-face slots):
+    (run_face, run_m, run_len, blocks), int64; ``blocks`` (B + 1,) the first run of each block of at least
+    :data:`BLOCK` candidates (the run count last). ValueError if a candidate is not deformed by the fast path."""
+    m = np.searchsorted(fast_ids, rows)
+    if rows.size and (m.max() >= fast_ids.size or not np.array_equal(fast_ids[np.minimum(m, fast_ids.size - 1)],
+                                                                      rows)):
+        raise ValueError("a delta candidate is not among the Gaussians the fast path deforms")
+    slot = gface[m]
+    brk = np.flatnonzero((np.diff(m) != 1) | (np.diff(slot) != 0)) + 1
+    start = np.concatenate([[0], brk]).astype(np.int64) if rows.size else np.zeros(0, np.int64)
+    length = np.diff(np.append(start, rows.size)).astype(np.int64)
+    blocks, count = [0], 0
+    for q, n in enumerate(length):
+        if count >= BLOCK:
+            blocks.append(q)
+            count = 0
+        count += int(n)
+    if blocks[-1] != start.size:
+        blocks.append(int(start.size))
+    return slot[start].astype(np.int64), m[start].astype(np.int64), length, np.asarray(blocks, np.int64)
+
+
+def block_rows(run_len: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """(K,) int64: each candidate's row in its block's scratch (its index minus the block's first)."""
+    cum = np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)
+    first, end = cum[blocks[:-1]], cum[blocks[1:]]
+    return np.arange(cum[-1], dtype=np.int64) - np.repeat(first, end - first)
+
+
+@nb.njit(**_NBC)
+def _deform_block(q0, q1, face, run_face, run_m, run_len, local, signs, sp, sr, ss):
+    """Runs q0..q1-1 into rows 0.. of the scratch (signed, as the f16 writer's); returns the rows written."""
+    count = 0
+    for q in range(q0, q1):
+        K._f16_run(q, count, face, run_face, run_m, run_len, local, signs, sp, sr, ss)
+        count += run_len[q]
+    return count
+
+
+@nb.njit(**_NB)
+def _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, lists, out_sel, out_moved):
+    """Flags of candidates ja..jb-1 (their values in the scratch rows 0..) and their compaction, appended to the
+    selection and the lists (``counts`` so far -> after); 8-candidate words of zeros skipped, as in _select."""
+    c = jb - ja
+    _flag_run(sp.reshape(-1)[:3 * c], sr.reshape(-1)[:4 * c], ss.reshape(-1)[:3 * c], dec[0, ja:jb], dec[1, ja:jb],
+              dec[2, ja:jb], dec[3, ja:jb], dec[4, ja:jb], dec[5, ja:jb], dec[6, ja:jb], dec[7, ja:jb],
+              dec[8, ja:jb], dec[9, ja:jb], flags[ja:jb], ones3, ones4, tol)
+    wa, wb = (ja + 7) >> 3, jb >> 3  # the whole words of the full flags array inside ja..jb
+    if wa >= wb:
+        return _compact(flags, ja, jb, counts, lists, out_sel, out_moved)
+    counts = _compact(flags, ja, wa << 3, counts, lists, out_sel, out_moved)
+    for b in range(wa, wb):
+        if word[b] != 0:
+            counts = _compact(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
+    return _compact(flags, wb << 3, jb, counts, lists, out_sel, out_moved)
+
+
+@nb.njit(**_NBC)
+def _delta_chunk(q13, c, verts, geo, codes, held, out, scratch):
+    """Chunk c: its faces' frames, then its blocks, each deformed into the scratch (signed, as the f16 writer's), then
+    the selection and one pass per attribute over what moved (q13 codes, else f16 bits), the held codes and their
+    decodings updated. Every output and list of the chunk starts at its first candidate's index (a chunk selects at
+    most its own candidates; :func:`_gather_chunks` closes the gaps). Returns (n, n_p, w, n_r, n_s, ok) of the chunk;
+    ok False if an f16 value is out of range. Argument groups: see :meth:`DirectDelta.select`."""
+    chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
+    lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
+    ids, held_p, held_r, held_s, dec, flags, work = held
+    out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
+    sp, sr, ss, gathered, edges, face = scratch[0][c], scratch[1][c], scratch[2][c], scratch[3], scratch[4], scratch[5]
+    K.face_frames_range(chunk_u[c], chunk_u[c + 1], verts, face_vids, edges, face, False)
+    word = flags[: (flags.shape[0] >> 3) << 3].view(np.uint64)
+    ja = base = chunk_j[c]
+    counts = (base, base, base, base)  # (n, n_p, n_r, n_s) + base: the next free slot of each output
+    w = 0  # positions sent whole so far (out_pos[base:]); narrow so far: (n_p - base) - w (out_res[n_p - w:])
+    ok = True
+    for b in range(chunks[c], chunks[c + 1]):
+        jb = ja + _deform_block(blocks[b], blocks[b + 1], face, run_face, run_m, run_len, local, signs, sp, sr, ss)
+        n0, p0, r0, s0 = counts
+        counts = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work, out_sel,
+                               out_moved)
+        n, n_p, n_r, n_s = counts
+        wb, okb = _positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
+                             out_wide[p0:], out_res[p0 - w:], out_pos[base + w:])
+        w += wb
+        ok &= okb
+        if q13:
+            _rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec, gathered[4 * base:],
+                           out_rot[r0:])
+        else:
+            ok &= _rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, held_r, dec, out_rot[r0:])
+        for x in range(s0, n_s):
+            j = np.uint64(work[2, x])
+            r, i = np.uint64(brow[j]), np.uint64(ids[j])
+            for a in range(3):
+                v = ss[r, a]
+                if q13:
+                    code = _scale_code(v, table)
+                    out_scale[x, a] = code
+                    held_s[i, a] = code
+                    dec[7 + a, j] = np.float32(scale_lut[code])
+                else:
+                    ok &= abs(v) <= F16_MAX
+                    h = f32_to_f16_bits(v)
+                    out_scale[x, a] = h
+                    held_s[i, a] = h
+                    dec[7 + a, j] = f16_bits_to_f32(h)
+        ja = jb
+    n, n_p, n_r, n_s = counts
+    return n - base, n_p - base, w, n_r - base, n_s - base, ok
+
+
+@nb.njit(**_NB)
+def _rotations_f16(rot, rows, ids, moved, n_r, held_r, dec, out_rot):
+    """The moved rotations' f16 bits (candidates moved[:n_r], values rot[rows[j]]), each rotation's four as one
+    uint64 (component c in bits 16 c: held_r and out_rot are the (.., 4) uint16 arrays viewed so, which lets the
+    q13 and f16 kernels share one code path); held codes and decodings updated. False if one is out of range."""
+    ok = True
+    for x in range(n_r):
+        j = np.uint64(moved[x])
+        r = np.uint64(rows[j])
+        code = np.uint64(0)
+        for c in range(4):
+            v = rot[r, c]
+            ok &= abs(v) <= F16_MAX
+            h = f32_to_f16_bits(v)
+            code |= np.uint64(h) << np.uint64(16 * c)
+            dec[3 + c, j] = f16_bits_to_f32(h)
+        out_rot[x] = code
+        held_r[np.uint64(ids[j])] = code
+    return ok
+
+
+@nb.njit(**_NBC)
+def deform_delta_kernel(q13, verts, geo, codes, held, out, scratch, res):
+    """encode_fast's delta kernels (``q13``: delta_q13_kernel, else delta_f16_kernel) on the candidates deformed from
+    the subset vertices ``verts`` (S, 3) float64, single-threaded: chunk after chunk (:func:`_delta_chunk`), then
+    :func:`_gather_chunks`. Returns (n, n_p, w, n_r, n_s, ok)."""
+    for c in range(res.shape[0]):
+        n, n_p, w, n_r, n_s, ok = _delta_chunk(q13, c, verts, geo, codes, held, out, scratch)
+        res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4], res[c, 5] = n, n_p, w, n_r, n_s, ok
+    return _gather_chunks(res, geo[1], *out)
+
+
+@nb.njit(parallel=True, **_NBC)
+def deform_delta_kernel_parallel(q13, verts, geo, codes, held, out, scratch, res):
+    """:func:`deform_delta_kernel` with the chunks on numba's threads (no chunk writes what another reads: each has its
+    own faces, scratch and candidates); every value is computed by the same code either way: the same bytes. (A
+    parallel loop takes arrays and scalars only: the groups are taken apart here and rebuilt in the loop.)"""
+    chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
+    s0, s1, s2, s3, s4, s5, s6 = signs
+    lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
+    ids, held_p, held_r, held_s, dec, flags, work = held
+    out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
+    sp, sr, ss, gathered, edges, face = scratch
+    for c in nb.prange(res.shape[0]):
+        n, n_p, w, n_r, n_s, ok = _delta_chunk(
+            q13, c, verts,
+            (chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow,
+             (s0, s1, s2, s3, s4, s5, s6)),
+            (lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4),
+            (ids, held_p, held_r, held_s, dec, flags, work),
+            (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale),
+            (sp, sr, ss, gathered, edges, face))
+        res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4], res[c, 5] = n, n_p, w, n_r, n_s, ok
+    return _gather_chunks(res, chunk_j, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale)
+
+
+@nb.njit(**_NB)
+def _gather_chunks(res, chunk_j, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
+    """Move each chunk's outputs (from index chunk_j[c]) down to follow the previous chunks' (in candidate order: the
+    single-threaded kernel's layout); every destination is at or below its source, so copying forward is safe.
+    Returns the totals (n, n_p, w, n_r, n_s, ok)."""
+    n = n_p = w = n_r = n_s = 0
+    ok = True
+    for c in range(res.shape[0]):
+        base = chunk_j[c]
+        cn, cp, cw, cr, cs = res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4]
+        ok &= res[c, 5] != 0
+        if base != n:  # element by element over flat views (a row assignment costs tens of ns in numba)
+            _move(out_sel, 1, base, n, cn)
+            _move(out_moved.reshape(-1), 3, base, n, cn)
+            _move(out_wide, 1, base, n_p, cp)
+            _move(out_res.reshape(-1), 3, base, n_p - w, cp - cw)
+            _move(out_pos.reshape(-1), 3, base, w, cw)
+            _move(out_rot.reshape(-1), out_rot.size // out_rot.shape[0], base, n_r, cr)
+            _move(out_scale.reshape(-1), 3, base, n_s, cs)
+        n, n_p, w, n_r, n_s = n + cn, n_p + cp, w + cw, n_r + cr, n_s + cs
+    return n, n_p, w, n_r, n_s, ok
+
+
+@nb.njit(inline="always", **_NB)
+def _move(flat, k, src, dst, count):
+    """Rows src.. of a flat (rows k,) array to rows dst.. (dst <= src), count rows."""
+    for i in range(k * count):
+        flat[k * dst + i] = flat[k * src + i]
+
+
+def split_blocks(run_len: np.ndarray, blocks: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """(chunks (C + 1,), chunk_j (C,)): ``blocks`` cut into at most ``parts`` chunks of about equal candidate counts
+    (the blocks of chunk c are chunks[c]..chunks[c + 1] - 1; its first candidate is chunk_j[c])."""
+    cum = np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)
+    at = cum[blocks]  # first candidate of each block, and the total last
+    cuts = np.searchsorted(at, at[-1] * np.arange(1, parts) / parts)
+    chunks = np.unique(np.concatenate([[0], cuts, [blocks.size - 1]])).astype(np.int64)
+    return chunks, at[chunks[:-1]]
+
+
+def chunk_faces(run_face: np.ndarray, blocks: np.ndarray, chunks: np.ndarray, face_vids: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each chunk's own list of faces: (run_face renumbered into the concatenated lists, chunk_u (C + 1,) the first
+    face of each chunk's list and the total last, face_vids of the concatenated lists (F, 3)). A face with
+    Gaussians in two chunks is in both lists (computed twice, the same values): no thread reads another's."""
+    out, lists, first = np.empty_like(run_face), [], [0]
+    for c in range(chunks.size - 1):
+        q0, q1 = blocks[chunks[c]], blocks[chunks[c + 1]]
+        own, inverse = np.unique(run_face[q0:q1], return_inverse=True)
+        out[q0:q1] = first[-1] + inverse.reshape(-1)
+        lists.append(own)
+        first.append(first[-1] + own.size)
+    faces = np.concatenate(lists) if lists else np.zeros(0, np.int64)
+    return out, np.asarray(first, np.int64), np.ascontiguousarray(face_vids[faces], np.int64)
+
+
+_NO_TABLE = np.zeros((1, 2), np.int32)
+_NO_LUT = np.zeros(1, np.float64)
+
+
+class DirectDelta:
+    """One delta session's frames written by the deformation (see the module docstring): ``fast`` a FastAvatar
+    (triangle binding), ``encoder`` the session's DeltaEncoder (the numba kernel set) whose candidates the fast
+    path deforms; ``threads``: chunks of work (numba's thread count by default: one chunk a thread when parallel).
+    ValueError when it cannot (another binding, a candidate the fast path keeps neutral)."""
+
+    def __init__(self, fast, encoder: DeltaEncoder, threads: int | None = None) -> None:
+        from .encode_fast import NumbaKernels
+
+        if getattr(fast, "binding_type", None) != "triangle":
+            raise ValueError("the deformation writes delta frames for the triangle binding only")
+        if not isinstance(encoder.kernels, NumbaKernels):
+            raise ValueError("a direct delta session needs the numba kernel set")
+        a = fast.arrays
+        gface = np.repeat(a.run_face, a.run_len)  # used-face slot of each deformed Gaussian (rows of local)
+        self.fast, self.encoder = fast, encoder
+        run_face, run_m, run_len, blocks = candidate_runs(a.ids, gface, encoder.rows)
+        chunks, chunk_j = split_blocks(run_len, blocks, numba.config.NUMBA_NUM_THREADS if threads is None else threads)
+        run_face, chunk_u, face_vids = chunk_faces(run_face, blocks, chunks, a.face_vids)
+        signs = tuple(np.float32(x) for x in (*encoder.psign, *encoder.rsign))  # loaded once (_f16_run)
+        self.geo = (chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, a.local,
+                    block_rows(run_len, blocks), signs)
+        ones3, ones4 = np.ones(3, np.float32), np.ones(4, np.float32)
+        self.q13 = encoder.format.encoding == "q13"
+        if self.q13:
+            table = encoder.kernels.table(encoder.thresholds)
+            if table is None:
+                raise ValueError("the q13 scale range is too narrow for the numba lookup table")
+            self.codes = (encoder.lo, encoder.k, encoder.step, table, encoder.lut, ROT_FIELD64, encoder.tol, ones3,
+                          ones4)
+        else:  # f16: stand-ins of the q13 arguments (unused)
+            self.codes = (ones3.astype(np.float64), ones3.astype(np.float64), ones3.astype(np.float64), _NO_TABLE,
+                          _NO_LUT, _NO_LUT, encoder.tol, ones3, ones4)
+        e = encoder
+        held_r, out_rot = e.held_r, e._rot
+        if not self.q13:  # f16: each rotation's four half bit patterns as one uint64 (_rotations_f16)
+            held_r, out_rot = held_r.view(np.uint64).reshape(-1), out_rot.view(np.uint64).reshape(-1)
+        self.held = (e.ids, e.held_p, held_r, e.held_s, e.dec, e._flags, e._work)
+        self.out = (e._sel, e._moved, e._wide, e._res, e._pos, out_rot, e._scale)
+        parts, rows = chunks.size - 1, BLOCK + int(run_len.max(initial=0))
+        self.res = np.zeros((max(parts, 0), 6), np.int64)
+        self.scratch = (*(np.zeros((max(parts, 1), rows, c), np.float32) for c in (3, 4, 3)),
+                        e._work[3:].view(np.float32).reshape(-1), np.zeros((9, chunk_u[-1]), np.float64),
+                        np.zeros((K.FACE_COLS, chunk_u[-1]), np.float32))
+
+    def select(self, verts: np.ndarray, parallel: bool = False) -> tuple[int, ...]:
+        """Fill the encoder's selection and outputs for subset vertices ``verts`` (S, 3) float64 C-contiguous (the
+        fast session's head output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r,
+        n_s). ValueError if an f16 value sent is NaN, infinite or beyond +-65504."""
+        kernel = deform_delta_kernel_parallel if parallel else deform_delta_kernel
+        *counts, ok = kernel(self.q13, verts, self.geo, self.codes, self.held, self.out, self.scratch, self.res)
+        if not ok:
+            raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
+        return tuple(int(x) for x in counts)
+
+
+def warm_up(fast, threads: bool = False) -> None:
+    """Compile (or load from the on-disk cache) the kernels for both delta encodings, and their parallel twin if
+    ``threads``, on ``fast``'s neutral Gaussians (a key frame, then a delta frame), not on a session's second frame."""
+    from ofera_protocol import FrameFormat, make_quant
+
+    from .encode_fast import delta_encoder
+
+    n = fast.neutral
+    session = fast.session(pool_size=1)
+    verts = session.lbs.forward(np.zeros(session.lbs.n_expr), np.broadcast_to(np.eye(3), (5, 3, 3)))
+    for encoding in ("q13", "f16"):
+        quant = make_quant(n.position, n.scale) if encoding == "q13" else None
+        encoder = delta_encoder(FrameFormat(encoding, fast.count, False, quant, delta=True),
+                                candidates=fast.arrays.ids)
+        encoder.encode(0, 0, {}, n.position, n.rotation, n.scale)
+        direct = DirectDelta(fast, encoder)
+        for parallel in (False, True) if threads else (False,):
+            direct.select(verts, parallel)

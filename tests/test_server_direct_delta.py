@@ -1,0 +1,149 @@
+"""Delta frames the deformation writes (`streaming.direct_delta`, `Source.direct`): the kernel, serial or on numba's
+threads, in one chunk or several, gives the bytes and the held codes of the state path (``FastSession.deform`` then
+``DeltaEncoder.encode``, whose numba kernels test_fast_encodings compares with the numpy reference), for both delta
+encodings, both coordinate systems and a reduced (gathered) session; a v1 delta session on the fast path streams
+them, its key frames from the state."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from ofera.avatar import load_avatar
+from ofera.avatar.fast import FastAvatar
+from ofera.client import connect
+from ofera.streaming.direct import DirectDeltaFrames
+from ofera.streaming.direct_delta import DirectDelta, block_rows, candidate_runs, chunk_faces, split_blocks
+from ofera.streaming.encode_fast import delta_encoder
+from ofera_protocol import FrameFormat, decode_server_message, make_quant
+from ofera_protocol.delta import DeltaEncoder, _decode_codes
+from test_server_direct_f16 import observed  # noqa: F401 - the fixture
+from test_server_support import SMALL, main_server, run
+
+WAIT = 30.0  # seconds a step may take before the test calls it hung (never a performance claim)
+
+
+@pytest.fixture(scope="module")
+def fast() -> FastAvatar:
+    return FastAvatar(load_avatar("default"))
+
+
+def flame_values(rng: np.random.Generator, frames: int) -> list[np.ndarray]:
+    """A random walk of FLAME values (68,): expression steps that move some Gaussians a little (int8 position
+    changes), some a lot (whole codes), and a jaw that opens."""
+    y = np.zeros(68, np.float32)
+    y[50:] = [1, 0, 0, 0, 1, 0] * 3
+    out = []
+    for k in range(frames):
+        y = y.copy()
+        y[:50] += rng.normal(0, 0.3 if k % 3 else 0.02, 50).astype(np.float32)
+        y[51] = 0.05 * k
+        out.append(y)
+    return out
+
+
+def session_of(fast: FastAvatar, enc: str, coords: str, gathered: bool) -> tuple[FrameFormat, Any, Any, Any]:
+    """(format, gather, candidates, rows) of a delta session: the whole avatar, or a reduced one (every other row)."""
+    n = fast.neutral
+    gather = np.arange(0, fast.count, 2, dtype=np.int64) if gathered else None
+    rows_all = np.arange(fast.count) if gather is None else gather
+    ids = np.flatnonzero(fast.selected[rows_all]).astype(np.int64)  # the session's Gaussians the fast path moves
+    quant = make_quant(n.position[rows_all], n.scale[rows_all]) if enc == "q13" else None
+    return FrameFormat(enc, rows_all.size, False, quant, delta=True), gather, ids, rows_all[ids]
+
+
+@pytest.mark.parametrize("enc,coords,gathered", [("q13", "flame", False), ("q13", "unity", True),
+                                                 ("f16", "unity", False), ("f16", "flame", True)])
+@pytest.mark.parametrize("chunks,parallel", [(1, False), (3, False), (2, True)])
+def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coords: str, gathered: bool,
+                                                 chunks: int, parallel: bool) -> None:
+    fmt, gather, ids, rows = session_of(fast, enc, coords, gathered)
+    ref = delta_encoder(fmt, coords, gather, ids, rows, key_interval=4)
+    mine = delta_encoder(fmt, coords, gather, ids, rows, key_interval=4)
+    direct = DirectDelta(fast, mine, threads=chunks)
+    assert direct.geo[0].size - 1 == chunks
+    a, b = fast.session(), fast.session(parallel=parallel)
+    direct_frames = narrow = wide = 0
+    for k, y in enumerate(flame_values(np.random.default_rng(7), 7)):
+        verts = a.flame_head(y).copy()
+        state = a.deform(verts)
+        want = bytes(ref.encode(k, k, {"total": k}, state.position, state.rotation, state.scale))
+        if mine.next_is_key:
+            got = bytes(mine.encode(k, k, {"total": k}, state.position, state.rotation, state.scale))
+        else:
+            got = bytes(mine.encode_selected(k, k, {"total": k}, b.deform_delta(verts, direct.select), 0))
+            assert b.threaded is parallel
+            direct_frames += 1
+            m = decode_server_message(got, fmt)
+            narrow, wide = narrow + len(m.position_delta), wide + len(m.position)
+        assert got == want, f"frame {k} differs"
+    for name in ("held_p", "held_r", "held_s", "dec"):
+        np.testing.assert_array_equal(getattr(ref, name), getattr(mine, name))
+    assert direct_frames == 5 and narrow > 0 and wide > 0  # key frames at 0 and 4; positions sent both ways
+
+
+def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) -> None:
+    n = fast.neutral
+    still = int(np.flatnonzero(~fast.selected)[0])
+    fmt = FrameFormat("q13", fast.count, False, make_quant(n.position, n.scale), delta=True)
+    with pytest.raises(ValueError, match="not among the Gaussians the fast path deforms"):
+        DirectDelta(fast, delta_encoder(fmt, candidates=np.array([still], np.int64)))
+    with pytest.raises(ValueError, match="numba kernel set"):
+        DirectDelta(fast, DeltaEncoder(fmt, candidates=fast.arrays.ids))
+
+
+def test_chunks_cover_the_candidates_once_with_their_own_faces(fast: FastAvatar) -> None:
+    """Runs, blocks and chunks: every candidate in one run of consecutive deformed rows on one face, blocks of at least
+    BLOCK candidates, chunks of about equal size, each with its own face list naming the faces its runs use."""
+    a = fast.arrays
+    gface = np.repeat(a.run_face, a.run_len)
+    rows = a.ids[::3]  # candidates with gaps: short runs
+    run_face, run_m, run_len, blocks = candidate_runs(a.ids, gface, rows)
+    assert run_len.sum() == rows.size and blocks[0] == 0 and blocks[-1] == run_len.size
+    m = np.concatenate([np.arange(s, s + n) for s, n in zip(run_m, run_len)])
+    np.testing.assert_array_equal(a.ids[m], rows)
+    np.testing.assert_array_equal(np.repeat(run_face, run_len), gface[m])
+    brow = block_rows(run_len, blocks)
+    assert brow.min() == 0 and (np.diff(brow)[np.diff(brow) != 1] <= 0).all()  # 0, 1, 2 ... within each block
+    chunks, chunk_j = split_blocks(run_len, blocks, 3)
+    sizes = np.diff(np.append(chunk_j, rows.size))
+    assert chunks.size == 4 and sizes.max() - sizes.min() < 2 * 300
+    local, chunk_u, face_vids = chunk_faces(run_face, blocks, chunks, a.face_vids)
+    for c in range(3):
+        q0, q1 = blocks[chunks[c]], blocks[chunks[c + 1]]
+        assert (chunk_u[c] <= local[q0:q1]).all() and (local[q0:q1] < chunk_u[c + 1]).all()
+    np.testing.assert_array_equal(face_vids[local], a.face_vids[run_face])
+
+
+def test_a_delta_session_streams_frames_the_deformation_wrote(observed: Any) -> None:  # noqa: F811
+    """v1 q13 delta on the fast path: `Source.direct` writes the delta frames (no state), the key frame comes from the
+    state; the server holds the codes an offline encoder holds after the same values through the state, and the
+    client's Gaussians are those codes."""
+    got = []
+
+    async def main() -> None:
+        c = await connect(main_server().url, avatar=SMALL, encoding="q13", delta=True, track=True)
+        for k in range(5):
+            await c.send_bs(np.full(52, 0.2 * k, np.float32), seq=k)
+            await c.recv_frame(timeout=WAIT)
+        got.extend((c.gaussians.position.copy(), c.gaussians.rotation.copy(), c.gaussians.scale.copy()))
+        (source,) = observed.sources
+        assert isinstance(source.direct, DirectDeltaFrames)
+        direct.append(source.direct)
+        await c.close()
+
+    direct: list[DirectDeltaFrames] = []
+    run(main())
+    (source,) = observed.sources
+    pipe, writer = source.pipeline, direct[0].encoder
+    assert [observed.values[k][1] is None for k in range(5)] == [False, True, True, True, True]  # key: a state
+    offline = DeltaEncoder(writer.format, "flame", None, writer.ids, writer.rows, tolerance=writer.tolerance)
+    for k in range(5):
+        state, _ = pipe.deform_values(observed.values[k][0])
+        offline.encode(k, 0, {}, state.position, state.rotation, state.scale)
+    for name in ("held_p", "held_r", "held_s", "dec"):
+        np.testing.assert_array_equal(getattr(offline, name), getattr(writer, name))
+    want = _decode_codes(writer.format, offline.held_p, offline.held_r, offline.held_s)
+    for a, b in zip(want, got):
+        np.testing.assert_array_equal(np.asarray(a).reshape(b.shape), b)
