@@ -264,7 +264,7 @@ def triangle_f16_kernel(face, run_face, run_m, run_len, run_row, local, psign, r
         first = run_row[q]
         count = 0
         while q < runs and run_row[q] == first + count and count < F16_BLOCK:
-            _f16_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot, scratch_scale)
+            signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot, scratch_scale)
             count += run_len[q]
             q += 1
         ok &= _to_half(count, first, scratch_pos, out_pos)
@@ -285,7 +285,7 @@ def triangle_f16_kernel_parallel(face, blocks, run_face, run_m, run_len, run_row
         first = run_row[blocks[b]]
         count = 0
         for q in range(blocks[b], blocks[b + 1]):
-            _f16_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos[t], scratch_rot[t],
+            signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos[t], scratch_rot[t],
                      scratch_scale[t])
             count += run_len[q]
         ok = _to_half(count, first, scratch_pos[t], out_pos)
@@ -296,9 +296,10 @@ def triangle_f16_kernel_parallel(face, blocks, run_face, run_m, run_len, run_row
 
 
 @nb.njit(inline="always", **_NBC)
-def _f16_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot, scratch_scale):
-    """Run q of the f16 writer, times the wire signs (a tuple: loaded once, where array elements would be reloaded
-    after every store to the scratch, which might alias them), into rows count.. of its block's float32 scratch."""
+def signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot, scratch_scale):
+    """Run q's Gaussians (:func:`_triangle_gaussian`) times the wire signs into rows count.. of a block's float32
+    scratch: the f16 writer's, and the direct delta frames' (ofera.streaming.direct_delta). The signs are a tuple:
+    loaded once, where array elements would be reloaded after every store to the scratch, which might alias them."""
     p0, p1, p2, q0, q1, q2, q3 = signs
     u = np.uint64(run_face[q])
     m0 = np.uint64(run_m[q])

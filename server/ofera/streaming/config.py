@@ -53,12 +53,14 @@ class Settings(BaseSettings):
     fast: bool = Field(True, description="Fast paths: the avatar's numba deformation (moving Gaussians only) "
                        "and numba frame encoding; false: the numpy references (lbs + Deformer, codec.encode_frame).")
     kernel_threads: Literal["serial", "auto", "parallel"] = Field(
-        "serial", description="Fast path: whether a frame's face frames and Gaussian deformation run on numba's "
+        "serial", description="Fast path: whether a frame's face frames and Gaussian deformation (and a delta "
+        "session's selection and encoding, which its deformation runs: streaming.direct_delta) run on numba's "
         "threads (both cores for one session). serial: one thread; auto: threads while the session is the only one "
         "computing and the machine is not busy, if its recent threaded frames were faster (ofera.avatar.fast); "
         "parallel: always. Serial by default: on a shared 2-core VM, waking numba's sleeping worker after a 72 Hz "
-        "frame's gap cost ~0.15 ms p50 and ~8 ms p99 per parallel region, more than the threads save "
-        "(benchmarks/cold_cache.py). Same bits in every mode.")
+        "frame's gap cost ~0.15 ms p50 and ~8 ms p99 per parallel region, more than the threads save on an f16 "
+        "frame (benchmarks/cold_cache.py, profile_frame.py); a lone q13 delta session gains from `parallel` "
+        "(benchmarks/README.md, round eight). Same bits in every mode.")
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     key_interval: int = Field(720, ge=0, description="Delta sessions (hello.delta): a key frame every this many "
                               "frames sent (besides join and resync); 0: only on join and resync.")

@@ -5,8 +5,10 @@ only long enough to compare them with what the client holds and to encode what m
 the fast path's per-Gaussian deformation (``ofera.avatar.kernels``, the same float32 arithmetic) block by block
 into a scratch that stays in the first-level cache, and the delta encoder's selection and encoding passes
 (``ofera.streaming.encode_fast``, the same functions) over each block straight away: the bytes and the held codes
-are those of ``DeltaEncoder.encode`` on ``FastSession.deform``'s state, with 5 MB less memory traffic a frame (the
-state written, then read back by the encoder).
+are those of ``DeltaEncoder.encode`` on ``FastSession.deform``'s state, without writing that state and reading it
+back (5 MB a frame at 100k Gaussians). On the 2-core Zen 1 VM of December 2026 that alone gained nothing (the frame
+is bound by arithmetic there, not memory); what it buys is the second core: see below (benchmarks/README.md, round
+eight).
 
     direct = DirectDelta(fast_avatar, encoder)          # once per session: candidate runs, chunks, blocks
     if not encoder.next_is_key:                         # key frames (join, resync, key_interval) take the state
@@ -31,7 +33,7 @@ from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
 from ..avatar import kernels as K
 from ..jit import F16_MAX, f16_bits_to_f32, f32_to_f16_bits
 from ..jit import NB as _NB
-from .encode_fast import _compact, _flag_run, _positions, _rotations_q13, _scale_code
+from .encode_fast import compact_flags, encode_positions, encode_rotations_q13, flag_run, scale_code
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # as the deformation kernels: the same fused multiply-adds, the same bits
 BLOCK = K.F16_BLOCK
@@ -75,7 +77,7 @@ def _deform_block(q0, q1, face, run_face, run_m, run_len, local, signs, sp, sr, 
     """Runs q0..q1-1 into rows 0.. of the scratch (signed, as the f16 writer's); returns the rows written."""
     count = 0
     for q in range(q0, q1):
-        K._f16_run(q, count, face, run_face, run_m, run_len, local, signs, sp, sr, ss)
+        K.signed_run(q, count, face, run_face, run_m, run_len, local, signs, sp, sr, ss)
         count += run_len[q]
     return count
 
@@ -85,17 +87,17 @@ def _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, count
     """Flags of candidates ja..jb-1 (their values in the scratch rows 0..) and their compaction, appended to the
     selection and the lists (``counts`` so far -> after); 8-candidate words of zeros skipped, as in _select."""
     c = jb - ja
-    _flag_run(sp.reshape(-1)[:3 * c], sr.reshape(-1)[:4 * c], ss.reshape(-1)[:3 * c], dec[0, ja:jb], dec[1, ja:jb],
+    flag_run(sp.reshape(-1)[:3 * c], sr.reshape(-1)[:4 * c], ss.reshape(-1)[:3 * c], dec[0, ja:jb], dec[1, ja:jb],
               dec[2, ja:jb], dec[3, ja:jb], dec[4, ja:jb], dec[5, ja:jb], dec[6, ja:jb], dec[7, ja:jb],
               dec[8, ja:jb], dec[9, ja:jb], flags[ja:jb], ones3, ones4, tol)
     wa, wb = (ja + 7) >> 3, jb >> 3  # the whole words of the full flags array inside ja..jb
     if wa >= wb:
-        return _compact(flags, ja, jb, counts, lists, out_sel, out_moved)
-    counts = _compact(flags, ja, wa << 3, counts, lists, out_sel, out_moved)
+        return compact_flags(flags, ja, jb, counts, lists, out_sel, out_moved)
+    counts = compact_flags(flags, ja, wa << 3, counts, lists, out_sel, out_moved)
     for b in range(wa, wb):
         if word[b] != 0:
-            counts = _compact(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
-    return _compact(flags, wb << 3, jb, counts, lists, out_sel, out_moved)
+            counts = compact_flags(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
+    return compact_flags(flags, wb << 3, jb, counts, lists, out_sel, out_moved)
 
 
 @nb.njit(**_NBC)
@@ -122,13 +124,13 @@ def _delta_chunk(q13, c, verts, geo, codes, held, out, scratch):
         counts = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work, out_sel,
                                out_moved)
         n, n_p, n_r, n_s = counts
-        wb, okb = _positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
+        wb, okb = encode_positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
                              out_wide[p0:], out_res[p0 - w:], out_pos[base + w:])
         w += wb
         ok &= okb
         if q13:
-            _rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec, gathered[4 * base:],
-                           out_rot[r0:])
+            encode_rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec,
+                                 gathered[4 * base:], out_rot[r0:])
         else:
             ok &= _rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, held_r, dec, out_rot[r0:])
         for x in range(s0, n_s):
@@ -137,7 +139,7 @@ def _delta_chunk(q13, c, verts, geo, codes, held, out, scratch):
             for a in range(3):
                 v = ss[r, a]
                 if q13:
-                    code = _scale_code(v, table)
+                    code = scale_code(v, table)
                     out_scale[x, a] = code
                     held_s[i, a] = code
                     dec[7 + a, j] = np.float32(scale_lut[code])
@@ -287,7 +289,7 @@ class DirectDelta:
         run_face, run_m, run_len, blocks = candidate_runs(a.ids, gface, encoder.rows)
         chunks, chunk_j = split_blocks(run_len, blocks, numba.config.NUMBA_NUM_THREADS if threads is None else threads)
         run_face, chunk_u, face_vids = chunk_faces(run_face, blocks, chunks, a.face_vids)
-        signs = tuple(np.float32(x) for x in (*encoder.psign, *encoder.rsign))  # loaded once (_f16_run)
+        signs = tuple(np.float32(x) for x in (*encoder.psign, *encoder.rsign))  # loaded once (signed_run)
         self.geo = (chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, a.local,
                     block_rows(run_len, blocks), signs)
         ones3, ones4 = np.ones(3, np.float32), np.ones(4, np.float32)

@@ -19,7 +19,7 @@ reference encoder (:mod:`ofera_protocol.encodings`) exactly; tests compare them.
 
 Temporal deltas (PROTOCOL.md 7.1): :func:`delta_q13_kernel` / :func:`delta_f16_kernel` do the selection of
 ``ofera_protocol.delta`` (same float32 operations in the same order, so the same Gaussians are selected) in SIMD
-lanes over each run of consecutive movable rows (:func:`_flag_run`), compact what moved into per-attribute
+lanes over each run of consecutive movable rows (:func:`flag_run`), compact what moved into per-attribute
 lists without a branch, then encode each attribute in a pass of its own and update the codes the client holds.
 The client-side decoder is in ``ofera.client.fast_decode``.
 """
@@ -316,7 +316,7 @@ one threshold and one comparison finishes the lookup."""
 
 
 def scale_table(thresholds: np.ndarray) -> np.ndarray:
-    """Lookup table of :func:`_scale_code` from the 255 thresholds: int32 (B + 1, 2) rows
+    """Lookup table of :func:`scale_code` from the 255 thresholds: int32 (B + 1, 2) rows
     [count of thresholds below the bucket, bits of the bucket's threshold or +inf]; row 0 holds the
     first and last bucket numbers. int32, not int64: half the cache lines for the delta encoder's scattered
     lookups (every value fits: counts <= 255, bits <= 0x7F800001)."""
@@ -339,7 +339,7 @@ def scale_table(thresholds: np.ndarray) -> np.ndarray:
 
 
 @nb.njit(inline="always", **_NB)
-def _scale_code(v, table):
+def scale_code(v, table):
     """Number of thresholds <= v (NaN, zero and negative scales -> 0) via the bucket table."""
     b = np.int64(np.float32(v).view(np.int32))
     if b <= 0:  # +0, negative numbers (sign bit set)
@@ -360,7 +360,7 @@ def q13_scale_kernel(src, gather, count, table, dst):
     for m in range(count):
         r = _row(gather, m)
         for c in range(3):
-            dst[m * 3 + c] = np.uint8(_scale_code(src[r, c], table))
+            dst[m * 3 + c] = np.uint8(scale_code(src[r, c], table))
 
 
 _NO_GATHER = np.zeros(0, np.int64)
@@ -520,7 +520,7 @@ def frame_writer(fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | N
 
 
 @nb.njit(**_NB)
-def _flag_run(p, q, s, hp0, hp1, hp2, hr0, hr1, hr2, hr3, hs0, hs1, hs2, flags, ps, rs, tol):
+def flag_run(p, q, s, hp0, hp1, hp2, hr0, hr1, hr2, hr3, hs0, hs1, hs2, flags, ps, rs, tol):
     """One run of consecutive state rows: flags[m] = position | rotation << 1 | scale << 2 moved, for the run's state
     p, q, s (flat float32, 3 / 4 / 3 per row) against the held decodings h* (float32, one array per component), by
     the rule of ofera_protocol.delta (same float32 operations in the same order). Branch-free over separate
@@ -549,14 +549,14 @@ def _flag_run(p, q, s, hp0, hp1, hp2, hr0, hr1, hr2, hr3, hs0, hs1, hs2, flags, 
 
 @nb.njit(**_NB)
 def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel, out_moved):
-    """What moved: the flags of every candidate (:func:`_flag_run` per run of rows), then, branch-free, the
+    """What moved: the flags of every candidate (:func:`flag_run` per run of rows), then, branch-free, the
     selection (out_sel[:n], out_moved[:n]) and the lists (candidate positions) of the moved positions, rotations and
     scales (lists[0, :n_p], [1, :n_r], [2, :n_s]). Returns (n, n_p, n_r, n_s)."""
     pf, rf, sf = pos.reshape(-1), rot.reshape(-1), scale.reshape(-1)
     for x in range(runs.shape[0]):
         a, j, e = runs[x, 0], runs[x, 1], runs[x, 1] + runs[x, 2]
         b = a + runs[x, 2]
-        _flag_run(pf[3 * a:3 * b], rf[4 * a:4 * b], sf[3 * a:3 * b], dec[0, j:e], dec[1, j:e], dec[2, j:e],
+        flag_run(pf[3 * a:3 * b], rf[4 * a:4 * b], sf[3 * a:3 * b], dec[0, j:e], dec[1, j:e], dec[2, j:e],
                   dec[3, j:e], dec[4, j:e], dec[5, j:e], dec[6, j:e], dec[7, j:e], dec[8, j:e], dec[9, j:e],
                   flags[j:e], psign, rsign, tol)
     counts = (0, 0, 0, 0)
@@ -564,12 +564,12 @@ def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel
     word = flags[: words << 3].view(np.uint64)  # 8 flags a word: a word of zeros (nothing moved) is skipped whole
     for b in range(words):
         if word[b] != 0:
-            counts = _compact(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
-    return _compact(flags, words << 3, flags.shape[0], counts, lists, out_sel, out_moved)
+            counts = compact_flags(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
+    return compact_flags(flags, words << 3, flags.shape[0], counts, lists, out_sel, out_moved)
 
 
 @nb.njit(inline="always", **_NB)
-def _compact(flags, lo, hi, counts, lists, out_sel, out_moved):
+def compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved):
     """Flags lo..hi-1 into the selection and the lists, branch-free: each write lands on the next free slot; the
     count moves only if it belongs. counts: (n, n_p, n_r, n_s) so far -> after."""
     n, n_p, n_r, n_s = counts
@@ -590,7 +590,7 @@ def _compact(flags, lo, hi, counts, lists, out_sel, out_moved):
 
 
 @nb.njit(**_NB)
-def _positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos):
+def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos):
     """The moved positions (candidates moved[:n_p]): their codes (q13, else f16 bits), split into int8 changes from
     the held codes (out_res) and whole codes (out_wide set, out_pos); held codes and decodings updated. Returns (w,
     the number sent whole; ok: False if an f16 value is NaN, infinite or beyond +-65504)."""
@@ -625,7 +625,7 @@ def _positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec,
 
 
 @nb.njit(**_NB)
-def _rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot):
+def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot):
     """The moved rotations (candidates moved[:n_r]): their q13 codes (out_rot), held codes and decodings updated.
     Three loops: the rows gathered into `gathered` ((4 n_r) float32, signs applied), :func:`pack_rotation` over
     them in SIMD lanes, then the scatter. Packing the rows where they lie ran scalar, 2x slower in all."""
@@ -663,14 +663,14 @@ def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step
     """ofera_protocol.delta.delta_q13_reference: :func:`_select`, then one pass per attribute over what moved
     (gathered: (4 K) float32 scratch). Returns (n, n_p, w, n_r, n_s)."""
     n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
-    w, _ = _positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
+    w, _ = encode_positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
                       out_pos)
-    _rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot)
+    encode_rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot)
     for x in range(n_s):
         j = np.uint64(work[2, x])
         r, i = np.uint64(rows[j]), np.uint64(ids[j])
         for c in range(3):
-            code = _scale_code(scale[r, c], table)
+            code = scale_code(scale[r, c], table)
             out_scale[x, c] = np.uint8(code)
             held_s[i, c] = np.uint8(code)
             dec[7 + c, j] = np.float32(scale_lut[code])
@@ -684,7 +684,7 @@ def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p
     n_r, n_s, ok); ok False if a value sent is NaN, infinite or beyond +-65504."""
     n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
     # f16: lo, k, step unused (psign stands in)
-    w, ok = _positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
+    w, ok = encode_positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
                        out_res, out_pos)
     for x in range(n_r):
         j = np.uint64(work[1, x])
