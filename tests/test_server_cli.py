@@ -19,7 +19,7 @@ def test_serve_help_lists_the_options() -> None:
     out = CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"})
     assert out.exit_code == 0
     for opt in ("--host", "--port", "--avatars", "--token", "--devices", "--max-sessions", "--bs-rate", "--redis",
-                "--room-members", "--max-rooms"):
+                "--room-members", "--max-rooms", "--kernel-threads"):
         assert opt in out.output
     text = " ".join(out.output.split())  # the environment hints are shown (not eaten as rich markup)
     assert "[env OFERA_PORT; default 8000]" in text and "OFERA_REDIS_URL" in text
@@ -29,6 +29,12 @@ def test_serve_refuses_a_missing_avatars_dir() -> None:
     out = CliRunner().invoke(app, ["serve", "--avatars", "/no/such/dir", "--port", "0"])
     assert out.exit_code == 2
     assert "error:" in out.output and "/no/such/dir" in out.output and "Traceback" not in out.output
+
+
+def test_serve_refuses_an_unknown_kernel_thread_mode() -> None:
+    out = CliRunner().invoke(app, ["serve", "--kernel-threads", "many", "--port", "0"])
+    assert out.exit_code == 2
+    assert "kernel_threads" in out.output and "Traceback" not in out.output
 
 
 def test_serve_starts_prints_urls_and_stops_on_ctrl_c() -> None:

@@ -50,6 +50,10 @@ def serve(
                                                               "(default 0.45) [env OFERA_DELTA_ROTATION_DEG].")] = None,
     delta_log_scale: Annotated[float | None, typer.Option(help="Delta sessions: scale tolerance, |ln ratio| (default "
                                                            "0.02) [env OFERA_DELTA_LOG_SCALE].")] = None,
+    kernel_threads: Annotated[str | None, typer.Option(help="Fast path threads: serial, auto or parallel (both cores "
+                                                        "for a lone session; a delta session gains, dense f16 does "
+                                                        "not: benchmarks/README.md) (default serial) [env "
+                                                        "OFERA_KERNEL_THREADS].")] = None,
     log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
     redis: Annotated[str | None, typer.Option("--redis", help="redis://HOST:PORT/DB: rooms span every server "
                                               "attached to this Redis [env OFERA_REDIS_URL].")] = None,
@@ -74,8 +78,9 @@ def serve(
                                    compute_threads=compute_threads, confidence_threshold=confidence_threshold,
                                    key_interval=key_interval, delta_position_mm=delta_position_mm,
                                    delta_rotation_deg=delta_rotation_deg, delta_log_scale=delta_log_scale,
-                                   log_level=log_level, redis_url=redis, room_members=room_members,
-                                   max_rooms=max_rooms, room_secret=room_secret).items() if v is not None}
+                                   kernel_threads=kernel_threads, log_level=log_level, redis_url=redis,
+                                   room_members=room_members, max_rooms=max_rooms,
+                                   room_secret=room_secret).items() if v is not None}
     try:
         settings = Settings(**given)
     except ValidationError as exc:
