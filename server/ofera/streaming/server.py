@@ -282,7 +282,9 @@ class ServerThread:
         except BaseException as exc:  # noqa: BLE001 - reported by start()
             self.error = exc
 
-    def start(self, timeout: float = 120.0) -> ServerThread:
+    def start(self, timeout: float = 300.0) -> ServerThread:
+        """Start serving; wait until it listens (warm-up included: about two minutes on a 2-core machine whose numba
+        cache is empty, seconds after) or `timeout` seconds pass."""
         self.thread.start()
         deadline = threading.Event()
         for _ in range(int(timeout * 20)):
