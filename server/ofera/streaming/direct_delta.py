@@ -31,9 +31,18 @@ import numpy as np
 from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
 
 from ..avatar import kernels as K
-from ..jit import F16_MAX, f16_bits_to_f32, f32_to_f16_bits
 from ..jit import NB as _NB
-from .encode_fast import compact_flags, encode_positions, encode_rotations_q13, flag_run, scale_code
+from .encode_fast import (
+    NO_LUT,
+    NO_TABLE,
+    compact_range,
+    encode_positions,
+    encode_rotations_f16,
+    encode_rotations_q13,
+    encode_scales,
+    flag_run,
+    rotations_u64,
+)
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # as the deformation kernels: the same fused multiply-adds, the same bits
 BLOCK = K.F16_BLOCK
@@ -85,19 +94,12 @@ def _deform_block(q0, q1, face, run_face, run_m, run_len, local, signs, sp, sr, 
 @nb.njit(**_NB)
 def _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, lists, out_sel, out_moved):
     """Flags of candidates ja..jb-1 (their values in the scratch rows 0..) and their compaction, appended to the
-    selection and the lists (``counts`` so far -> after); 8-candidate words of zeros skipped, as in _select."""
+    selection and the lists (``counts`` so far -> after), as encode_fast._select does for a state."""
     c = jb - ja
     flag_run(sp.reshape(-1)[:3 * c], sr.reshape(-1)[:4 * c], ss.reshape(-1)[:3 * c], dec[0, ja:jb], dec[1, ja:jb],
-              dec[2, ja:jb], dec[3, ja:jb], dec[4, ja:jb], dec[5, ja:jb], dec[6, ja:jb], dec[7, ja:jb],
-              dec[8, ja:jb], dec[9, ja:jb], flags[ja:jb], ones3, ones4, tol)
-    wa, wb = (ja + 7) >> 3, jb >> 3  # the whole words of the full flags array inside ja..jb
-    if wa >= wb:
-        return compact_flags(flags, ja, jb, counts, lists, out_sel, out_moved)
-    counts = compact_flags(flags, ja, wa << 3, counts, lists, out_sel, out_moved)
-    for b in range(wa, wb):
-        if word[b] != 0:
-            counts = compact_flags(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
-    return compact_flags(flags, wb << 3, jb, counts, lists, out_sel, out_moved)
+             dec[2, ja:jb], dec[3, ja:jb], dec[4, ja:jb], dec[5, ja:jb], dec[6, ja:jb], dec[7, ja:jb],
+             dec[8, ja:jb], dec[9, ja:jb], flags[ja:jb], ones3, ones4, tol)
+    return compact_range(flags, word, ja, jb, counts, lists, out_sel, out_moved)
 
 
 @nb.njit(**_NBC)
@@ -132,47 +134,11 @@ def _delta_chunk(q13, c, verts, geo, codes, held, out, scratch):
             encode_rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec,
                                  gathered[4 * base:], out_rot[r0:])
         else:
-            ok &= _rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, held_r, dec, out_rot[r0:])
-        for x in range(s0, n_s):
-            j = np.uint64(work[2, x])
-            r, i = np.uint64(brow[j]), np.uint64(ids[j])
-            for a in range(3):
-                v = ss[r, a]
-                if q13:
-                    code = scale_code(v, table)
-                    out_scale[x, a] = code
-                    held_s[i, a] = code
-                    dec[7 + a, j] = np.float32(scale_lut[code])
-                else:
-                    ok &= abs(v) <= F16_MAX
-                    h = f32_to_f16_bits(v)
-                    out_scale[x, a] = h
-                    held_s[i, a] = h
-                    dec[7 + a, j] = f16_bits_to_f32(h)
+            ok &= encode_rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, ones4, held_r, dec, out_rot[r0:])
+        ok &= encode_scales(q13, ss, brow, ids, work[2, s0:], n_s - s0, table, scale_lut, held_s, dec, out_scale[s0:])
         ja = jb
     n, n_p, n_r, n_s = counts
     return n - base, n_p - base, w, n_r - base, n_s - base, ok
-
-
-@nb.njit(**_NB)
-def _rotations_f16(rot, rows, ids, moved, n_r, held_r, dec, out_rot):
-    """The moved rotations' f16 bits (candidates moved[:n_r], values rot[rows[j]]), each rotation's four as one
-    uint64 (component c in bits 16 c: held_r and out_rot are the (.., 4) uint16 arrays viewed so, which lets the
-    q13 and f16 kernels share one code path); held codes and decodings updated. False if one is out of range."""
-    ok = True
-    for x in range(n_r):
-        j = np.uint64(moved[x])
-        r = np.uint64(rows[j])
-        code = np.uint64(0)
-        for c in range(4):
-            v = rot[r, c]
-            ok &= abs(v) <= F16_MAX
-            h = f32_to_f16_bits(v)
-            code |= np.uint64(h) << np.uint64(16 * c)
-            dec[3 + c, j] = f16_bits_to_f32(h)
-        out_rot[x] = code
-        held_r[np.uint64(ids[j])] = code
-    return ok
 
 
 @nb.njit(**_NBC)
@@ -266,10 +232,6 @@ def chunk_faces(run_face: np.ndarray, blocks: np.ndarray, chunks: np.ndarray, fa
     return out, np.asarray(first, np.int64), np.ascontiguousarray(face_vids[faces], np.int64)
 
 
-_NO_TABLE = np.zeros((1, 2), np.int32)
-_NO_LUT = np.zeros(1, np.float64)
-
-
 class DirectDelta:
     """One delta session's frames written by the deformation (see the module docstring): ``fast`` a FastAvatar
     (triangle binding), ``encoder`` the session's DeltaEncoder (the numba kernel set) whose candidates the fast
@@ -301,12 +263,12 @@ class DirectDelta:
             self.codes = (encoder.lo, encoder.k, encoder.step, table, encoder.lut, ROT_FIELD64, encoder.tol, ones3,
                           ones4)
         else:  # f16: stand-ins of the q13 arguments (unused)
-            self.codes = (ones3.astype(np.float64), ones3.astype(np.float64), ones3.astype(np.float64), _NO_TABLE,
-                          _NO_LUT, _NO_LUT, encoder.tol, ones3, ones4)
+            self.codes = (ones3.astype(np.float64), ones3.astype(np.float64), ones3.astype(np.float64), NO_TABLE,
+                          NO_LUT, NO_LUT, encoder.tol, ones3, ones4)
         e = encoder
         held_r, out_rot = e.held_r, e._rot
-        if not self.q13:  # f16: each rotation's four half bit patterns as one uint64 (_rotations_f16)
-            held_r, out_rot = held_r.view(np.uint64).reshape(-1), out_rot.view(np.uint64).reshape(-1)
+        if not self.q13:  # f16: each rotation's four half bit patterns as one uint64 (encode_rotations_f16)
+            held_r, out_rot = rotations_u64(held_r), rotations_u64(out_rot)
         self.held = (e.ids, e.held_p, held_r, e.held_s, e.dec, e._flags, e._work)
         self.out = (e._sel, e._moved, e._wide, e._res, e._pos, out_rot, e._scale)
         parts, rows = chunks.size - 1, BLOCK + int(run_len.max(initial=0))

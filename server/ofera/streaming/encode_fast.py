@@ -364,6 +364,14 @@ def q13_scale_kernel(src, gather, count, table, dst):
 
 
 _NO_GATHER = np.zeros(0, np.int64)
+NO_TABLE = np.zeros((1, 2), np.int32)  # encode_scales' q13 arguments in f16 mode (unused)
+NO_LUT = np.zeros(1, np.float64)
+
+
+def rotations_u64(codes: np.ndarray) -> np.ndarray:
+    """f16 rotation codes (n, 4) uint16, C-contiguous, viewed as (n,) uint64 (component c in bits 16 c, little-endian):
+    how :func:`encode_rotations_f16` holds and writes them."""
+    return codes.view(np.uint64).reshape(-1)
 
 
 class NumbaKernels:
@@ -454,6 +462,8 @@ class NumbaKernels:
 
     def delta_f16(self, *args) -> tuple[int, ...]:
         """ofera_protocol.delta.delta_f16_reference in one numba pass."""
+        args = list(args)
+        args[10], args[20] = rotations_u64(args[10]), rotations_u64(args[20])  # held_r, out_rot
         *out, ok = delta_f16_kernel(*args)
         if not ok:
             raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
@@ -559,13 +569,22 @@ def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel
         flag_run(pf[3 * a:3 * b], rf[4 * a:4 * b], sf[3 * a:3 * b], dec[0, j:e], dec[1, j:e], dec[2, j:e],
                   dec[3, j:e], dec[4, j:e], dec[5, j:e], dec[6, j:e], dec[7, j:e], dec[8, j:e], dec[9, j:e],
                   flags[j:e], psign, rsign, tol)
-    counts = (0, 0, 0, 0)
-    words = flags.shape[0] >> 3
-    word = flags[: words << 3].view(np.uint64)  # 8 flags a word: a word of zeros (nothing moved) is skipped whole
-    for b in range(words):
+    word = flags[: (flags.shape[0] >> 3) << 3].view(np.uint64)
+    return compact_range(flags, word, 0, flags.shape[0], (0, 0, 0, 0), lists, out_sel, out_moved)
+
+
+@nb.njit(inline="always", **_NB)
+def compact_range(flags, word, lo, hi, counts, lists, out_sel, out_moved):
+    """:func:`compact_flags` of flags lo..hi-1, a word of 8 flags at a time where whole words of ``word`` (the flags
+    viewed as uint64) lie inside: a word of zeros (nothing moved) is skipped whole."""
+    wa, wb = (lo + 7) >> 3, hi >> 3
+    if wa >= wb:
+        return compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved)
+    counts = compact_flags(flags, lo, wa << 3, counts, lists, out_sel, out_moved)
+    for b in range(wa, wb):
         if word[b] != 0:
             counts = compact_flags(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
-    return compact_flags(flags, words << 3, flags.shape[0], counts, lists, out_sel, out_moved)
+    return compact_flags(flags, wb << 3, hi, counts, lists, out_sel, out_moved)
 
 
 @nb.njit(inline="always", **_NB)
@@ -666,15 +685,54 @@ def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step
     w, _ = encode_positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
                       out_pos)
     encode_rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot)
+    encode_scales(True, scale, rows, ids, work[2], n_s, table, scale_lut, held_s, dec, out_scale)
+    return n, n_p, w, n_r, n_s
+
+
+@nb.njit(**_NB)
+def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, dec, out_scale):
+    """The moved scales (candidates moved[:n_s], values scale[rows[j]]): their q13 codes (``table``, ``scale_lut``),
+    else f16 bits (the q13 arguments stand-ins); held codes and decodings updated. False if an f16 value is NaN,
+    infinite or beyond +-65504."""
+    ok = True
     for x in range(n_s):
-        j = np.uint64(work[2, x])
+        j = np.uint64(moved[x])
         r, i = np.uint64(rows[j]), np.uint64(ids[j])
         for c in range(3):
-            code = scale_code(scale[r, c], table)
-            out_scale[x, c] = np.uint8(code)
-            held_s[i, c] = np.uint8(code)
-            dec[7 + c, j] = np.float32(scale_lut[code])
-    return n, n_p, w, n_r, n_s
+            v = scale[r, c]
+            if q13:
+                code = scale_code(v, table)
+                out_scale[x, c] = code
+                held_s[i, c] = code
+                dec[7 + c, j] = np.float32(scale_lut[code])
+            else:
+                ok &= abs(v) <= F16_MAX
+                h = f32_to_f16_bits(v)
+                out_scale[x, c] = h
+                held_s[i, c] = h
+                dec[7 + c, j] = f16_bits_to_f32(h)
+    return ok
+
+
+@nb.njit(**_NB)
+def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot):
+    """The moved rotations' f16 bits (candidates moved[:n_r], values rot[rows[j]] times rsign), each rotation's four
+    as one uint64 (component c in bits 16 c: held_r and out_rot are the (.., 4) uint16 arrays viewed so); held codes
+    and decodings updated. False if one is NaN, infinite or beyond +-65504."""
+    ok = True
+    for x in range(n_r):
+        j = np.uint64(moved[x])
+        r = np.uint64(rows[j])
+        code = np.uint64(0)
+        for c in range(4):
+            v = rot[r, c] * rsign[c]
+            ok &= abs(v) <= F16_MAX
+            h = f32_to_f16_bits(v)
+            code |= np.uint64(h) << np.uint64(16 * c)
+            dec[3 + c, j] = f16_bits_to_f32(h)
+        out_rot[x] = code
+        held_r[np.uint64(ids[j])] = code
+    return ok
 
 
 @nb.njit(**_NB)
@@ -686,26 +744,8 @@ def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p
     # f16: lo, k, step unused (psign stands in)
     w, ok = encode_positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
                        out_res, out_pos)
-    for x in range(n_r):
-        j = np.uint64(work[1, x])
-        r, i = np.uint64(rows[j]), np.uint64(ids[j])
-        for c in range(4):
-            v = rot[r, c] * rsign[c]
-            ok &= abs(v) <= F16_MAX
-            h = f32_to_f16_bits(v)
-            out_rot[x, c] = h
-            held_r[i, c] = h
-            dec[3 + c, j] = f16_bits_to_f32(h)
-    for x in range(n_s):
-        j = np.uint64(work[2, x])
-        r, i = np.uint64(rows[j]), np.uint64(ids[j])
-        for c in range(3):
-            v = scale[r, c]
-            ok &= abs(v) <= F16_MAX
-            h = f32_to_f16_bits(v)
-            out_scale[x, c] = h
-            held_s[i, c] = h
-            dec[7 + c, j] = f16_bits_to_f32(h)
+    ok &= encode_rotations_f16(rot, rows, ids, work[1], n_r, rsign, held_r, dec, out_rot)
+    ok &= encode_scales(False, scale, rows, ids, work[2], n_s, NO_TABLE, NO_LUT, held_s, dec, out_scale)
     return n, n_p, w, n_r, n_s, ok
 
 
