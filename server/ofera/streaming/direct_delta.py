@@ -263,8 +263,8 @@ class DirectDelta:
             self.codes = (encoder.lo, encoder.k, encoder.step, table, encoder.lut, ROT_FIELD64, encoder.tol, ones3,
                           ones4)
         else:  # f16: stand-ins of the q13 arguments (unused)
-            self.codes = (ones3.astype(np.float64), ones3.astype(np.float64), ones3.astype(np.float64), NO_TABLE,
-                          NO_LUT, NO_LUT, encoder.tol, ones3, ones4)
+            unused = np.ones(3)  # lo, k, step
+            self.codes = (unused, unused, unused, NO_TABLE, NO_LUT, NO_LUT, encoder.tol, ones3, ones4)
         e = encoder
         held_r, out_rot = e.held_r, e._rot
         if not self.q13:  # f16: each rotation's four half bit patterns as one uint64 (encode_rotations_f16)
