@@ -333,7 +333,7 @@ class FastSession:
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
         self.face = np.zeros((cols, fast.used_faces.size), np.float32)  # face frames, one row per column
-        self.edges = np.zeros((9, fast.used_faces.size), np.float64)  # face_frames_kernel's scratch
+        self.edges = np.zeros((9, fast.used_faces.size), np.float32)  # face_frames_kernel's scratch
         self.pool = StatePool(fast.neutral, pool_size, fast.varying)
         self._expr = np.zeros(50, np.float32)
         self._rot = np.zeros((5, 3, 3), np.float32)

@@ -5,21 +5,22 @@ Two passes per frame, one call each:
 
 1. :func:`face_frames_kernel`: per used face, from its 3 vertices, the frame of :mod:`.frames`: the
    rotation R_f (columns a0, a1, a2), its unit quaternion (w >= 0, the branch :func:`matrix_to_quaternion`
-   picks), the scale s_f, the centroid c_f and the unnormalised normal n_f (FATE), computed in float64 and
-   stored as float32 rows (structure of arrays) -> ``face`` (FACE_COLS[_BARY], U), in passes that
-   vectorise (four faces per instruction: 0.53 -> 0.25-0.30 ms for 9.5k faces, measured).
+   picks), the scale s_f, the centroid c_f and the unnormalised normal n_f (FATE), computed in float32 (the
+   precision they are stored in) as float32 rows (structure of arrays) -> ``face`` (FACE_COLS[_BARY], U), in
+   passes that vectorise (eight faces per instruction; for 9.5k faces 0.32 -> 0.14 ms back to back and 0.45 ->
+   0.27 ms after a 13.9 ms gap against float64's four, measured on the Zen 1 VM of December 2026).
 2. :func:`triangle_kernel` / :func:`barycentric_kernel`: per deformed Gaussian, the position, the
    rotation ``quat(R_f) (x) q_local`` written (x, y, z, w), and the scale, into its row of the full
    float32 output arrays. Gaussians are visited in runs of consecutive rows on one face (avatars keep
    a face's Gaussians together), so the face's values are loaded once per run.
 
-Deviations from the reference: at float64 rounding level (~1e-16), multiplications by reciprocals
-instead of divisions, fused multiply-adds, a2 = a0 x a1 without renormalising (a0, a1 orthonormal), the
-centroid as v0 + (e1 + e2) / 3, and no renormalisation of ``quat(R_f) (x) q_local`` (a product of unit
-quaternions); at float32 rounding level (the output's own precision: at most a few float32 ulps, e.g.
-1.5e-8 m at 0.1 m), the face frames stored as float32 and the per-Gaussian products of the triangle binding
-(and the rotation and scale of the barycentric one) done in float32. The barycentric positions stay float64
-(vertices times barycentric weights). The quaternion of R_f is computed from its float32-rounded entries.
+Deviations from the reference: multiplications by reciprocals instead of divisions, fused multiply-adds,
+a2 = a0 x a1 without renormalising (a0, a1 orthonormal), the centroid as v0 + (e1 + e2) / 3, and no
+renormalisation of ``quat(R_f) (x) q_local`` (a product of unit quaternions); and at float32 rounding level (the
+output's own precision: at most a few float32 ulps, e.g. 1.5e-8 m at 0.1 m), the face frames computed in float32
+from the float64 vertices (each edge and v0 rounded once) and the per-Gaussian products of the triangle binding (and
+the rotation and scale of the barycentric one) done in float32. The barycentric positions stay float64 (vertices
+times barycentric weights). The quaternion of R_f is computed from its float32 entries.
 
 Compiled with ``cache=True`` (on disk next to this file) and ``nogil=True``, so sessions computing in
 a thread pool run in parallel.
@@ -36,9 +37,10 @@ from ..jit import F16_MAX, f32_to_f16_bits
 from ..jit import NB as _NB
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # fused multiply-add allowed (no reassociation)
-_EPS2 = 1e-20  # frames._EPS2: clamp on squared lengths
+_EPS2 = np.float32(1e-20)  # frames._EPS2: clamp on squared lengths
+_ONE, _THREE, _HALF = np.float32(1.0), np.float32(3.0), np.float32(0.5)  # float32 literals keep the passes float32
 
-# Rows of the per-face frames (FACE_COLS[_BARY], U) float32, computed in float64.
+# Rows of the per-face frames (FACE_COLS[_BARY], U) float32, computed in float32.
 R0 = 0  # R_f row-major, 9 values (R[i, j] at R0 + 3 i + j)
 Q0 = 9  # quaternion (w, x, y, z)
 S_F = 13  # scale s_f
@@ -51,7 +53,7 @@ FACE_COLS_BARY = 20
 @nb.njit(**_NBC)
 def face_frames_kernel(verts, face_vids, edges, face, with_normal):
     """verts (S, 3) f64; face_vids (U, 3) int rows of verts -> face (FACE_COLS[_BARY], U) f32, one row per
-    column (structure of arrays). Scratch: edges (9, U) f64."""
+    column (structure of arrays). Scratch: edges (9, U) f32."""
     face_frames_range(0, face_vids.shape[0], verts, face_vids, edges, face, with_normal)
 
 
@@ -70,7 +72,7 @@ def face_frames_kernel_parallel(verts, face_vids, edges, face, with_normal):
 
 @nb.njit(**_NBC)
 def face_frames_range(lo, hi, verts, face_vids, edges, face, with_normal):
-    """Faces lo..hi-1, in passes over the whole range. Each pass is a loop LLVM vectorises (four faces per
+    """Faces lo..hi-1, in passes over the whole range. Each pass is a loop LLVM vectorises (eight faces per
     instruction): contiguous rows, no branch, at most 9 arrays written (beyond that it gives up on its alias
     checks) and not nested in another loop (a loop over blocks of faces kept it scalar, measured). Scalar, the
     square roots and divisions of one face are a chain no core overlaps: 2x slower."""
@@ -84,21 +86,21 @@ def face_frames_range(lo, hi, verts, face_vids, edges, face, with_normal):
 
 @nb.njit(inline="always", **_NBC)
 def _gather_edges(lo, hi, verts, face_vids, edges):
-    """edges[:, u] = v0, e1 = v1 - v0, e2 = v2 - v0 of face u."""
+    """edges[:, u] = v0, e1 = v1 - v0, e2 = v2 - v0 of face u, each computed in float64 and rounded to float32."""
     for u in range(lo, hi):
         i0 = np.uint64(face_vids[u, 0])  # unsigned indices (see _triangle_run)
         i1 = np.uint64(face_vids[u, 1])
         i2 = np.uint64(face_vids[u, 2])
         for c in range(3):
             v0 = verts[i0, c]
-            edges[c, u] = v0
-            edges[3 + c, u] = verts[i1, c] - v0
-            edges[6 + c, u] = verts[i2, c] - v0
+            edges[c, u] = np.float32(v0)
+            edges[3 + c, u] = np.float32(verts[i1, c] - v0)
+            edges[6 + c, u] = np.float32(verts[i2, c] - v0)
 
 
 @nb.njit(inline="always", **_NBC)
 def _face_edges(edges, u):
-    """(e1, e2) of face u, six float64 values."""
+    """(e1, e2) of face u, six float32 values."""
     return edges[3, u], edges[4, u], edges[5, u], edges[6, u], edges[7, u], edges[8, u]
 
 
@@ -108,7 +110,7 @@ def _face_axes(lo, hi, edges, face):
     for u in range(lo, hi):
         e1x, e1y, e1z, e2x, e2y, e2z = _face_edges(edges, u)
         ll = e1x * e1x + e1y * e1y + e1z * e1z
-        inv = 1.0 / math.sqrt(ll if ll > _EPS2 else _EPS2)
+        inv = _ONE / math.sqrt(ll if ll > _EPS2 else _EPS2)
         a0x = e1x * inv
         a0y = e1y * inv
         a0z = e1z * inv
@@ -116,7 +118,7 @@ def _face_axes(lo, hi, edges, face):
         cy = a0z * e2x - a0x * e2z
         cz = a0x * e2y - a0y * e2x
         cc = cx * cx + cy * cy + cz * cz
-        inv = 1.0 / math.sqrt(cc if cc > _EPS2 else _EPS2)
+        inv = _ONE / math.sqrt(cc if cc > _EPS2 else _EPS2)
         a1x = cx * inv
         a1y = cy * inv
         a1z = cz * inv
@@ -140,11 +142,11 @@ def _face_scale_centroid(lo, hi, edges, face):
         e1x, e1y, e1z, e2x, e2y, e2z = _face_edges(edges, u)
         ll = e1x * e1x + e1y * e1y + e1z * e1z
         ll = math.sqrt(ll if ll > _EPS2 else _EPS2)
-        h = np.float64(face[R0 + 2, u]) * e2x + np.float64(face[R0 + 5, u]) * e2y + np.float64(face[R0 + 8, u]) * e2z
-        face[S_F, u] = (ll + (h if h >= 0.0 else -h)) * 0.5
-        face[C0 + 0, u] = edges[0, u] + (e1x + e2x) / 3.0
-        face[C0 + 1, u] = edges[1, u] + (e1y + e2y) / 3.0
-        face[C0 + 2, u] = edges[2, u] + (e1z + e2z) / 3.0
+        h = face[R0 + 2, u] * e2x + face[R0 + 5, u] * e2y + face[R0 + 8, u] * e2z
+        face[S_F, u] = (ll + (h if h >= 0 else -h)) * _HALF
+        face[C0 + 0, u] = edges[0, u] + (e1x + e2x) / _THREE
+        face[C0 + 1, u] = edges[1, u] + (e1y + e2y) / _THREE
+        face[C0 + 2, u] = edges[2, u] + (e1z + e2z) / _THREE
 
 
 @nb.njit(inline="always", **_NBC)
@@ -162,19 +164,19 @@ def _face_quaternion(lo, hi, face):
     """matrix_to_quaternion of R_f: the best-conditioned branch (argmax, first on ties), normalised, w >= 0,
     chosen with selects (no branch: the loop vectorises). R[i, j] is a_j[i]."""
     for u in range(lo, hi):
-        m00 = np.float64(face[R0 + 0, u])
-        r01 = np.float64(face[R0 + 1, u])
-        r02 = np.float64(face[R0 + 2, u])
-        r10 = np.float64(face[R0 + 3, u])
-        m11 = np.float64(face[R0 + 4, u])
-        r12 = np.float64(face[R0 + 5, u])
-        r20 = np.float64(face[R0 + 6, u])
-        r21 = np.float64(face[R0 + 7, u])
-        m22 = np.float64(face[R0 + 8, u])
-        sq0 = 1 + m00 + m11 + m22
-        sq1 = 1 + m00 - m11 - m22
-        sq2 = 1 - m00 + m11 - m22
-        sq3 = 1 - m00 - m11 + m22
+        m00 = face[R0 + 0, u]
+        r01 = face[R0 + 1, u]
+        r02 = face[R0 + 2, u]
+        r10 = face[R0 + 3, u]
+        m11 = face[R0 + 4, u]
+        r12 = face[R0 + 5, u]
+        r20 = face[R0 + 6, u]
+        r21 = face[R0 + 7, u]
+        m22 = face[R0 + 8, u]
+        sq0 = _ONE + m00 + m11 + m22
+        sq1 = _ONE + m00 - m11 - m22
+        sq2 = _ONE - m00 + m11 - m22
+        sq3 = _ONE - m00 - m11 + m22
         d21 = r21 - r12
         d02 = r02 - r20
         d10 = r10 - r01
@@ -190,7 +192,7 @@ def _face_quaternion(lo, hi, face):
         top = sq2 if pick else top
         pick = sq3 > top
         qw, qx, qy, qz = (d10 if pick else qw), (s02 if pick else qx), (s21 if pick else qy), (sq3 if pick else qz)
-        inv = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        inv = _ONE / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         inv = -inv if qw < 0 else inv
         face[Q0 + 0, u] = qw * inv
         face[Q0 + 1, u] = qx * inv

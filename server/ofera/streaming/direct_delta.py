@@ -274,7 +274,7 @@ class DirectDelta:
         parts, rows = chunks.size - 1, BLOCK + int(run_len.max(initial=0))
         self.res = np.zeros((max(parts, 0), 6), np.int64)
         self.scratch = (*(np.zeros((max(parts, 1), rows, c), np.float32) for c in (3, 4, 3)),
-                        e._work[3:].view(np.float32).reshape(-1), np.zeros((9, chunk_u[-1]), np.float64),
+                        e._work[3:].view(np.float32).reshape(-1), np.zeros((9, chunk_u[-1]), np.float32),
                         np.zeros((K.FACE_COLS, chunk_u[-1]), np.float32))
 
     def select(self, verts: np.ndarray, parallel: bool = False) -> tuple[int, ...]:
