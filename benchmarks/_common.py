@@ -388,6 +388,25 @@ def server_event_loop(port: int) -> str | None:
         return None
 
 
+def pin_split(pin: bool) -> dict | None:
+    """``--pin``: the server on every CPU this process may use but the last (its ``cpus`` setting, as a user would
+    run ``ofera serve --cpus``), this process (the client, and any client it starts) on the last one. Returns what
+    the report records ({"server": "0", "client": [1]}), or None (unpinned). SystemExit on a single CPU."""
+    if not pin:
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        raise SystemExit("--pin needs two CPUs: the server's and the client's")
+    server = ",".join(map(str, cpus[:-1]))
+    os.sched_setaffinity(0, {cpus[-1]})
+    return {"server": server, "client": [cpus[-1]]}
+
+
+def server_extra(pinned: dict | None, **extra: Any) -> dict:
+    """A ServerProcess's extra settings, with the server's CPUs of :func:`pin_split`."""
+    return {**extra, **({"cpus": pinned["server"]} if pinned else {})}
+
+
 def _serve(settings_json: str, impl: str) -> None:
     from ofera.streaming import Settings
     from ofera.streaming.server import serve

@@ -166,7 +166,7 @@ def summarise(run: dict) -> dict:
 
 def run_impl(impl: str, args, weights, layout, avatars: Path) -> dict:
     stamped = C.params_stamped_every_frame() if args.encoding == "params" else contextlib.nullcontext()
-    extra = {"event_loop": args.event_loop, "kernel_threads": args.kernel_threads}
+    extra = C.server_extra(args.pinned, event_loop=args.event_loop, kernel_threads=args.kernel_threads)
     with stamped, C.ServerProcess(avatars, impl=impl, threads=args.threads, extra=extra) as server:
         with C.CpuMeter(server.proc.pid) as cpu:
             run = asyncio.run(run_session(server.url, weights, layout, args.rate, args.seconds, args.warmup,
@@ -238,11 +238,14 @@ def main(argv: list[str] | None = None) -> dict:
                     help="the server's event loop (auto: what ofera serve picks)")
     ap.add_argument("--threads", type=int, default=2, help="server compute threads")
     ap.add_argument("--no-floor", action="store_true", help="skip the transport-floor measurement")
+    ap.add_argument("--pin", action="store_true", help="the server on every CPU but the last (ofera serve --cpus), "
+                    "this client on the last: no preemption between them (benchmarks/README.md, round nine)")
     ap.add_argument("--client-decode", default="fast", choices=["fast", "reference", "header"],
                     help="how the client decodes frames: numba decoder (same values and checks as the codec), "
                     "the reference codec, or the header only")
     ap.add_argument("--json", type=Path, default=C.RESULTS / "latency.json")
     args = ap.parse_args(argv)
+    args.pinned = C.pin_split(args.pin)
 
     weights, layout, fps, notes = C.capture()
     avatars, epm_notes = C.avatars_dir(args.gaussians or None)
@@ -284,6 +287,7 @@ def main(argv: list[str] | None = None) -> dict:
         "impl": impls[0] if len(impls) == 1 else "fast",
         "event_loop": fast.get("event_loop"),
         "kernel_threads": args.kernel_threads,
+        "pin": args.pinned,
         "input": {"layout": layout, "capture": str(C.CAPTURE) if C.CAPTURE.is_file() else None, "fps": fps},
         "definitions": {
             "e2e_ms": "client clock: frame decoded - scheduled send time of its bs (loopback, same machine); a "

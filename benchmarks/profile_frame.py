@@ -98,7 +98,8 @@ async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
 
 def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
     with C.ServerProcess(avatars, impl=impl, threads=args.threads,
-                         extra={"event_loop": args.event_loop, "kernel_threads": args.kernel_threads},
+                         extra=C.server_extra(args.pinned, event_loop=args.event_loop,
+                                              kernel_threads=args.kernel_threads),
                          pythonpath=args.server_path) as server:
         http = f"http://127.0.0.1:{server.port}"
         before = C.stage_histograms(C.metrics_text(http))
@@ -173,10 +174,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--client-transport", default="fast", choices=["fast", "websockets"],
                     help="the client's WebSocket transport (ofera.client.connect(transport=...))")
     ap.add_argument("--no-floor", action="store_true")
+    ap.add_argument("--pin", action="store_true", help="the server on every CPU but the last (ofera serve --cpus), "
+                    "this client on the last: no preemption between them (benchmarks/README.md, round nine)")
     ap.add_argument("--server-path", default=None, help="PYTHONPATH of the server process only (before/after "
                     "comparisons: another checkout's 'server:protocol' directories; the client stays this tree's)")
     ap.add_argument("--json", type=Path, default=C.RESULTS / "profile_frame.json")
     args = ap.parse_args(argv)
+    args.pinned = C.pin_split(args.pin)
 
     weights, layout, _, notes = C.capture()
     avatars, epm_notes = C.avatars_dir(args.gaussians or None)
@@ -195,7 +199,7 @@ def main(argv: list[str] | None = None) -> dict:
     report = {"benchmark": "profile_frame", "gaussians": first["count"], "rate_hz": args.rate,
               "encoding": args.encoding, "sparse": args.sparse, "delta": args.delta, "order": list(ORDER),
               "server_path": args.server_path, "event_loop": args.event_loop, "kernel_threads": args.kernel_threads,
-              "client_transport": args.client_transport,
+              "client_transport": args.client_transport, "pin": args.pinned,
               "results": results, "transport_floor_ms": floor,
               "definitions": {"stages": __doc__.split("\n\n")[2], "percentiles": "per stage over the frames that "
                               "arrived; e2e_ms includes skipped bs (first later frame), answered_e2e_ms does not",

@@ -69,8 +69,11 @@ def main(argv: list[str] | None = None) -> dict:
                     help="what the replay client decodes of each frame (both: full, then header, one server)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"])
+    ap.add_argument("--pin", action="store_true", help="the server on every CPU but the last (ofera serve --cpus), "
+                    "the replay client on the last: no preemption between them (benchmarks/README.md, round nine)")
     ap.add_argument("--json", type=Path, default=C.RESULTS / "replay_speed.json")
     args = ap.parse_args(argv)
+    args.pinned = C.pin_split(args.pin)
     if not C.CAPTURE.is_file():
         raise SystemExit(f"the capture {C.CAPTURE} is missing (the shared data folder; $OFERA_CAPTURE names it)")
     avatars, notes = C.avatars_dir(args.gaussians or None)
@@ -79,7 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     results = {}
     for impl in impls:
         with C.ServerProcess(avatars, impl=impl, threads=args.threads,
-                             extra={"event_loop": args.event_loop}) as server:
+                             extra=C.server_extra(args.pinned, event_loop=args.event_loop)) as server:
             for decode in decodes:
                 name = impl if len(decodes) == 1 else f"{impl}/{decode}"
                 s0 = C.cpu_seconds(server.proc.pid)
@@ -97,7 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
                       f"{results[name]['cpu']['server_cores']}, load average {load}", flush=True)
     report = {"benchmark": "replay_speed", "gaussians": args.gaussians, "speed": args.speed, "passes": args.passes,
               "encoding": args.encoding, "delta": args.delta, "decode": args.decode, "capture": str(C.CAPTURE),
-              "target_answered": TARGET,
+              "target_answered": TARGET, "pin": args.pinned,
               "results": results, "machine": C.machine(), "notes": notes}
     out = C.write_json(args.json, report)
     plt = C.pyplot()

@@ -54,6 +54,9 @@ def serve(
                                                         "for a lone session; a delta session gains, dense f16 does "
                                                         "not: benchmarks/README.md) (default serial) [env "
                                                         "OFERA_KERNEL_THREADS].")] = None,
+    cpus: Annotated[str | None, typer.Option(help="CPUs to run on, e.g. 0 or 2-3 (Linux affinity of every thread; "
+                                              "keep the server off its clients' cores) [env OFERA_CPUS]; default: "
+                                              "any.")] = None,
     log_level: Annotated[str | None, typer.Option(help="uvicorn log level [env OFERA_LOG_LEVEL].")] = None,
     redis: Annotated[str | None, typer.Option("--redis", help="redis://HOST:PORT/DB: rooms span every server "
                                               "attached to this Redis [env OFERA_REDIS_URL].")] = None,
@@ -78,7 +81,7 @@ def serve(
                                    compute_threads=compute_threads, confidence_threshold=confidence_threshold,
                                    key_interval=key_interval, delta_position_mm=delta_position_mm,
                                    delta_rotation_deg=delta_rotation_deg, delta_log_scale=delta_log_scale,
-                                   kernel_threads=kernel_threads, log_level=log_level, redis_url=redis,
+                                   kernel_threads=kernel_threads, cpus=cpus, log_level=log_level, redis_url=redis,
                                    room_members=room_members, max_rooms=max_rooms,
                                    room_secret=room_secret).items() if v is not None}
     try:

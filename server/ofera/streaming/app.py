@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
@@ -17,6 +16,7 @@ from ofera_protocol.constants import PARAMS
 from starlette.websockets import WebSocketDisconnect
 
 from .. import __version__, web
+from .affinity import cpus_in_use, usable_cpus
 from .bus import RoomBus
 from .config import Settings, normalize_origin
 from .metrics import CONTENT_TYPE, Metrics
@@ -97,7 +97,7 @@ def make_bus(settings: Settings, hub: Hub) -> RoomBus | None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     registry = registry_for(settings)
-    threads = settings.compute_threads or os.cpu_count() or 2
+    threads = settings.compute_threads or usable_cpus()
     hub = Hub(settings, registry, ThreadPoolExecutor(threads, thread_name_prefix="ofera-compute"), Metrics())
 
     @asynccontextmanager
@@ -139,7 +139,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"status": "ok", "version": __version__, "protocol": PROTOCOL_VERSION,
                              "sessions": hub.active, "max_sessions": settings.max_sessions,
                              "rooms": len(hub.rooms.rooms) if hub.rooms is not None else 0,
-                             "tasks": len(asyncio.all_tasks()), "event_loop": f"{loop.__module__}.{loop.__qualname__}"})
+                             "tasks": len(asyncio.all_tasks()), "event_loop": f"{loop.__module__}.{loop.__qualname__}",
+                             "cpus": cpus_in_use()})
 
     @app.get("/metrics")
     async def metrics() -> Response:

@@ -45,7 +45,13 @@ class Settings(BaseSettings):
     bs_rate: float = Field(240.0, gt=0, description="Most bs (and ping) messages per second per session.")
     bs_burst: float | None = Field(None, gt=0, description="Token-bucket depth for bs_rate (default: one "
                                    "second's worth).")
-    compute_threads: int = Field(0, ge=0, description="Threads running pipelines (0: one per CPU core).")
+    compute_threads: int = Field(0, ge=0, description="Threads running pipelines (0: one per CPU it may use).")
+    cpus: str | None = Field(
+        None, description="CPUs the server runs on, as Linux lists them (e.g. 0 or 2-3,6): every thread's affinity, "
+        "set when `ofera serve` starts (streaming.affinity; not by an in-process ServerThread), and numba's thread "
+        "pool sized to them; unset: any. Keep the server off the cores its clients use (a Unity app, a replay): on a "
+        "2-core VM one session's e2e p99 was 1.3-3.4 ms lower in one hour, the same in another, with the server on "
+        "CPU 0 and its client on CPU 1 (benchmarks/README.md, round nine).")
     confidence_threshold: float = Field(0.5, ge=0.0, le=1.0, description="bs.conf below this holds that face "
                                         "region's last confident expression (PROTOCOL.md 4.2); 0: never hold.")
     avatar_chunk_bytes: int = Field(4 * 1024 * 1024, ge=1024, description="Largest avatar message payload.")
@@ -103,6 +109,16 @@ class Settings(BaseSettings):
     def _empty_is_none(cls, v: object) -> object:
         return None if v == "" else v
 
+    @field_validator("cpus", mode="before")
+    @classmethod
+    def _cpu_list(cls, v: object) -> object:
+        if v is None or (isinstance(v, str) and not v.strip()):
+            return None
+        from .affinity import parse_cpus
+
+        parse_cpus(str(v))  # ValueError naming the bad part
+        return str(v).strip()
+
     @field_validator("redis_url", mode="before")
     @classmethod
     def _redis_scheme(cls, v: object) -> object:
@@ -132,6 +148,13 @@ class Settings(BaseSettings):
             return None
         found = frozenset(normalize_origin(o) for o in self.allowed_origins.split(",") if o.strip())
         return None if not found or "*" in found else found
+
+    @property
+    def cpu_set(self) -> frozenset[int] | None:
+        """`cpus` as CPU numbers (None: unset)."""
+        from .affinity import parse_cpus
+
+        return None if self.cpus is None else parse_cpus(self.cpus)
 
     @property
     def tls(self) -> bool:

@@ -251,7 +251,13 @@ def connect_lines(host: str, port: int, tls: bool = False) -> list[str]:
 
 def serve(settings: Settings) -> None:
     """Warm up, then run until Ctrl-C (sessions are closed with 1001, the compute pool stopped).
-    Loading failures (missing avatar or EPM files...) raise before anything listens."""
+    Loading failures (missing avatar or EPM files...) raise before anything listens. The `cpus` setting pins the
+    process first (before numba sizes its thread pool)."""
+    if settings.cpu_set is not None:
+        from .affinity import pin_process
+
+        pinned = pin_process(settings.cpu_set)
+        print(f"OFERA server: on CPUs {','.join(map(str, sorted(pinned)))}", flush=True)
     from .app import create_app, warm_up
 
     app = create_app(settings)

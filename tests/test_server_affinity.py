@@ -1,0 +1,69 @@
+"""The server's CPUs (`cpus` setting, streaming.affinity): CPU lists as Linux writes them, and the pinning of every
+thread of a process, numba's pool sized to it (in a subprocess: pinning the test process would slow the suite)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+from ofera.streaming import Settings
+from ofera.streaming.affinity import parse_cpus
+from pydantic import ValidationError
+
+
+@pytest.mark.parametrize("text,cpus", [("0", {0}), (" 3 ", {3}), ("2-3,6", {2, 3, 6}), ("0-2,1", {0, 1, 2}),
+                                       ("5 - 5", {5})])
+def test_cpu_lists_parse_as_linux_writes_them(text: str, cpus: set[int]) -> None:
+    assert parse_cpus(text) == cpus
+
+
+@pytest.mark.parametrize("text,problem", [("a", "not a CPU list"), ("1,,2", "at ''"), ("-1", "at '-1'"),
+                                          ("3-1", "runs backwards"), ("0-", "not a CPU list")])
+def test_bad_cpu_lists_name_the_bad_part(text: str, problem: str) -> None:
+    with pytest.raises(ValueError, match=problem):
+        parse_cpus(text)
+
+
+def test_the_setting_is_checked_and_read() -> None:
+    assert Settings(cpus="0-1,3").cpu_set == {0, 1, 3}
+    assert Settings(cpus="").cpu_set is None and Settings().cpu_set is None
+    with pytest.raises(ValidationError, match="runs backwards"):
+        Settings(cpus="2-1")
+
+
+PROBE = """
+import json, os, threading, time
+import numba  # imported before the pinning, its pool not started
+from ofera.streaming.affinity import pin_process
+stop = threading.Event()
+early = threading.Thread(target=stop.wait)  # a thread started before the pinning
+early.start()
+cpu = min(os.sched_getaffinity(0))
+pinned = pin_process(frozenset({cpu, 100000}))  # CPUs this process may not use are left out
+late = threading.Thread(target=stop.wait)  # ... and one started after it
+late.start()
+tasks = {}
+for t in os.listdir("/proc/self/task"):
+    tasks[t] = sorted(os.sched_getaffinity(int(t)))
+stop.set()
+print(json.dumps({"cpu": cpu, "pinned": sorted(pinned), "tasks": tasks, "numba": numba.config.NUMBA_NUM_THREADS}))
+"""
+
+
+def test_every_thread_is_pinned_and_numba_sized_to_it() -> None:
+    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["pinned"] == [r["cpu"]] and r["numba"] == 1
+    assert len(r["tasks"]) >= 3 and all(cpus == [r["cpu"]] for cpus in r["tasks"].values())
+
+
+def test_cpus_no_process_may_use_are_refused() -> None:
+    from ofera.streaming.affinity import pin_process
+
+    before = os.sched_getaffinity(0)
+    with pytest.raises(ValueError, match=r"none of CPUs \[100000\] can be used"):
+        pin_process(frozenset({100000}))
+    assert os.sched_getaffinity(0) == before
