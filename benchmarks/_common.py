@@ -379,13 +379,18 @@ def params_stamped_every_frame() -> Iterator[None]:
             os.environ["OFERA_PARAMS_STAMP_INTERVAL"] = old
 
 
-def server_event_loop(port: int) -> str | None:
-    """The event loop a running server reports on /healthz (what `--event-loop auto` resolved to)."""
+def server_health(port: int) -> dict:
+    """What a running server reports on /healthz ({} if it cannot be read)."""
     try:
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=5) as r:
-            return json.loads(r.read()).get("event_loop")
+            return json.loads(r.read())
     except (OSError, ValueError):
-        return None
+        return {}
+
+
+def server_event_loop(port: int) -> str | None:
+    """The event loop a running server reports on /healthz (what `--event-loop auto` resolved to)."""
+    return server_health(port).get("event_loop")
 
 
 def pin_split(pin: bool) -> dict | None:

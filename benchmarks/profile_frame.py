@@ -106,7 +106,8 @@ def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
         with C.CpuMeter(server.proc.pid) as cpu:
             run = asyncio.run(stream(server.url, weights, layout, args))
         after = C.stage_histograms(C.metrics_text(http))
-        event_loop = C.server_event_loop(server.port)
+        health = C.server_health(server.port)
+    event_loop, server_cpus = health.get("event_loop"), health.get("cpus")
     rows = run["rows"]
     per_frame: dict[str, list[float]] = {k: [] for k in ORDER}
     metrics = {s: C.histogram_window(before, after, s) for s in ("encode", "send", "drain")}
@@ -132,7 +133,8 @@ def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
     compute = [sum(r["timing"].get(s, 0) for s in ("head", "deform", "encode")) / 1e3 for r in rows]
     e2e = [r["e2e"] for r in rows]
     dropped = list(run["dropped_ms"].values())
-    return {"event_loop": event_loop, "frames": len(rows), "frames_sent": run["sent"], "frames_skipped": len(dropped),
+    return {"event_loop": event_loop, "server_cpus": server_cpus,
+            "frames": len(rows), "frames_sent": run["sent"], "frames_skipped": len(dropped),
             "e2e_ms": C.pct(e2e + dropped), "answered_e2e_ms": C.pct(e2e), "stages_ms": stages,
             "head_deform_encode_ms": C.pct(compute) if rows and "encode" in rows[0]["timing"] else None,
             "bytes_per_frame": int(np.median([r["bytes"] for r in rows])) if rows else None,

@@ -5,11 +5,13 @@ spread over client processes add up, and /metrics histograms are read back over 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from test_benchmarks_smoke import SMALL, check_outputs, load
+from test_benchmarks_smoke import BENCH, SMALL, check_outputs, load
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import _common as C  # noqa: E402
@@ -79,3 +81,18 @@ def test_replay_speed_counts_what_the_replay_tool_answered(tmp_path) -> None:
     r = check_outputs(out)["results"]["fast"]
     assert r["sent"] == 180 and 0 < r["received"] <= 180 and r["answered"] == round(r["received"] / 180, 4)
     assert r["meets_target"] == (r["answered"] >= 0.95) and r["cpu"]["client_cores"] > 0
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="--pin needs two CPUs")
+def test_profile_pins_the_server_and_the_client_apart(tmp_path) -> None:
+    """--pin, in a subprocess (it pins the process that runs it): the server reports the CPUs it was given, the
+    client keeps the last one."""
+    out = tmp_path / "profile.json"
+    subprocess.run([sys.executable, str(BENCH / "profile_frame.py"), "--gaussians", SMALL, "--frames", "20",
+                    "--warmup", "0.3", "--no-floor", "--impl", "fast", "--pin", "--json", str(out)],
+                   check=True, capture_output=True, timeout=280)
+    r = json.loads(out.read_text())
+    cpus = sorted(os.sched_getaffinity(0))
+    assert r["pin"] == {"server": ",".join(map(str, cpus[:-1])), "client": [cpus[-1]]}
+    assert r["results"]["fast"]["server_cpus"] == cpus[:-1] and r["results"]["fast"]["frames"] > 0
