@@ -20,7 +20,7 @@ def test_serve_help_lists_the_options() -> None:
     out = CliRunner().invoke(app, ["serve", "--help"], env={"COLUMNS": "200"})
     assert out.exit_code == 0
     for opt in ("--host", "--port", "--avatars", "--token", "--devices", "--max-sessions", "--bs-rate", "--redis",
-                "--room-members", "--max-rooms", "--kernel-threads", "--cpus"):
+                "--room-members", "--max-rooms", "--kernel-threads", "--cpus", "--compute-in-loop"):
         assert opt in out.output
     text = " ".join(out.output.split())  # the environment hints are shown (not eaten as rich markup)
     assert "[env OFERA_PORT; default 8000]" in text and "OFERA_REDIS_URL" in text

@@ -54,6 +54,10 @@ def serve(
                                                         "for a lone session; a delta session gains, dense f16 does "
                                                         "not: benchmarks/README.md) (default serial) [env "
                                                         "OFERA_KERNEL_THREADS].")] = None,
+    compute_in_loop: Annotated[str | None, typer.Option(help="alone: a session alone on the server computes its "
+                                                         "frames on the event loop's thread (no hand-off to the "
+                                                         "pool); never (default) [env OFERA_COMPUTE_IN_LOOP]."
+                                                         )] = None,
     cpus: Annotated[str | None, typer.Option(help="CPUs to run on, e.g. 0 or 2-3 (Linux affinity of every thread; "
                                               "keep the server off its clients' cores) [env OFERA_CPUS]; default: "
                                               "any.")] = None,
@@ -81,7 +85,8 @@ def serve(
                                    compute_threads=compute_threads, confidence_threshold=confidence_threshold,
                                    key_interval=key_interval, delta_position_mm=delta_position_mm,
                                    delta_rotation_deg=delta_rotation_deg, delta_log_scale=delta_log_scale,
-                                   kernel_threads=kernel_threads, cpus=cpus, log_level=log_level, redis_url=redis,
+                                   kernel_threads=kernel_threads, compute_in_loop=compute_in_loop, cpus=cpus,
+                                   log_level=log_level, redis_url=redis,
                                    room_members=room_members, max_rooms=max_rooms,
                                    room_secret=room_secret).items() if v is not None}
     try:

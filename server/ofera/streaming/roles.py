@@ -155,6 +155,9 @@ class Source:
         # dense f16, or a delta session's delta frames); such frames carry no state. Only for a source whose every
         # frame goes to viewers of that one format (a v1 session and its own viewer).
         self.direct: DirectWriter | None = None
+        # in_loop: None or False-returning: frames are computed on the pool; True: this frame on the event loop's
+        # thread, no hand-off to the pool and back (a session alone on its server: Session sets it).
+        self.in_loop: Callable[[], bool] | None = None
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
@@ -230,6 +233,8 @@ class Source:
             try:
                 if self.needs_state is not None and not self.needs_state():
                     frame = self._compute(pending)  # map only (~0.05 ms): cheaper here than a hop to the pool
+                elif self.in_loop is not None and self.in_loop():
+                    frame = self._compute(pending)  # nothing else to serve meanwhile: the hops cost more
                 else:
                     frame = await loop.run_in_executor(self.executor, self._compute, pending)
             except Exception as exc:

@@ -253,6 +253,9 @@ class Session:
             self.source.eager.append((key, self.viewer.make))
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full
+        if s.compute_in_loop == "alone":
+            hub = self.hub
+            self.source.in_loop = lambda: hub.active == 1
         self.viewer.on_ready = self.source.wake
         log.info("session %s: avatar %s, layout %s, encoding %s, coords %s%s", self.id, aid, hello.layout,
                  hello.encoding, hello.coords, f", device {hello.device!r}" if hello.device else "")
