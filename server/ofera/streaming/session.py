@@ -274,6 +274,7 @@ class Session:
             self.source.eager.clear()
             self.source.direct = None
             self.source.demand = None
+            self.source.in_loop = None
             self.viewer.on_ready = None
             m.sessions.labels("source").dec()
             m.sessions.labels("viewer").dec()
