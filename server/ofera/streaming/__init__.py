@@ -3,7 +3,7 @@
 Modules, one job each: `config` (settings), `registry` (avatars and device BDA profiles on disk; the offline
 pipeline), `pipeline` (layout -> BDA -> EPM -> FLAME -> LBS -> Gaussians), `session`
 (source/viewer roles, newest-wins backpressure), `metrics` (Prometheus), `app` (routes), `server`
-(uvicorn with TCP_NODELAY and draining sends; background-thread runner).
+(uvicorn with TCP_NODELAY and draining sends; background-thread runner), `affinity` (the server's CPUs).
 """
 
 from .config import Settings
