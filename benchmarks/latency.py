@@ -232,7 +232,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta: key frames, then only what "
                     "moved; f16 or q13): the compact stream")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
-    ap.add_argument("--kernel-threads", default="serial", choices=["serial", "auto", "parallel"],
+    ap.add_argument("--kernel-threads", default="auto", choices=["serial", "auto", "parallel"],
                     help="the server's kernel_threads setting (the fast path's deformation on numba's threads)")
     ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
                     help="the server's event loop (auto: what ofera serve picks)")

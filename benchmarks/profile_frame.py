@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sparse", action="store_true")
     ap.add_argument("--delta", action="store_true", help="a delta session (hello.delta; f16 or q13)")
     ap.add_argument("--impl", default="both", choices=["both", *C.IMPLS])
-    ap.add_argument("--kernel-threads", default="serial", choices=["serial", "auto", "parallel"],
+    ap.add_argument("--kernel-threads", default="auto", choices=["serial", "auto", "parallel"],
                     help="the server's kernel_threads setting (the fast path's deformation on numba's threads)")
     ap.add_argument("--event-loop", default="auto", choices=["auto", "asyncio", "uvloop"],
                     help="the server's event loop (auto: what ofera serve picks)")

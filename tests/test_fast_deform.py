@@ -303,7 +303,14 @@ def test_thread_choice_follows_the_measured_times() -> None:
     assert [choice.choose() for _ in range(8)] == [False] * 8
 
 
-def test_auto_sessions_fall_back_to_one_thread_when_not_alone(head, subject) -> None:
+def test_auto_sessions_thread_delta_frames_only_and_only_alone(head, subject, monkeypatch: pytest.MonkeyPatch
+                                                                ) -> None:
+    """Automatic sessions: a delta frame's kernel (deform_delta's select) on threads while its session is alone,
+    dense frames on one thread; two sessions computing: one thread each, whatever their frames."""
+    import ofera.avatar.fast as fast_module
+
+    monkeypatch.setattr(fast_module, "load_average", lambda: 0.0)  # the test machine's load is not the subject
+    monkeypatch.setattr(fast_module.numba, "get_num_threads", lambda: 2)
     rng = np.random.default_rng(12)
     fast = FastAvatar(random_avatar(head, "triangle", rng, sorted_faces=True), subject)
     activity = Activity(window_s=60.0)
@@ -311,14 +318,18 @@ def test_auto_sessions_fall_back_to_one_thread_when_not_alone(head, subject) -> 
     a, b = (fast.session(parallel=None) for _ in range(2))
     a.activity = b.activity = activity
     a.choice.record(True, 1)
+    a.choice.record(False, 10)
     expr, rot = random_flame(rng)
+    verts = a.head(expr, rot).copy()
     ref = fast.session(parallel=False).run(expr, rot)
-    for s in (a, b):
-        state = s.run(expr, rot)
-        np.testing.assert_array_equal(state.position, ref.position)
-    assert not b.threaded  # a computed a frame within the window: b runs on one thread
-    a.run(expr, rot)
-    assert not a.threaded
+    state = a.run(expr, rot)
+    np.testing.assert_array_equal(state.position, ref.position)
+    assert not a.threaded  # a dense frame: one thread, alone or not
+    assert a.deform_delta(verts, lambda v, par: par) and a.threaded  # alone: the delta kernel is told to thread
+    state = b.run(expr, rot)
+    np.testing.assert_array_equal(state.position, ref.position)
+    assert not b.threaded
+    assert not a.deform_delta(verts, lambda v, par: par)  # b computed a frame within the window: one thread
 
 
 def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -326,12 +337,13 @@ def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.Mo
     from ofera.streaming.config import Settings
     from ofera.streaming.registry import AvatarRegistry
 
-    assert Settings().kernel_threads == "serial"
-    monkeypatch.setenv("OFERA_KERNEL_THREADS", "auto")
+    assert Settings().kernel_threads == "auto"
+    assert AvatarRegistry(Settings()).get("default").pipeline("arkit52").fast.parallel is None
+    monkeypatch.setenv("OFERA_KERNEL_THREADS", "serial")
     settings = Settings()
-    assert settings.kernel_threads == "auto"
+    assert settings.kernel_threads == "serial"
     assets = AvatarRegistry(settings).get("default")
-    assert assets.parallel is None and assets.pipeline("arkit52").fast.parallel is None
+    assert assets.parallel is False and assets.pipeline("arkit52").fast.parallel is False
     with pytest.raises(ValueError, match="kernel_threads"):
         Settings(kernel_threads="two")
 

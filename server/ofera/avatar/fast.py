@@ -29,23 +29,23 @@ still references it or any view of its arrays (CPython reference counts), so the
 hand it to another thread, or drop it; dropped states are recycled, so a steady stream allocates
 nothing. States are read-only.
 
-Threads: single-threaded by default (the server's ``kernel_threads`` setting chooses). ``session(parallel=None)``
-("auto") may run the face frames and the triangle kernel (or the f16 writer's blocks) with prange over numba's
-threads, only while (1) its session is the only one of the process
-that computed a frame in the last :data:`ACTIVITY` window (several sessions already keep every core busy),
-(2) the machine is not busy (1-minute load average below the thread count: other processes hold the
-cores), and (3) its own recent parallel frames were faster than its serial ones (:class:`ThreadChoice`: a
-parallel region waits for its slowest thread, so on a loaded core it can be ten times slower than one
-thread; the choice re-checks the other mode now and then). Otherwise single-threaded. ``parallel=True``
-forces the threads; the results are the same bits (every Gaussian and face is computed by the same code,
-whichever thread runs it).
-Why not "auto" by default: on the 2-core machine, shared, at 72 Hz with the caches cold between frames, a
-lone session's deformation took p50 1.3 ms / p99 2.1 ms serial, 0.9 / 16 ms parallel and 1.6 / 10 ms auto
-(load average 0.9): a parallel region now and then waits a scheduler quantum for a worker thread whose core
-is busy, which costs the p99 more than the median gains. On the AMD EPYC VM (December 2026) even an empty
-parallel region took 0.15 ms p50 / 7.9 ms p99 after a 13.9 ms gap (waking the sleeping worker), 3 us back to back
-(benchmarks/cold_cache.py), and the f16 writer took 1.3 ms serial, 2.1 ms (p99 16 ms) on two threads. On a machine
-with idle cores, "auto" is the choice (benchmarks/profile_frame.py --kernel-threads measures the modes).
+Threads: the server's ``kernel_threads`` setting chooses (``session(parallel=...)``). ``parallel=True`` runs the face
+frames and the per-Gaussian kernels (the triangle kernel, the f16 writer's blocks, a delta frame's deformation with its
+selection and encoding) with prange over numba's threads; ``False`` on one thread. ``None`` ("auto", the server's
+default) threads a delta session's frames only (:meth:`FastSession.deform_delta`), and only while (1) its session is
+the only one of the process that computed a frame in the last :data:`ACTIVITY` window (several sessions already keep
+every core busy), (2) the machine is not busy (1-minute load average below the thread count: other processes hold
+the cores), and (3) its own recent threaded frames were faster than its serial ones (:class:`ThreadChoice`: a parallel
+region waits for its slowest thread, so on a loaded core it can be ten times slower than one thread; the choice
+re-checks the other mode now and then). The results are the same bits either way (every Gaussian and face is computed
+by the same code, whichever thread runs it).
+Why dense frames stay on one thread under "auto": their kernels take about 1 ms, and waking numba's sleeping worker
+after a 72 Hz frame's gap costs more than the split saves. On the AMD EPYC VM (December 2026) an empty parallel region
+took 0.15 ms p50 / 7.9 ms p99 after a 13.9 ms gap, 3 us back to back (benchmarks/cold_cache.py), and the f16 writer
+1.3 ms serial, 2.1 ms (p99 16 ms) on two threads; on the Intel Xeon of 5 December a lone f16 session's e2e was the
+same either way. A delta frame's kernel (2-3 ms: the selection and encoding run in it) gains: compute p50 2.4 -> 2.1
+ms and e2e p99 7.0-7.9 -> 6.1-6.5 ms there, 5.9-6.5 -> 5.7 ms compute on the AMD VM (benchmarks/README.md, rounds
+eight and ten).
 """
 
 from __future__ import annotations
@@ -369,12 +369,13 @@ class FastSession:
                              "(FLAME values: the client owns head pose); use the reference lbs otherwise")
         return self.lbs.forward(expr, rot)
 
-    def _threads(self) -> bool:
-        """This frame's thread choice (``parallel``, or automatic: see the module docstring)."""
+    def _threads(self, delta: bool = False) -> bool:
+        """This frame's thread choice: ``parallel``, or automatic (None: a ``delta`` frame's kernel only; see the
+        module docstring). Every automatic frame counts as this session's activity, threaded or not."""
         par = self.parallel
         if par is None:
-            par = (use_threads(self.activity.note(id(self)), numba.get_num_threads(), load_average())
-                   and self.choice.choose())
+            alone = use_threads(self.activity.note(id(self)), numba.get_num_threads(), load_average())
+            par = delta and alone and self.choice.choose()
         self.threaded = par
         return par
 
@@ -389,7 +390,7 @@ class FastSession:
         choice) for subset vertices (S, 3): a kernel that deforms from them and writes a delta frame
         (``ofera.streaming.direct_delta.DirectDelta.select``); returns what it returns."""
         verts = self._verts(verts)
-        par = self._threads()
+        par = self._threads(delta=True)
         t0 = time.perf_counter_ns()
         out = select(verts, par)
         if self.parallel is None:
@@ -403,7 +404,6 @@ class FastSession:
         state, pos, rot, scale = self.pool.acquire()
         bary = a.inv_canonical is not None
         par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
-        t0 = time.perf_counter_ns()
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
         frames(verts, a.face_vids, self.edges, self.face, bary)
         if bary:
@@ -412,8 +412,6 @@ class FastSession:
         else:
             kernel = K.triangle_kernel_parallel if par else K.triangle_kernel
             kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, pos, rot, scale)
-        if self.parallel is None:
-            self.choice.record(par, time.perf_counter_ns() - t0)
         return state
 
     @property
@@ -438,7 +436,6 @@ class FastSession:
             per_thread = tuple(np.zeros((*shape, k), np.float32) for k in (3, 4, 3))
             self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
         par = self._threads()
-        t0 = time.perf_counter_ns()
         args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
                 draft.position, draft.rotation, draft.scale)
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
@@ -447,8 +444,6 @@ class FastSession:
             ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, *args)
         else:
             ok = K.triangle_f16_kernel(self.face, *args)
-        if self.parallel is None:
-            self.choice.record(par, time.perf_counter_ns() - t0)
         return bool(ok)
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:

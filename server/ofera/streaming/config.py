@@ -59,14 +59,14 @@ class Settings(BaseSettings):
     fast: bool = Field(True, description="Fast paths: the avatar's numba deformation (moving Gaussians only) "
                        "and numba frame encoding; false: the numpy references (lbs + Deformer, codec.encode_frame).")
     kernel_threads: Literal["serial", "auto", "parallel"] = Field(
-        "serial", description="Fast path: whether a frame's face frames and Gaussian deformation (and a delta "
-        "session's selection and encoding, which its deformation runs: streaming.direct_delta) run on numba's "
-        "threads (both cores for one session). serial: one thread; auto: threads while the session is the only one "
-        "computing and the machine is not busy, if its recent threaded frames were faster (ofera.avatar.fast); "
-        "parallel: always. Serial by default: on a shared 2-core VM, waking numba's sleeping worker after a 72 Hz "
-        "frame's gap cost ~0.15 ms p50 and ~8 ms p99 per parallel region, more than the threads save on an f16 "
-        "frame (benchmarks/cold_cache.py, profile_frame.py); a lone q13 delta session gains from `parallel` "
-        "(benchmarks/README.md, round eight). Same bits in every mode.")
+        "auto", description="Fast path: whether a frame's face frames and per-Gaussian kernels run on numba's threads "
+        "(both cores for one session). auto: a delta session's frames (its deformation runs its selection and "
+        "encoding: streaming.direct_delta) while the session is the only one computing and the machine is not busy, "
+        "if its recent threaded frames were faster; dense frames on one thread (ofera.avatar.fast); serial: one "
+        "thread; parallel: always, dense frames too. On 2-core VMs (December 2026) a lone q13 delta session's "
+        "compute p50 was 0.3-0.9 ms lower on two threads and its e2e p99 up to 1.5 ms lower; a dense f16 frame's ~1 "
+        "ms of kernels gained nothing end to end, as waking numba's sleeping worker after a 72 Hz frame's gap costs "
+        "~0.15 ms p50 and more in the tail (benchmarks/README.md, rounds eight and ten). Same bits in every mode.")
     compute_in_loop: Literal["alone", "never"] = Field(
         "never", description="alone: a session that is the only one connected computes its frames on the event "
         "loop's thread (no hand-off to the compute pool and back: queue 0.17 against 0.32 ms p50); never: always on "
