@@ -14,7 +14,7 @@ from ofera.avatar import load_avatar
 from ofera.avatar.fast import FastAvatar
 from ofera.client import connect
 from ofera.streaming.direct import DirectDeltaFrames
-from ofera.streaming.direct_delta import DirectDelta, block_rows, candidate_runs, chunk_faces, split_blocks
+from ofera.streaming.direct_delta import BLOCK, DirectDelta, block_rows, candidate_runs, chunk_faces, split_blocks
 from ofera.streaming.encode_fast import delta_encoder
 from ofera_protocol import FrameFormat, decode_server_message, make_quant
 from ofera_protocol.delta import DeltaEncoder, _decode_codes
@@ -108,7 +108,7 @@ def test_chunks_cover_the_candidates_once_with_their_own_faces(fast: FastAvatar)
     assert brow.min() == 0 and (np.diff(brow)[np.diff(brow) != 1] <= 0).all()  # 0, 1, 2 ... within each block
     chunks, chunk_j = split_blocks(run_len, blocks, 3)
     sizes = np.diff(np.append(chunk_j, rows.size))
-    assert chunks.size == 4 and sizes.max() - sizes.min() < 2 * 300
+    assert chunks.size == 4 and sizes.max() - sizes.min() < 2 * (BLOCK + run_len.max())
     local, chunk_u, face_vids = chunk_faces(run_face, blocks, chunks, a.face_vids)
     for c in range(3):
         q0, q1 = blocks[chunks[c]], blocks[chunks[c + 1]]

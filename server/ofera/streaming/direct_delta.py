@@ -3,7 +3,7 @@
 A delta frame needs, per candidate Gaussian (the avatar's movable ones), its deformed position, rotation and scale
 only long enough to compare them with what the client holds and to encode what moved. :class:`DirectDelta` runs
 the fast path's per-Gaussian deformation (``ofera.avatar.kernels``, the same float32 arithmetic) block by block
-into a scratch that stays in the first-level cache, and the delta encoder's selection and encoding passes
+into a scratch that stays in the cache, and the delta encoder's selection and encoding passes
 (``ofera.streaming.encode_fast``, the same functions) over each block straight away: the bytes and the held codes
 are those of ``DeltaEncoder.encode`` on ``FastSession.deform``'s state, without writing that state and reading it
 back (5 MB a frame at 100k Gaussians). On the 2-core Zen 1 VM of December 2026 that alone gained nothing (the frame
@@ -45,8 +45,12 @@ from .encode_fast import (
 )
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # as the deformation kernels: the same fused multiply-adds, the same bits
-BLOCK = K.F16_BLOCK
-"""Candidates a block deforms into the scratch before the selection runs over them (plus the last run's rest)."""
+BLOCK = 2048
+"""Candidates a block deforms into the scratch before the selection runs over them (plus the last run's rest): 80 kB
+of float32 scratch, in the second-level cache. Larger blocks give the selection's and encoding's SIMD loops longer runs
+(a block's ~40 % of moved rotations fill few AVX-512 vectors at 256): DirectDelta.select p50 on the capture at 100k,
+alternating in one process on the Intel Xeon of 5 December 2026, serial after a 13.9 ms sleep: 256 2.79 ms, 1024
+2.48, 2048 2.33, 4096 2.33; two threads 1.88, 1.75, 1.71, 1.60 (benchmarks/README.md, round ten)."""
 
 
 def candidate_runs(fast_ids: np.ndarray, gface: np.ndarray, rows: np.ndarray
