@@ -614,18 +614,25 @@ def compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved):
 def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos):
     """The moved positions (candidates moved[:n_p]): their codes (q13, else f16 bits), split into int8 changes from
     the held codes (out_res) and whole codes (out_wide set, out_pos); held codes and decodings updated. Returns (w,
-    the number sent whole; ok: False if an f16 value is NaN, infinite or beyond +-65504)."""
-    w = m = 0
+    the number sent whole; ok: False if an f16 value is NaN, infinite or beyond +-65504). The per-axis constants
+    are loaded once (array elements would be reloaded after every store, which might alias them) and the output
+    slots are unsigned (no wrap-around check per store)."""
+    s0, s1, s2 = psign[0], psign[1], psign[2]
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    k0, k1, k2 = k[0], k[1], k[2]
+    t0, t1, t2 = step[0], step[1], step[2]
+    w = m = np.uint64(0)
+    one = np.uint64(1)
     ok = True
-    for x in range(n_p):
+    for x in range(np.uint64(n_p)):
         j = np.uint64(moved[x])  # unsigned indices: no wrap-around code (see ofera.avatar.kernels)
         r, i = np.uint64(rows[j]), np.uint64(ids[j])
-        v0, v1, v2 = pos[r, 0] * psign[0], pos[r, 1] * psign[1], pos[r, 2] * psign[2]
+        v0, v1, v2 = pos[r, 0] * s0, pos[r, 1] * s1, pos[r, 2] * s2
         if q13:
-            c0, c1, c2 = _pos_code(v0, lo[0], k[0]), _pos_code(v1, lo[1], k[1]), _pos_code(v2, lo[2], k[2])
-            dec[0, j] = np.float32(lo[0] + np.float64(c0) * step[0])
-            dec[1, j] = np.float32(lo[1] + np.float64(c1) * step[1])
-            dec[2, j] = np.float32(lo[2] + np.float64(c2) * step[2])
+            c0, c1, c2 = _pos_code(v0, l0, k0), _pos_code(v1, l1, k1), _pos_code(v2, l2, k2)
+            dec[0, j] = np.float32(l0 + np.float64(c0) * t0)
+            dec[1, j] = np.float32(l1 + np.float64(c1) * t1)
+            dec[2, j] = np.float32(l2 + np.float64(c2) * t2)
         else:
             ok &= abs(v0) <= F16_MAX and abs(v1) <= F16_MAX and abs(v2) <= F16_MAX
             c0, c1, c2 = f32_to_f16_bits(v0), f32_to_f16_bits(v1), f32_to_f16_bits(v2)
@@ -637,12 +644,12 @@ def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p
         out_wide[x] = wide
         if wide:
             out_pos[w, 0], out_pos[w, 1], out_pos[w, 2] = c0, c1, c2
-            w += 1
+            w += one
         else:
             out_res[m, 0], out_res[m, 1], out_res[m, 2] = np.int8(d0), np.int8(d1), np.int8(d2)
-            m += 1
+            m += one
         held_p[i, 0], held_p[i, 1], held_p[i, 2] = c0, c1, c2
-    return w, ok
+    return np.int64(w), ok
 
 
 @nb.njit(**_NB)
