@@ -43,8 +43,8 @@ Why dense frames stay on one thread under "auto": their kernels take about 1 ms,
 after a 72 Hz frame's gap costs more than the split saves. On the AMD EPYC VM (December 2026) an empty parallel region
 took 0.15 ms p50 / 7.9 ms p99 after a 13.9 ms gap, 3 us back to back (benchmarks/cold_cache.py), and the f16 writer
 1.3 ms serial, 2.1 ms (p99 16 ms) on two threads; on the Intel Xeon of 5 December a lone f16 session's e2e was the
-same either way. A delta frame's kernel (2-3 ms: the selection and encoding run in it) gains: compute p50 2.4 -> 2.1
-ms and e2e p99 7.0-7.9 -> 6.1-6.5 ms there, 5.9-6.5 -> 5.7 ms compute on the AMD VM (benchmarks/README.md, rounds
+same either way. A delta frame's kernel (2-3 ms: the selection and encoding run in it) gains: compute p50 3.1-3.5 ->
+2.5-2.6 ms there and 5.9-6.5 -> 5.7 ms on the AMD VM, e2e p50 0.35-1.2 ms lower on both (benchmarks/README.md, rounds
 eight and ten).
 """
 

@@ -64,7 +64,7 @@ class Settings(BaseSettings):
         "encoding: streaming.direct_delta) while the session is the only one computing and the machine is not busy, "
         "if its recent threaded frames were faster; dense frames on one thread (ofera.avatar.fast); serial: one "
         "thread; parallel: always, dense frames too. On 2-core VMs (December 2026) a lone q13 delta session's "
-        "compute p50 was 0.3-0.9 ms lower on two threads and its e2e p99 up to 1.5 ms lower; a dense f16 frame's ~1 "
+        "compute p50 was 0.3-1.0 ms lower on two threads and its e2e p50 0.35-1.2 ms lower; a dense f16 frame's ~1 "
         "ms of kernels gained nothing end to end, as waking numba's sleeping worker after a 72 Hz frame's gap costs "
         "~0.15 ms p50 and more in the tail (benchmarks/README.md, rounds eight and ten). Same bits in every mode.")
     compute_in_loop: Literal["alone", "never"] = Field(
