@@ -39,9 +39,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _common as C  # noqa: E402
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True)
 def parallel_region(per_thread: np.ndarray) -> None:
-    """One add per thread of numba's pool: a parallel region with (almost) nothing in it."""
+    """One add per thread of numba's pool: a parallel region with (almost) nothing in it. Not cached on disk: a
+    parallel kernel's cache entry names the module it was compiled in, and this file runs as __main__ or is loaded
+    under another name by the smoke test, so a second process could not load the entry (ModuleNotFoundError)."""
     for i in numba.prange(per_thread.size):
         per_thread[i] += 1.0
 

@@ -23,6 +23,10 @@ A server in a subprocess (``_common.ServerProcess``: its own interpreter and GIL
 Medians and p99 over --frames frames (after --warmup s), fast path and reference in the same run (--impl),
 the CPU the client process and the server used (cores), the machine's load average. JSON + PNG (a stacked
 bar of the medians per implementation). benchmarks/README.md keeps the table current.
+
+Where frames differ in size (delta sessions: a frame carries what moved), `by_size` fits each per-frame stage and
+e2e to the message size: ms = intercept + slope * kB over the frames (least squares), with the correlation and the
+size range, so the p99 can be told apart from jitter (a heavy frame's cost) by command.
 """
 
 from __future__ import annotations
@@ -138,7 +142,27 @@ def profile(impl: str, args, weights, layout, avatars: Path) -> dict:
             "e2e_ms": C.pct(e2e + dropped), "answered_e2e_ms": C.pct(e2e), "stages_ms": stages,
             "head_deform_encode_ms": C.pct(compute) if rows and "encode" in rows[0]["timing"] else None,
             "bytes_per_frame": int(np.median([r["bytes"] for r in rows])) if rows else None,
-            "cpu": cpu.report(), "count": run["count"]}
+            "by_size": by_size(rows, per_frame) if rows else None, "cpu": cpu.report(), "count": run["count"]}
+
+
+def by_size(rows: list[dict], per_frame: dict[str, list[float]]) -> dict | None:
+    """Per stage (and e2e): {intercept_ms, ms_per_kb, r} of a least-squares line against the message size, and the
+    sizes' {min, p50, max} kB; None when the frames are all (nearly) one size."""
+    kb = np.array([r["bytes"] for r in rows], np.float64) / 1e3
+    if kb.size < 10 or kb.max() - kb.min() < 0.05 * kb.max():
+        return None
+    series = {s: v for s, v in per_frame.items() if len(v) == kb.size and s != "wire_and_loops"}
+    series["e2e"] = [r["e2e"] for r in rows]
+    fits = {}
+    for s, v in series.items():
+        y = np.asarray(v, np.float64)
+        if y.std() == 0:
+            continue
+        slope, intercept = np.polyfit(kb, y, 1)
+        fits[s] = {"intercept_ms": round(float(intercept), 4), "ms_per_kb": round(float(slope), 6),
+                   "r": round(float(np.corrcoef(kb, y)[0, 1]), 3)}
+    return {"kb": {"min": round(float(kb.min()), 1), "p50": round(float(np.median(kb)), 1),
+                   "max": round(float(kb.max()), 1)}, "fits": fits}
 
 
 def plot(path: Path, results: dict, title: str) -> None:
@@ -217,6 +241,11 @@ def main(argv: list[str] | None = None) -> dict:
         r = results[i]
         print(f"{i}: {r['frames']} frames, {r['frames_skipped']} skipped, {r['bytes_per_frame']} B/frame, "
               f"cpu {r['cpu']}, head+deform+encode {r['head_deform_encode_ms']}")
+        if r["by_size"]:
+            kb, fits = r["by_size"]["kb"], r["by_size"]["fits"]
+            print(f"{i}: by size ({kb['min']}-{kb['max']} kB, median {kb['p50']}): " + ", ".join(
+                f"{s} {f['intercept_ms']:.2f} ms + {1e3 * f['ms_per_kb']:.2f} us/kB (r {f['r']:.2f})"
+                for s, f in fits.items() if s in ("deform", "encode", "client_decode", "e2e")))
     if floor:
         print(f"transport floor ({floor['bytes']} B): p50 {floor['p50']} ms, p99 {floor['p99']} ms")
     print("load average:", C.machine()["loadavg_at_start"])

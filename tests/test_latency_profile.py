@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_benchmarks_smoke import BENCH, SMALL, check_outputs, load
 
@@ -32,6 +33,25 @@ def test_profile_attributes_every_stage(tmp_path) -> None:
         assert run["cpu"]["client_cores"] > 0 and run["cpu"]["server_cores"] > 0
     assert ref["stages_ms"]["encode"]["source"].startswith("/metrics")  # the reference stamps no encode time
     assert r["machine"]["loadavg_at_start"] is not None and r["order"][0] == "bs_send"
+
+
+def test_profile_fits_stage_times_to_the_frame_size() -> None:
+    """by_size: a stage that grows with the message (a delta frame's deformation) is told apart from one that
+    does not; frames of one size give no fit."""
+    by_size = load("profile_frame").by_size
+    rng = np.random.default_rng(3)
+    kb = rng.uniform(20, 450, 200)
+    rows = [{"bytes": int(k * 1e3), "e2e": 2.0 + 0.008 * k} for k in kb]
+    per_frame = {"deform": list(1.1 + 0.0036 * kb + rng.normal(0, 0.01, kb.size)),
+                 "queue": list(0.2 + rng.normal(0, 0.01, kb.size)), "client_decode": []}
+    fit = by_size(rows, per_frame)
+    deform, queue = fit["fits"]["deform"], fit["fits"]["queue"]
+    assert abs(deform["ms_per_kb"] - 0.0036) < 2e-4 and abs(deform["intercept_ms"] - 1.1) < 0.02
+    assert deform["r"] > 0.99 and abs(queue["r"]) < 0.3 and "client_decode" not in fit["fits"]
+    assert fit["fits"]["e2e"]["ms_per_kb"] == pytest.approx(0.008, rel=1e-3)
+    assert fit["kb"]["min"] >= 20 and fit["kb"]["max"] <= 450
+    same = [{"bytes": 2_000_154, "e2e": 3.0 + 0.1 * i} for i in range(50)]
+    assert by_size(same, {"deform": [1.0] * 50}) is None
 
 
 @pytest.mark.timeout(300)
