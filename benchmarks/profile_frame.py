@@ -151,7 +151,7 @@ def by_size(rows: list[dict], per_frame: dict[str, list[float]]) -> dict | None:
     kb = np.array([r["bytes"] for r in rows], np.float64) / 1e3
     if kb.size < 10 or kb.max() - kb.min() < 0.05 * kb.max():
         return None
-    series = {s: v for s, v in per_frame.items() if len(v) == kb.size and s != "wire_and_loops"}
+    series = {s: v for s, v in per_frame.items() if len(v) == kb.size}
     series["e2e"] = [r["e2e"] for r in rows]
     fits = {}
     for s, v in series.items():

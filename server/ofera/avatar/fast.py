@@ -373,9 +373,9 @@ class FastSession:
         """This frame's thread choice: ``parallel``, or automatic (None: a ``delta`` frame's kernel only; see the
         module docstring). Every automatic frame counts as this session's activity, threaded or not."""
         par = self.parallel
-        if par is None:
-            alone = use_threads(self.activity.note(id(self)), numba.get_num_threads(), load_average())
-            par = delta and alone and self.choice.choose()
+        if par is None:  # note the activity first; the load average (a system call) only where threads may run
+            active = self.activity.note(id(self))
+            par = delta and use_threads(active, numba.get_num_threads(), load_average()) and self.choice.choose()
         self.threaded = par
         return par
 
