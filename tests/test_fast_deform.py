@@ -303,6 +303,22 @@ def test_thread_choice_follows_the_measured_times() -> None:
     assert [choice.choose() for _ in range(8)] == [False] * 8
 
 
+def test_thread_choice_compares_the_cost_per_unit_of_work() -> None:
+    """A delta frame's time follows what moved: a serial probe on a heavy frame is not counted against serial, nor a
+    run of heavy parallel frames against parallel (the durations are normalised by each frame's work)."""
+    choice = ThreadChoice(window=5, probe=1000)
+    for _ in range(3):
+        choice.record(False, 300, work=1.0)
+        choice.record(True, 200, work=1.0)
+    assert choice.choose()  # parallel: 200 ns per unit against 300
+    for _ in range(5):
+        choice.record(True, 500, work=3.0)  # heavy frames: 167 ns per unit, still the faster mode
+    assert choice.choose()
+    for _ in range(3):
+        choice.record(False, 450, work=3.0)  # serial on heavy frames too: 150 per unit, now the faster
+    assert not choice.choose()
+
+
 def test_auto_sessions_thread_delta_frames_only_and_only_alone(head, subject, monkeypatch: pytest.MonkeyPatch
                                                                 ) -> None:
     """Automatic sessions: a delta frame's kernel (deform_delta's select) on threads while its session is alone,
@@ -325,11 +341,11 @@ def test_auto_sessions_thread_delta_frames_only_and_only_alone(head, subject, mo
     state = a.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert not a.threaded  # a dense frame: one thread, alone or not
-    assert a.deform_delta(verts, lambda v, par: par) and a.threaded  # alone: the delta kernel is told to thread
+    assert a.deform_delta(verts, lambda v, par: (0, par))[1] and a.threaded  # alone: the delta kernel is told to thread
     state = b.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert not b.threaded
-    assert not a.deform_delta(verts, lambda v, par: par)  # b computed a frame within the window: one thread
+    assert not a.deform_delta(verts, lambda v, par: (0, par))[1]  # b computed a frame within the window: one thread
 
 
 def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.MonkeyPatch) -> None:
