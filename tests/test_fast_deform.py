@@ -319,10 +319,10 @@ def test_thread_choice_compares_the_cost_per_unit_of_work() -> None:
     assert not choice.choose()
 
 
-def test_auto_sessions_thread_delta_frames_only_and_only_alone(head, subject, monkeypatch: pytest.MonkeyPatch
-                                                                ) -> None:
-    """Automatic sessions: a delta frame's kernel (deform_delta's select) on threads while its session is alone,
-    dense frames on one thread; two sessions computing: one thread each, whatever their frames."""
+def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Automatic sessions: a frame's kernels (dense or a delta frame's select) on threads while the session is alone
+    and its threaded frames were faster, the same bits; two sessions computing: one thread each; a session whose
+    serial frames were faster: one thread."""
     import ofera.avatar.fast as fast_module
 
     monkeypatch.setattr(fast_module, "load_average", lambda: 0.0)  # the test machine's load is not the subject
@@ -333,19 +333,28 @@ def test_auto_sessions_thread_delta_frames_only_and_only_alone(head, subject, mo
     assert fast.session().parallel is False  # single-threaded unless asked (avatar.fast says why)
     a, b = (fast.session(parallel=None) for _ in range(2))
     a.activity = b.activity = activity
-    a.choice.record(True, 1)
-    a.choice.record(False, 10)
+    for _ in range(3):
+        a.choice.record(True, 1)
+        a.choice.record(False, 10)
     expr, rot = random_flame(rng)
     verts = a.head(expr, rot).copy()
     ref = fast.session(parallel=False).run(expr, rot)
     state = a.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
-    assert not a.threaded  # a dense frame: one thread, alone or not
-    assert a.deform_delta(verts, lambda v, par: (0, par))[1] and a.threaded  # alone: the delta kernel is told to thread
+    assert a.threaded  # alone, threads faster: a dense frame on threads, the same bits
+    assert a.deform_delta(verts, lambda v, par: (0, par))[1] and a.threaded  # and a delta frame's kernel
     state = b.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert not b.threaded
     assert not a.deform_delta(verts, lambda v, par: (0, par))[1]  # b computed a frame within the window: one thread
+    c = fast.session(parallel=None)
+    c.activity = Activity(window_s=60.0)
+    for _ in range(3):
+        c.choice.record(True, 10)
+        c.choice.record(False, 1)
+    state = c.run(expr, rot)
+    np.testing.assert_array_equal(state.position, ref.position)
+    assert not c.threaded  # alone, but its serial frames were faster
 
 
 def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.MonkeyPatch) -> None:

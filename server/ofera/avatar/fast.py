@@ -32,20 +32,18 @@ nothing. States are read-only.
 Threads: the server's ``kernel_threads`` setting chooses (``session(parallel=...)``). ``parallel=True`` runs the face
 frames and the per-Gaussian kernels (the triangle kernel, the f16 writer's blocks, a delta frame's deformation with its
 selection and encoding) with prange over numba's threads; ``False`` on one thread. ``None`` ("auto", the server's
-default) threads a delta session's frames only (:meth:`FastSession.deform_delta`), and only while (1) its session is
-the only one of the process that computed a frame in the last :data:`ACTIVITY` window (several sessions already keep
-every core busy), (2) the machine is not busy (1-minute load average below the thread count: other processes hold
-the cores), and (3) its own recent threaded frames were faster than its serial ones (:class:`ThreadChoice`: a parallel
-region waits for its slowest thread, so on a loaded core it can be ten times slower than one thread; the choice
-re-checks the other mode now and then). The results are the same bits either way (every Gaussian and face is computed
-by the same code, whichever thread runs it).
-Why dense frames stay on one thread under "auto": their kernels take about 1 ms, and waking numba's sleeping worker
-after a 72 Hz frame's gap costs more than the split saves. On the AMD EPYC VM (December 2026) an empty parallel region
-took 0.15 ms p50 / 7.9 ms p99 after a 13.9 ms gap, 3 us back to back (benchmarks/cold_cache.py), and the f16 writer
-1.3 ms serial, 2.1 ms (p99 16 ms) on two threads; on the Intel Xeon of 5 December a lone f16 session's e2e was the
-same either way. A delta frame's kernel (2-3 ms: the selection and encoding run in it) gains: compute p50 3.1-3.5 ->
-2.5-2.6 ms there and 5.9-6.5 -> 5.7 ms on the AMD VM, e2e p50 0.35-1.2 ms lower on both (benchmarks/README.md, rounds
-eight and ten).
+default) threads a frame's kernels only while (1) its session is the only one of the process that computed a frame in
+the last :data:`ACTIVITY` window (several sessions already keep every core busy), (2) the machine is not busy
+(1-minute load average below the thread count: other processes hold the cores), and (3) its own recent threaded
+frames were faster per unit of work than its serial ones (:class:`ThreadChoice`: a parallel region waits for its
+slowest thread, so on a loaded core it can be ten times slower than one thread, and waking numba's sleeping worker
+after a 72 Hz frame's gap costs 0.15 ms p50 on the AMD EPYC VM of December 2026, where the f16 writer took 1.3 ms
+serial and 2.1 ms on two threads; the choice re-checks the other mode now and then). The results are the same bits
+either way (every Gaussian and face is computed by the same code, whichever thread runs it). On the Intel Xeon VM of 6
+December 2026 the measurement threads both kinds of frame: a lone f16 session's compute p50 1.54-1.72 -> 1.25-1.35 ms
+and e2e p99 4.6-5.0 -> 4.4-4.6 ms, a q13 delta session's compute p50 3.1-3.5 -> 2.5 ms (benchmarks/README.md, rounds
+ten and eleven). Round ten kept dense frames serial under auto because there they gained nothing: the choice itself
+then cost 0.16 ms a frame (numpy medians on a cold CPU), about what the second core saved.
 """
 
 from __future__ import annotations
@@ -379,15 +377,20 @@ class FastSession:
                              "(FLAME values: the client owns head pose); use the reference lbs otherwise")
         return self.lbs.forward(expr, rot)
 
-    def _threads(self, delta: bool = False) -> bool:
-        """This frame's thread choice: ``parallel``, or automatic (None: a ``delta`` frame's kernel only; see the
-        module docstring). Every automatic frame counts as this session's activity, threaded or not."""
+    def _threads(self) -> bool:
+        """This frame's thread choice: ``parallel``, or automatic (None; see the module docstring). Every automatic
+        frame counts as this session's activity, threaded or not."""
         par = self.parallel
         if par is None:  # note the activity first; the load average (a system call) only where threads may run
             active = self.activity.note(id(self))
-            par = delta and use_threads(active, numba.get_num_threads(), load_average()) and self.choice.choose()
+            par = use_threads(active, numba.get_num_threads(), load_average()) and self.choice.choose()
         self.threaded = par
         return par
+
+    def _record(self, par: bool, t0: int, work: int) -> None:
+        """An automatic frame's kernel time since ``t0`` (perf_counter_ns) for ``work`` Gaussians' worth of work."""
+        if self.parallel is None:
+            self.choice.record(par, time.perf_counter_ns() - t0, work)
 
     def _verts(self, verts: np.ndarray) -> np.ndarray:
         verts = _f64(verts)
@@ -400,11 +403,10 @@ class FastSession:
         choice) for subset vertices (S, 3): a kernel that deforms from them and writes a delta frame
         (``ofera.streaming.direct_delta.DirectDelta.select``); returns what it returns."""
         verts = self._verts(verts)
-        par = self._threads(delta=True)
+        par = self._threads()
         t0 = time.perf_counter_ns()
         out = select(verts, par)
-        if self.parallel is None:  # work: the Gaussians deformed, plus what changed (encoded: about twice one)
-            self.choice.record(par, time.perf_counter_ns() - t0, self.fast.arrays.ids.shape[0] + 2 * out[0])
+        self._record(par, t0, self.fast.arrays.ids.shape[0] + 2 * out[0])  # what changed is encoded: ~2x a deform
         return out
 
     def deform(self, verts: np.ndarray) -> GaussianState:
@@ -414,6 +416,7 @@ class FastSession:
         state, pos, rot, scale = self.pool.acquire()
         bary = a.inv_canonical is not None
         par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
+        t0 = time.perf_counter_ns()
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
         frames(verts, a.face_vids, self.edges, self.face, bary)
         if bary:
@@ -422,6 +425,7 @@ class FastSession:
         else:
             kernel = K.triangle_kernel_parallel if par else K.triangle_kernel
             kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, pos, rot, scale)
+        self._record(par, t0, a.ids.shape[0])
         return state
 
     @property
@@ -446,6 +450,7 @@ class FastSession:
             per_thread = tuple(np.zeros((*shape, k), np.float32) for k in (3, 4, 3))
             self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
         par = self._threads()
+        t0 = time.perf_counter_ns()
         args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
                 draft.position, draft.rotation, draft.scale)
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
@@ -454,6 +459,7 @@ class FastSession:
             ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, *args)
         else:
             ok = K.triangle_f16_kernel(self.face, *args)
+        self._record(par, t0, a.ids.shape[0])
         return bool(ok)
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:

@@ -50,9 +50,9 @@ def serve(
                                                               "(default 0.45) [env OFERA_DELTA_ROTATION_DEG].")] = None,
     delta_log_scale: Annotated[float | None, typer.Option(help="Delta sessions: scale tolerance, |ln ratio| (default "
                                                            "0.02) [env OFERA_DELTA_LOG_SCALE].")] = None,
-    kernel_threads: Annotated[str | None, typer.Option(help="Fast path threads: auto (a lone delta session's frames "
-                                                        "on both cores, dense frames on one), serial, or parallel "
-                                                        "(every frame on both cores) (default auto) [env "
+    kernel_threads: Annotated[str | None, typer.Option(help="Fast path threads: auto (a lone session's frames on "
+                                                        "both cores where it measures that faster), serial, or "
+                                                        "parallel (every frame on both cores) (default auto) [env "
                                                         "OFERA_KERNEL_THREADS].")] = None,
     compute_in_loop: Annotated[str | None, typer.Option(help="alone: a lone session computes on the event loop's "
                                                          "thread, no hand-off to the pool; never (default) [env "

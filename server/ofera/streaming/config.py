@@ -60,13 +60,12 @@ class Settings(BaseSettings):
                        "and numba frame encoding; false: the numpy references (lbs + Deformer, codec.encode_frame).")
     kernel_threads: Literal["serial", "auto", "parallel"] = Field(
         "auto", description="Fast path: whether a frame's face frames and per-Gaussian kernels run on numba's threads "
-        "(both cores for one session). auto: a delta session's frames (its deformation runs its selection and "
-        "encoding: streaming.direct_delta) while the session is the only one computing and the machine is not busy, "
-        "if its recent threaded frames were faster; dense frames on one thread (ofera.avatar.fast); serial: one "
-        "thread; parallel: always, dense frames too. On 2-core VMs (December 2026) a lone q13 delta session's "
-        "compute p50 was 0.3-1.0 ms lower on two threads and its e2e p50 0.35-1.2 ms lower; a dense f16 frame's ~1 "
-        "ms of kernels gained nothing end to end, as waking numba's sleeping worker after a 72 Hz frame's gap costs "
-        "~0.15 ms p50 and more in the tail (benchmarks/README.md, rounds eight and ten). Same bits in every mode.")
+        "(both cores for one session). auto: while the session is the only one computing and the machine is not "
+        "busy, if its recent threaded frames were faster per unit of work (measured per session: ofera.avatar.fast); "
+        "serial: one thread; parallel: always. On the 2-core Intel VM of 6 December 2026 a lone q13 delta session's "
+        "compute p50 was 0.5-0.9 ms lower on two threads, a dense f16 session's 0.2-0.4 ms lower with its e2e p50 and "
+        "p99 0.2-0.5 ms lower; on the AMD VM of round eight threads were slower for dense frames, which auto's "
+        "measurement sees (benchmarks/README.md, rounds eight, ten and eleven). Same bits in every mode.")
     compute_in_loop: Literal["alone", "never"] = Field(
         "never", description="alone: a session that is the only one connected computes its frames on the event "
         "loop's thread (no hand-off to the compute pool and back: queue 0.17 against 0.32 ms p50); never: always on "

@@ -308,7 +308,7 @@ class Pipeline:
     def warm_up(self, frames: int = 3) -> None:
         """Run a few frames so that first-use costs (allocation, ONNX graph set-up) are paid now."""
         if self.assets.fast is not None:
-            self.assets.fast.warm_up(threads=self.assets.parallel is True)  # dense kernels; auto threads deltas only
+            self.assets.fast.warm_up(threads=self.assets.parallel is not False)  # auto may thread any frame
         w = np.zeros(self.adapter.layout.length, np.float32)
         for _ in range(frames):
             self.run(w)
