@@ -39,7 +39,7 @@ from ofera_protocol import (  # noqa: E402
     encode,
     read_frame_header,
 )
-from ofera_protocol.codec import pack_map  # noqa: E402
+from ofera_protocol.codec import MessagePacker, pack_map  # noqa: E402
 from ofera_protocol.errors import ERRORS, Fatality, close_code  # noqa: E402
 from ofera_protocol.messages import ParamsFormat, ParamsFrame  # noqa: E402
 
@@ -630,3 +630,19 @@ def test_pack_map_packs_arrays_as_bin_and_refuses_what_is_not_a_field_array() ->
         pack_map({"a": a[:, :2]})
     with pytest.raises(TypeError, match="int64"):
         pack_map({"n": np.int64(3)})
+
+
+def test_message_packer_gives_pack_maps_bytes_and_never_overwrites_a_held_message() -> None:
+    """MessagePacker: the bytes of pack_map, in reused buffers; a message still referenced keeps its bytes (the
+    next one goes to another buffer), a released buffer is reused."""
+    rng = np.random.default_rng(3)
+    packer = MessagePacker()
+    items = [{"type": "frame", "seq": k, "bits": rng.integers(0, 255, 1000 * (k + 1), dtype=np.uint8)}
+             for k in range(4)]
+    held = packer.pack(items[0])
+    assert bytes(held) == pack_map(items[0])
+    for k in (1, 2, 3):  # `held` is kept: each of these lands elsewhere; each is released before the next
+        assert bytes(packer.pack(items[k])) == pack_map(items[k])
+    assert bytes(held) == pack_map(items[0]) and len(packer._packers) == 2
+    del held
+    assert bytes(packer.pack(items[2])) == pack_map(items[2]) and len(packer._packers) == 2

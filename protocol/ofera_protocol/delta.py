@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from .codec import pack_bits, pack_map, unpack_bits  # noqa: F401 - unpack_bits: re-exported
+from .codec import MessagePacker, pack_bits, unpack_bits  # noqa: F401 - unpack_bits: re-exported
 from .encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from .errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
 from .messages import DeltaFrame, Frame
@@ -303,6 +303,7 @@ class DeltaEncoder:
         self.tol = self.tolerance.params()
         self.key_interval = int(key_interval)
         self.stamp_encode = stamp_encode
+        self._packer = MessagePacker()  # messages in reused buffers (memoryviews; a held one is never overwritten)
         self.psign, self.rsign = coord_signs(coords)
         q13 = fmt.encoding == "q13"
         if q13:
@@ -343,7 +344,7 @@ class DeltaEncoder:
             return timing
         return {**timing, "encode": (time.perf_counter_ns() - start_ns) // 1000}
 
-    def _key(self, seq: int, t: int, timing: dict[str, int], position, rotation, scale, start_ns: int) -> bytes:
+    def _key(self, seq: int, t: int, timing: dict[str, int], position, rotation, scale, start_ns: int) -> memoryview:
         k, g = self.kernels, self.gather
         if self.format.encoding == "q13":
             k.q13_position(position, g, self.psign, self.lo, self.k, self.held_p.reshape(-1))
@@ -362,8 +363,9 @@ class DeltaEncoder:
             self.dec[HELD_ROTATION] = half_to_f32(self.held_r[self.ids]).T
             self.dec[HELD_SCALE] = half_to_f32(self.held_s[self.ids]).T
         timing = self._stamped(timing, start_ns)
-        return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": True, "n": self.format.count,
-                         "position": self.held_p, "rotation": self.held_r, "scale": self.held_s})
+        return self._packer.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": True,
+                                  "n": self.format.count, "position": self.held_p, "rotation": self.held_r,
+                                  "scale": self.held_s})
 
     @property
     def next_is_key(self) -> bool:
@@ -371,8 +373,9 @@ class DeltaEncoder:
         return self._key_asked or not self.has_key or bool(self.key_interval and self.since_key >= self.key_interval)
 
     def encode(self, seq: int, t: int, timing: dict[str, int], position: np.ndarray, rotation: np.ndarray,
-               scale: np.ndarray) -> bytes:
-        """The next frame message (key or delta) for FLAME-space float32 state arrays (N, 3), (N, 4), (N, 3)."""
+               scale: np.ndarray) -> memoryview:
+        """The next frame message (key or delta; a memoryview of a reused buffer, see MessagePacker) for FLAME-space
+        float32 state arrays (N, 3), (N, 4), (N, 3)."""
         start_ns = time.perf_counter_ns()
         if self.next_is_key:
             self.frames += 1
@@ -394,7 +397,7 @@ class DeltaEncoder:
         return self.encode_selected(seq, t, timing, counts, start_ns)
 
     def encode_selected(self, seq: int, t: int, timing: dict[str, int], counts: tuple[int, ...], start_ns: int
-                        ) -> bytes:
+                        ) -> memoryview:
         """The delta frame message of a selection a kernel has just made in this encoder's buffers and held state
         (``counts`` = (n, n_p, w, n_r, n_s), what the delta kernels return; :meth:`encode` runs them on a state, the
         server's deformation may run its own: ``ofera.streaming.direct_delta``). ``start_ns``: when the frame's
@@ -408,10 +411,10 @@ class DeltaEncoder:
         changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.ids, self._sel, self._moved,
                                                              self._wide, n, n_p)
         timing = self._stamped(timing, start_ns)
-        return pack_map({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
-                         "changed": changed, "moved_position": mp, "moved_rotation": mr, "moved_scale": ms,
-                         "wide": wide, "position_delta": self._res[:n_p - w],
-                         "position": self._pos[:w], "rotation": self._rot[:n_r], "scale": self._scale[:n_s]})
+        return self._packer.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
+                                  "changed": changed, "moved_position": mp, "moved_rotation": mr, "moved_scale": ms,
+                                  "wide": wide, "position_delta": self._res[:n_p - w], "position": self._pos[:w],
+                                  "rotation": self._rot[:n_r], "scale": self._scale[:n_s]})
 
 
 # ----------------------------------------------------------------------------- decoder (client)
