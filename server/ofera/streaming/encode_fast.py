@@ -666,6 +666,7 @@ def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec
         gathered[4 * x + 3] = rot[r, 3] * s3
     for x in range(np.uint64(n_r)):
         out_rot[x] = pack_rotation(gathered[4 * x], gathered[4 * x + 1], gathered[4 * x + 2], gathered[4 * x + 3])
+    one, two, three, four, five = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4), np.uint64(5)
     for x in range(np.uint64(n_r)):
         j = np.uint64(moved[x])
         v = out_rot[x]
@@ -677,11 +678,11 @@ def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec
         d = d - a1 * a1
         d = d - a2 * a2
         big = math.sqrt(max(d, 0.0))
-        drop = v >> 30
-        dec[3, j] = np.float32(big if drop == 0 else a0)
-        dec[4, j] = np.float32(big if drop == 1 else (a0 if drop == 0 else a1))
-        dec[5, j] = np.float32(big if drop == 2 else (a2 if drop == 3 else a1))
-        dec[6, j] = np.float32(big if drop == 3 else a2)
+        drop = np.uint64(v >> 30)  # rows by computed slot (the three small ones around the largest, in order):
+        dec[three + np.uint64(drop < one), j] = np.float32(a0)  # selects on the index compile to branches here,
+        dec[four + np.uint64(drop <= one), j] = np.float32(a1)  # which mispredict (client.fast_decode, the same)
+        dec[five + np.uint64(drop <= two), j] = np.float32(a2)
+        dec[three + drop, j] = np.float32(big)
 
 
 @nb.njit(**_NB)
@@ -704,10 +705,10 @@ def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, d
     else f16 bits (the q13 arguments stand-ins); held codes and decodings updated. False if an f16 value is NaN,
     infinite or beyond +-65504."""
     ok = True
-    for x in range(n_s):
+    for x in range(np.uint64(n_s)):
         j = np.uint64(moved[x])
         r, i = np.uint64(rows[j]), np.uint64(ids[j])
-        for c in range(3):
+        for c in range(np.uint64(3)):
             v = scale[r, c]
             if q13:
                 code = scale_code(v, table)
