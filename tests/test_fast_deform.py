@@ -89,6 +89,20 @@ def test_subset_lbs_matches_reference(head, subject) -> None:
         sub.forward(np.zeros(head.expr_dims + 1), rot)
 
 
+def test_subset_lbs_on_threads_gives_the_same_bits(head, subject) -> None:
+    """forward / forward_flame with ``parallel``: the vertices in blocks on numba's threads, bit for bit."""
+    rng = np.random.default_rng(1)
+    sub = SubsetLBS(subject, np.sort(rng.choice(head.num_vertices, 1501, replace=False)))
+    for _ in range(3):
+        expr, rot = random_flame(rng, 2.0)
+        want = sub.forward(expr, rot).copy()
+        np.testing.assert_array_equal(sub.forward(expr, rot, parallel=True), want)
+        y = random_flame_values(rng, 0.3)
+        e, r = np.zeros(50, np.float32), np.zeros((5, 3, 3), np.float32)
+        want = sub.forward_flame(y, e, r).copy()
+        np.testing.assert_array_equal(sub.forward_flame(y, e, r, parallel=True), want)
+
+
 def test_subset_lbs_clone_shares_arrays_not_buffers(head, subject) -> None:
     sub = SubsetLBS(subject, np.arange(100))
     other = sub.clone()

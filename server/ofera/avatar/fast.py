@@ -338,6 +338,7 @@ class FastSession:
         self.activity = activity
         self.choice = ThreadChoice()
         self.threaded = False  # whether the last frame ran on numba's threads
+        self._frame: tuple[bool, int] | None = None  # the frame under way: (its thread choice, its start in ns)
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
         self.face = np.zeros((cols, fast.used_faces.size), np.float32)  # face frames, one row per column
@@ -347,10 +348,13 @@ class FastSession:
         self._rot = np.zeros((5, 3, 3), np.float32)
         self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
 
-    def flame_head(self, y: np.ndarray) -> np.ndarray:
+    def flame_head(self, y: np.ndarray, wake: bool = True) -> np.ndarray:
         """:meth:`head` of :meth:`flame` (y (68,) FLAME values -> (S, 3) float64), the same values in one numba call
-        (the split is left in the buffers :meth:`flame` returns)."""
-        return self.lbs.forward_flame(self._values(y), self._expr, self._rot)
+        (the split is left in the buffers :meth:`flame` returns). ``wake``: on the frame's threads if it has them
+        (see :meth:`_start`); False keeps the head on one thread (a delta frame's: its kernel was slower after a
+        threaded head, 1.78-1.92 against 1.55-1.70 ms in four of six alternating pairs, round eleven)."""
+        par = self._start()
+        return self.lbs.forward_flame(self._values(y), self._expr, self._rot, par and wake)
 
     def _values(self, y: np.ndarray) -> np.ndarray:
         if not (isinstance(y, np.ndarray) and y.dtype == np.float32 and y.ndim == 1):  # (what the pipeline passes)
@@ -375,7 +379,7 @@ class FastSession:
         if rot is None or not root_neck_identity(rot):
             raise ValueError("the fast path needs rotations (5, 3, 3) with root and neck the identity "
                              "(FLAME values: the client owns head pose); use the reference lbs otherwise")
-        return self.lbs.forward(expr, rot)
+        return self.lbs.forward(expr, rot, self._start())
 
     def _threads(self) -> bool:
         """This frame's thread choice: ``parallel``, or automatic (None; see the module docstring). Every automatic
@@ -387,10 +391,21 @@ class FastSession:
         self.threaded = par
         return par
 
-    def _record(self, par: bool, t0: int, work: int) -> None:
-        """An automatic frame's kernel time since ``t0`` (perf_counter_ns) for ``work`` Gaussians' worth of work."""
-        if self.parallel is None:
-            self.choice.record(par, time.perf_counter_ns() - t0, work)
+    def _start(self) -> bool:
+        """A frame starts (its head): its thread choice, which its deformation keeps. The head runs on the threads
+        the deformation will use: that wakes them for it (benchmarks/README.md, round eleven)."""
+        self._frame = (self._threads(), time.perf_counter_ns())
+        return self._frame[0]
+
+    def _begin(self) -> bool:
+        """The thread choice of the frame under way: its head's, or a new one for a deformation called alone."""
+        return self._frame[0] if self._frame is not None else self._start()
+
+    def _end(self, work: int) -> None:
+        """The frame is done: an automatic one's time since :meth:`_begin` is recorded for ``work`` Gaussians."""
+        frame, self._frame = self._frame, None
+        if frame is not None and self.parallel is None:
+            self.choice.record(frame[0], time.perf_counter_ns() - frame[1], work)
 
     def _verts(self, verts: np.ndarray) -> np.ndarray:
         verts = _f64(verts)
@@ -403,10 +418,8 @@ class FastSession:
         choice) for subset vertices (S, 3): a kernel that deforms from them and writes a delta frame
         (``ofera.streaming.direct_delta.DirectDelta.select``); returns what it returns."""
         verts = self._verts(verts)
-        par = self._threads()
-        t0 = time.perf_counter_ns()
-        out = select(verts, par)
-        self._record(par, t0, self.fast.arrays.ids.shape[0] + 2 * out[0])  # what changed is encoded: ~2x a deform
+        out = select(verts, self._begin())
+        self._end(self.fast.arrays.ids.shape[0] + 2 * out[0])  # what changed is encoded: about twice a deform
         return out
 
     def deform(self, verts: np.ndarray) -> GaussianState:
@@ -415,8 +428,7 @@ class FastSession:
         verts = self._verts(verts)
         state, pos, rot, scale = self.pool.acquire()
         bary = a.inv_canonical is not None
-        par = self._threads()  # once per frame: the head is single-threaded (SubsetLBS.forward says why)
-        t0 = time.perf_counter_ns()
+        par = self._begin()
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
         frames(verts, a.face_vids, self.edges, self.face, bary)
         if bary:
@@ -425,7 +437,7 @@ class FastSession:
         else:
             kernel = K.triangle_kernel_parallel if par else K.triangle_kernel
             kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, pos, rot, scale)
-        self._record(par, t0, a.ids.shape[0])
+        self._end(a.ids.shape[0])
         return state
 
     @property
@@ -449,8 +461,7 @@ class FastSession:
             shape = (numba.config.NUMBA_NUM_THREADS, K.F16_BLOCK + int(a.run_len.max(initial=0)))
             per_thread = tuple(np.zeros((*shape, k), np.float32) for k in (3, 4, 3))
             self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
-        par = self._threads()
-        t0 = time.perf_counter_ns()
+        par = self._begin()
         args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
                 draft.position, draft.rotation, draft.scale)
         frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
@@ -459,7 +470,7 @@ class FastSession:
             ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, *args)
         else:
             ok = K.triangle_f16_kernel(self.face, *args)
-        self._record(par, t0, a.ids.shape[0])
+        self._end(a.ids.shape[0])
         return bool(ok)
 
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:

@@ -71,8 +71,20 @@ def _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, n_
 
 
 @nb.njit(inline="always", **_NB)
-def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, out):
-    """Vertices lo..hi-1 of the subset: blend shapes, then skinning (see _subset_lbs)."""
+def _nonzero(coef, nz):
+    """The indices of coef's non-zero entries, ascending, into nz; returns how many."""
+    count = 0
+    for j in range(coef.shape[0]):
+        if coef[j] != 0.0:
+            nz[count] = j
+            count += 1
+    return count
+
+
+@nb.njit(inline="always", **_NB)
+def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, count, out):
+    """Vertices lo..hi-1 of the subset: blend shapes, then skinning (see _subset_lbs); nz[:count] the non-zero
+    coefficients. Each vertex's arithmetic is the same whichever block it is in (the parallel twin's bits)."""
     k_joints = a.shape[0]
     # Blend shapes: acc[r] = v_id[r] + sum_j coef[j] B[j, r] over the non-zero coefficients in ascending order,
     # four per pass over acc (one load and store of acc per four products: the passes were bound by those stores,
@@ -81,11 +93,6 @@ def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, out):
     # loops (the head took 1.5x as long, measured).
     r0 = np.uint64(3 * lo)
     r1 = np.uint64(3 * hi)
-    count = 0
-    for j in range(basis_t.shape[0]):
-        if coef[j] != 0.0:
-            nz[count] = j
-            count += 1
     for r in range(r0, r1):
         acc[r] = v_id[r]
     q = 0
@@ -131,7 +138,21 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
     """expr (n,) f32/f64, rot (K, 3, 3) -> out (S, 3) float64. v_id (3S,) flat; basis_t (C, 3S).
     Scratch: coef (C,), joints (K, 3), a (K, 3, 4), acc (3S,), nz (C,) int64."""
     _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
-    _blend_skin(0, out.shape[0], coef, v_id, basis_t, weights, a, acc, nz, out)
+    _blend_skin(0, out.shape[0], coef, v_id, basis_t, weights, a, acc, nz, _nonzero(coef, nz), out)
+
+
+@nb.njit(parallel=True, **_NB)
+def _subset_lbs_parallel(parts, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a,
+                         acc, nz, out):
+    """:func:`_subset_lbs` with the vertices in ``parts`` blocks on numba's threads (the same bits). Alone it is no
+    faster (the blend reads 3 MB of basis; waking the sleeping worker costs what the split saves), but it wakes the
+    worker for the frame's threaded deformation, whose first region then starts 0.15 ms sooner (benchmarks/README.md,
+    round eleven)."""
+    _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
+    count = _nonzero(coef, nz)
+    s = out.shape[0]
+    for b in nb.prange(parts):
+        _blend_skin(s * b // parts, s * (b + 1) // parts, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
 @nb.njit(**_NB)
@@ -141,6 +162,19 @@ def flame_subset_lbs(y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr,
     call: no check of rotations that are the identity by construction (root and neck), no second dispatch."""
     flame_values_kernel(y, expr.shape[0], expr, rot)
     _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz, out)
+
+
+@nb.njit(parallel=True, **_NB)
+def flame_subset_lbs_parallel(parts, y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights,
+                              joints, a, acc, nz, out):
+    """:func:`flame_subset_lbs` with the blocks of :func:`_subset_lbs_parallel` (a parallel loop of its own: a
+    parallel function called from another runs serially)."""
+    flame_values_kernel(y, expr.shape[0], expr, rot)
+    _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
+    count = _nonzero(coef, nz)
+    s = out.shape[0]
+    for b in nb.prange(parts):
+        _blend_skin(s * b // parts, s * (b + 1) // parts, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
 @nb.njit(**_NB)
@@ -250,27 +284,35 @@ class SubsetLBS:
     def count(self) -> int:
         return int(self.vertex_ids.size)
 
-    def forward_flame(self, y: np.ndarray, expr: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    def forward_flame(self, y: np.ndarray, expr: np.ndarray, rot: np.ndarray, parallel: bool = False) -> np.ndarray:
         """FLAME values y (68,) float32 -> vertices (S, 3), as :meth:`forward` of their split (root and neck the
-        identity), in one numba call; the split is left in expr (50,) and rot (5, 3, 3) float32. Needs n_expr >= 50."""
+        identity), in one numba call; the split is left in expr (50,) and rot (5, 3, 3) float32. Needs n_expr >= 50.
+        ``parallel``: as :meth:`forward`."""
         if self.n_expr < expr.shape[0]:
             raise ValueError(f"{expr.shape[0]} expression coefficients, this subset LBS uses {self.n_expr}")
-        flame_subset_lbs(y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr,
-                         self.parents, self.weights, self._joints, self._a, self._acc, self._nz, self.out)
+        args = (y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
+                self.weights, self._joints, self._a, self._acc, self._nz, self.out)
+        if parallel:
+            flame_subset_lbs_parallel(nb.get_num_threads(), *args)
+        else:
+            flame_subset_lbs(*args)
         return self.out
 
-    def forward(self, expr: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-        """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3).
-        Single-threaded: a prange over vertex blocks was slower at 5k vertices (the blend is bound by reading
-        the basis, 3 MB)."""
+    def forward(self, expr: np.ndarray, rotations: np.ndarray, parallel: bool = False) -> np.ndarray:
+        """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3). ``parallel``:
+        the vertices in blocks on numba's threads, the same bits (no faster alone at 5k vertices: the blend is
+        bound by reading the basis, 3 MB; it wakes the threads of a threaded deformation that follows)."""
         expr, rot = _floats(expr, 1), _floats(rotations, 3)  # (no numpy call for what the fast session passes)
         if expr.shape[0] > self.n_expr:
             raise ValueError(f"{expr.shape[0]} expression coefficients, this subset LBS uses {self.n_expr}")
         if rot.shape != (self.num_joints, 3, 3):
             raise ValueError(f"rotations must be ({self.num_joints}, 3, 3), got {rot.shape}")
-        _subset_lbs(expr, rot, self._coef, self.v_id, self.basis_t,
-                    self.pose_rows, self.j_id, self.j_expr, self.parents, self.weights, self._joints, self._a,
-                    self._acc, self._nz, self.out)
+        args = (expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
+                self.weights, self._joints, self._a, self._acc, self._nz, self.out)
+        if parallel:
+            _subset_lbs_parallel(nb.get_num_threads(), *args)
+        else:
+            _subset_lbs(*args)
         return self.out
 
 
