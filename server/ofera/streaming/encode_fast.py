@@ -760,18 +760,24 @@ def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p
 
 
 @nb.njit(inline="always", **_NB)
-def _pack_column(bits, c, n, out):
-    """bits[:n, c] (bool) into out (ceil(n / 8) uint8, LSB first)."""
-    full = n >> 3
+def _pack_bools(flat, first, stride, count, out):
+    """count bools flat[first], flat[first + stride], ... (uint8 0 / 1) into out (ceil(count / 8) uint8, LSB
+    first). Unsigned indices and a flat array: the (n, 3) column form with signed indices took 3x as long (the
+    masks of a 48k-Gaussian delta frame 193 against 66 us, round eleven)."""
+    first, stride = np.uint64(first), np.uint64(stride)
+    full = np.uint64(count) >> np.uint64(3)
     for b in range(full):  # whole bytes: a fixed 8-bit loop (unrolled)
+        q = first + stride * (np.uint64(8) * b)
         byte = np.uint32(0)
-        for bit in range(8):
-            byte |= np.uint32(bits[8 * b + bit, c]) << np.uint32(bit)
+        for bit in range(np.uint64(8)):
+            byte |= np.uint32(flat[q + stride * bit]) << np.uint32(bit)
         out[b] = np.uint8(byte)
-    if n & 7:
+    rest = np.uint64(count) & np.uint64(7)
+    if rest:
+        q = first + stride * (np.uint64(8) * full)
         byte = np.uint32(0)
-        for bit in range(n & 7):
-            byte |= np.uint32(bits[8 * full + bit, c]) << np.uint32(bit)
+        for bit in range(rest):
+            byte |= np.uint32(flat[q + stride * bit]) << np.uint32(bit)
         out[full] = np.uint8(byte)
 
 
@@ -783,10 +789,11 @@ def delta_masks_kernel(ids, sel, moved, wide, n, n_p, changed, out_mp, out_mr, o
     for j in range(n):
         i = np.uint64(ids[sel[j]])
         changed[i >> 3] |= np.uint8(1) << (i & 7)
-    _pack_column(moved, 0, n, out_mp)
-    _pack_column(moved, 1, n, out_mr)
-    _pack_column(moved, 2, n, out_ms)
-    _pack_column(wide.reshape(-1, 1), 0, n_p, out_wide)
+    flat = moved.reshape(-1).view(np.uint8)  # (n, 3) bools, row-major
+    _pack_bools(flat, 0, 3, n, out_mp)
+    _pack_bools(flat, 1, 3, n, out_mr)
+    _pack_bools(flat, 2, 3, n, out_ms)
+    _pack_bools(wide.view(np.uint8), 0, 1, n_p, out_wide)
 
 
 def delta_kernel_warm() -> None:
