@@ -17,7 +17,8 @@ eight).
 
 Both cores: the candidates are cut into chunks (one a thread, :func:`split_blocks`), each with its own list of faces
 (:func:`chunk_faces`), scratch and outputs, so a chunk on another core reads nothing another chunk writes; the
-serial kernel runs the same chunks one after another, and both gather the chunks' outputs in candidate order.
+serial kernel runs the same chunks one after another and closes the gaps between their outputs in place; the threaded
+one has each thread copy its chunk's outputs into place from a spare set. Either way the outputs end in candidate order.
 
 The plain reference is ``DeltaEncoder.encode(FastSession.deform(verts))``; tests compare them byte for byte.
 Triangle binding only (the barycentric binding's positions are float64 sums of vertices: the state path runs).
@@ -111,8 +112,9 @@ def _delta_chunk(q13, c, verts, geo, codes, held, out, scratch):
     """Chunk c: its faces' frames, then its blocks, each deformed into the scratch (signed, as the f16 writer's), then
     the selection and one pass per attribute over what moved (q13 codes, else f16 bits), the held codes and their
     decodings updated. Every output and list of the chunk starts at its first candidate's index (a chunk selects at
-    most its own candidates; :func:`_gather_chunks` closes the gaps). Returns (n, n_p, w, n_r, n_s, ok) of the chunk;
-    ok False if an f16 value is out of range. Argument groups: see :meth:`DirectDelta.select`."""
+    most its own candidates; :func:`_gather_chunks` or the threaded kernel's copies close the gaps). Returns (n, n_p,
+    w, n_r, n_s, ok) of the chunk; ok False if an f16 value is out of range. Argument groups: see
+    :meth:`DirectDelta.select`."""
     chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
     lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
     ids, held_p, held_r, held_s, dec, flags, work = held
