@@ -352,7 +352,8 @@ class FastSession:
         """:meth:`head` of :meth:`flame` (y (68,) FLAME values -> (S, 3) float64), the same values in one numba call
         (the split is left in the buffers :meth:`flame` returns). ``wake``: on the frame's threads if it has them
         (see :meth:`_start`); False keeps the head on one thread (a delta frame's: its kernel was slower after a
-        threaded head, 1.78-1.92 against 1.55-1.70 ms in four of six alternating pairs, round eleven)."""
+        threaded head, head + deform + encode p50 1.78-1.92 against 1.48-1.59 ms in four of six alternating pairs,
+        round eleven)."""
         par = self._start()
         return self.lbs.forward_flame(self._values(y), self._expr, self._rot, par and wake)
 

@@ -71,8 +71,9 @@ class Settings(BaseSettings):
         "loop's thread (no hand-off to the compute pool and back: queue 0.17 against 0.32 ms p50); never: always on "
         "the pool. On the 2-core VM (December 2026, five alternating pairs each) a lone dense f16 session's e2e was "
         "p50 5.12 / p99 7.07 ms alone against 5.65 / 8.37, a q13 delta session's 7.92 / 12.99 against 7.30 / 12.60: "
-        "where the frame's work runs decides which vCPU a wake-up must reach (benchmarks/README.md, round nine). "
-        "Never by default: it helps dense f16 only, and only on a machine where a wake-up across cores costs.")
+        "where the frame's work runs decides which vCPU a wake-up must reach (benchmarks/README.md, round nine); on "
+        "the Intel VM of round eleven, with the frame's kernels on both cores, both were worse (f16 e2e p50 4.1-4.8 "
+        "against 2.9-3.1 ms). Never by default.")
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     key_interval: int = Field(720, ge=0, description="Delta sessions (hello.delta): a key frame every this many "
                               "frames sent (besides join and resync); 0: only on join and resync.")
