@@ -93,6 +93,18 @@ def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) 
         DirectDelta(fast, DeltaEncoder(fmt, candidates=fast.arrays.ids))
 
 
+def test_no_candidates_select_nothing_on_either_kernel(fast: FastAvatar) -> None:
+    """An encoder without candidates (an avatar nothing moves): no chunk, and both kernels select nothing."""
+    n = fast.neutral
+    fmt = FrameFormat("q13", fast.count, False, make_quant(n.position, n.scale), delta=True)
+    encoder = delta_encoder(fmt, candidates=np.zeros(0, np.int64))
+    encoder.encode(0, 0, {}, n.position, n.rotation, n.scale)
+    direct = DirectDelta(fast, encoder)
+    assert direct.res.shape[0] == 0
+    verts = fast.session().flame_head(np.zeros(68, np.float32)).copy()
+    assert direct.select(verts, False) == (0, 0, 0, 0, 0) == direct.select(verts, True)
+
+
 def test_chunks_cover_the_candidates_once_with_their_own_faces(fast: FastAvatar) -> None:
     """Runs, blocks and chunks: every candidate in one run of consecutive deformed rows on one face, blocks of at least
     BLOCK candidates, chunks of about equal size, each with its own face list naming the faces its runs use."""

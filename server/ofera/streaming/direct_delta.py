@@ -197,12 +197,12 @@ def deform_delta_kernel_parallel(q13, verts, geo, codes, held, out, spare, scrat
         _copy(sp_pos.reshape(-1), out_pos.reshape(-1), 3, base, w0, cw)
         _copy(sp_rot.reshape(-1), out_rot.reshape(-1), rk, base, r0, cr)
         _copy(sp_scale.reshape(-1), out_scale.reshape(-1), 3, base, s0_, cs)
-    last = res.shape[0] - 1
+    n = n_p = w = n_r = n_s = 0
     ok = True
-    for c in range(res.shape[0]):
+    for c in range(res.shape[0]):  # the totals (zero without candidates: no chunk)
+        n, n_p, w, n_r, n_s = n + res[c, 0], n_p + res[c, 1], w + res[c, 2], n_r + res[c, 3], n_s + res[c, 4]
         ok &= res[c, 5] != 0
-    return (at[last, 0] + res[last, 0], at[last, 1] + res[last, 1], at[last, 2] + res[last, 2],
-            at[last, 3] + res[last, 3], at[last, 4] + res[last, 4], ok)
+    return n, n_p, w, n_r, n_s, ok
 
 
 @nb.njit(**_NB)
