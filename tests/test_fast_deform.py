@@ -369,6 +369,9 @@ def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch:
     state = c.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert not c.threaded  # alone, but its serial frames were faster
+    c._start()
+    c._end(0)  # a frame with no work (an avatar nothing moves) is recorded too
+    assert len(c.choice.times[False]) == 5
 
 
 def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.MonkeyPatch) -> None:

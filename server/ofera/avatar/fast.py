@@ -406,7 +406,7 @@ class FastSession:
         """The frame is done: an automatic one's time since :meth:`_begin` is recorded for ``work`` Gaussians."""
         frame, self._frame = self._frame, None
         if frame is not None and self.parallel is None:
-            self.choice.record(frame[0], time.perf_counter_ns() - frame[1], work)
+            self.choice.record(frame[0], time.perf_counter_ns() - frame[1], max(work, 1))  # (an avatar nothing moves)
 
     def _verts(self, verts: np.ndarray) -> np.ndarray:
         verts = _f64(verts)
