@@ -10,7 +10,8 @@ thousand of the head's vertices. :class:`SubsetLBS` precomputes, for a fixed ver
 
 Per frame, one numba kernel (no Python per element, no allocation) computes the joints, the 5 rigid
 skinning transforms, ``v_po = v_id + B c`` four coefficients per pass (zero ones skipped), and for every
-vertex of S ``v = (sum_k W_k A_k) v_po``, in float64. It is :func:`ofera.head.lbs.lbs` restricted to S;
+vertex of S ``v = (sum_k W_k A_k) v_po``, in float64 (``parallel``: the same in vertex blocks on numba's threads,
+the same bits). It is :func:`ofera.head.lbs.lbs` restricted to S;
 :func:`subset_lbs_reference` is the plain reference (the full numpy LBS, then indexing) that tests
 compare it with. The basis is stored as float32 (half the memory traffic); the relative error that adds
 is below 1e-7 of each displacement (nanometres), far inside float32 output precision.
