@@ -55,7 +55,7 @@ def session_of(fast: FastAvatar, enc: str, coords: str, gathered: bool) -> tuple
 
 @pytest.mark.parametrize("enc,coords,gathered", [("q13", "flame", False), ("q13", "unity", True),
                                                  ("f16", "unity", False), ("f16", "flame", True)])
-@pytest.mark.parametrize("chunks,parallel", [(1, False), (3, False), (2, True), (3, True)])
+@pytest.mark.parametrize("chunks,parallel", [(1, False), (3, False), (1, True), (2, True), (3, True)])
 def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coords: str, gathered: bool,
                                                  chunks: int, parallel: bool) -> None:
     fmt, gather, ids, rows = session_of(fast, enc, coords, gathered)

@@ -318,8 +318,9 @@ class DirectDelta:
             held_r, out_rot = rotations_u64(held_r), rotations_u64(out_rot)
         self.held = (e.ids, e.held_p, held_r, e.held_s, e.dec, e._flags, e._work)
         self.out = (e._sel, e._moved, e._wide, e._res, e._pos, out_rot, e._scale)
-        self.spare = tuple(np.zeros_like(a) for a in self.out)  # chunks 1.. of a threaded frame (the parallel kernel)
         parts, rows = chunks.size - 1, BLOCK + int(run_len.max(initial=0))
+        # chunks 1.. of a threaded frame write here (one chunk never does: the outputs stand in, unwritten)
+        self.spare = tuple(np.zeros_like(a) for a in self.out) if parts > 1 else self.out
         self.res = np.zeros((max(parts, 0), 6), np.int64)
         self.scratch = (*(np.zeros((max(parts, 1), rows, c), np.float32) for c in (3, 4, 3)),
                         e._work[3:].view(np.float32).reshape(-1), np.zeros((9, chunk_u[-1]), np.float32),
