@@ -306,15 +306,34 @@ def test_thread_choice_rules() -> None:
 
 def test_thread_choice_follows_the_measured_times() -> None:
     choice = ThreadChoice(window=5, probe=10)
-    assert choice.choose()  # no samples yet: try the parallel mode first
-    for _ in range(3):  # warm-up: both modes get samples
-        for par in (False, True):
-            choice.record(par, 100 if par else 300)
+    explored = []
+    for _ in range(6):  # exploration: the modes alternate, serial first, until both have 3 samples
+        par = choice.choose()
+        explored.append(par)
+        choice.record(par, 100 if par else 300)
+    assert explored == [False, True] * 3
     picks = [choice.choose() for _ in range(20)]
     assert picks.count(True) == 18 and picks.count(False) == 2  # parallel is faster; serial is probed (10th, 20th)
     for _ in range(5):
         choice.record(True, 5000)  # the other core became busy: parallel frames are slow now
-    assert [choice.choose() for _ in range(8)] == [False] * 8
+    assert [choice.choose() for _ in range(8)] == [False] * 3 + [True] + [False] * 4  # frame 30: a probe
+
+
+def test_thread_choice_gives_up_threads_that_wait_on_another_process() -> None:
+    """While exploring, one threaded frame costing more than twice the serial median settles it: serial, threads only
+    at probes (two servers on one machine's cores); once the modes are known, one slow threaded frame does not."""
+    choice = ThreadChoice(window=5, probe=10)
+    assert not choice.choose()
+    choice.record(False, 300)
+    assert choice.choose()
+    choice.record(True, 5000)  # its partner thread waited for a core another process held
+    assert [choice.choose() for _ in range(7)] == [False] * 7 and choice.choose()  # the 10th frame: a probe
+    known = ThreadChoice(window=5, probe=1000)
+    for _ in range(3):
+        known.record(False, 300)
+        known.record(True, 100)
+    known.record(True, 5000)  # an outlier after the modes are known: the medians still say threads
+    assert known.choose()
 
 
 def test_thread_choice_compares_the_cost_per_unit_of_work() -> None:
@@ -403,3 +422,13 @@ def test_flame_head_is_head_of_flame(head, subject) -> None:
         np.testing.assert_array_equal(session._rot, rot)
     with pytest.raises(ValueError, match="68 entries"):
         session.flame_head(np.zeros(67, np.float32))
+    # read-only values (a remote room member's, from the bus) take the kernels compiled for writable ones
+    from ofera.head.lbs_fast import flame_subset_lbs
+
+    y = random_flame_values(rng, 0.3)
+    want = session.flame_head(y).copy()
+    compiled = len(flame_subset_lbs.signatures)
+    frozen = y.copy()
+    frozen.flags.writeable = False
+    np.testing.assert_array_equal(session.flame_head(frozen), want)
+    assert len(flame_subset_lbs.signatures) == compiled

@@ -200,7 +200,10 @@ def load_average() -> float | None:
 class ThreadChoice:
     """Serial or parallel for the next frame, from the cost per unit of work (ns / ``work``) of the last ``window``
     frames of each: the lower median wins; every ``probe`` frames the other mode runs once, so a change of load is
-    noticed. A mode with fewer than 3 samples is tried first.
+    noticed. Until both modes have 3 samples they alternate, serial first; a threaded frame that costs more than
+    ``give_up`` times the serial median ends that at once, for serial (threads on cores another process holds: two
+    servers on one machine, each alone in its process, whose threads can wait on each other's for a scheduler slice;
+    a clean-clone CI run saw a room's first frames across two servers dropped for 0.8 s).
 
     A delta frame's work grows with what moved (a heavy frame costs twice a median one): per unit of work, a probe
     that lands on a heavy frame does not count against its mode. The choice is made when a frame is recorded, with
@@ -208,23 +211,27 @@ class ThreadChoice:
     eleven); probes are rare (each runs a frame in the slower mode: at 1 in 60, 1.7 % of frames, more than a p99
     allows, and in step with a looped 180-frame capture)."""
 
-    def __init__(self, window: int = 15, probe: int = 240) -> None:
+    def __init__(self, window: int = 15, probe: int = 240, give_up: float = 2.0) -> None:
         self.times: dict[bool, deque[float]] = {False: deque(maxlen=window), True: deque(maxlen=window)}
         self.probe = probe
+        self.give_up = give_up
         self.frames = 0
-        self.best: bool | None = None  # the mode with the lower median, once both have 3 samples
+        self.best: bool | None = None  # the mode with the lower median, once known
 
     def choose(self) -> bool:
         self.frames += 1
         if self.best is None:
-            return len(self.times[True]) <= len(self.times[False])
+            return len(self.times[True]) < len(self.times[False])
         return (not self.best) if self.frames % self.probe == 0 else self.best
 
     def record(self, parallel: bool, ns: int, work: float = 1.0) -> None:
         """A frame's duration ``ns`` in the mode it ran in, for ``work`` units of work (> 0)."""
-        self.times[parallel].append(ns / work)
+        cost = ns / work
+        self.times[parallel].append(cost)
         serial, par = self.times[False], self.times[True]
-        if len(serial) >= 3 and len(par) >= 3:
+        if self.best is None and parallel and serial and cost > self.give_up * statistics.median(serial):
+            self.best = False  # (while exploring only: once known, one slow frame does not outvote the medians)
+        elif len(serial) >= 3 and len(par) >= 3:
             self.best = statistics.median(par) < statistics.median(serial)
 
 
@@ -358,8 +365,11 @@ class FastSession:
         return self.lbs.forward_flame(self._values(y), self._expr, self._rot, par and wake)
 
     def _values(self, y: np.ndarray) -> np.ndarray:
-        if not (isinstance(y, np.ndarray) and y.dtype == np.float32 and y.ndim == 1):  # (what the pipeline passes)
-            y = np.asarray(y, np.float32).reshape(-1)
+        """y as a writable float32 vector: what the pipeline passes, else a copy. A read-only array (a remote room
+        member's values, decoded from the bus) would compile another specialisation of each kernel taking y on its
+        first frame: a threaded one took the first 0.8 s of a room across two servers (clean-clone CI, round eleven)."""
+        if not (isinstance(y, np.ndarray) and y.dtype == np.float32 and y.ndim == 1 and y.flags.writeable):
+            y = np.array(y, np.float32).reshape(-1)
         if y.shape != (68,):
             raise ValueError(f"FLAME values must have 68 entries, got {y.shape}")
         return y
