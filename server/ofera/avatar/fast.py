@@ -397,8 +397,9 @@ class FastSession:
         frame counts as this session's activity, threaded or not."""
         par = self.parallel
         if par is None:  # note the activity first; the load average (a system call) only where threads may run
-            active = self.activity.note(id(self))
-            par = use_threads(active, numba.get_num_threads(), load_average()) and self.choice.choose()
+            active, threads = self.activity.note(id(self)), numba.get_num_threads()
+            par = (use_threads(active, threads) and use_threads(active, threads, load_average())
+                   and self.choice.choose())
         self.threaded = par
         return par
 

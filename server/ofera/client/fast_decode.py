@@ -43,20 +43,14 @@ def _q13_field(v, shift):
 
 @nb.njit(**_NB)
 def q13_decode_kernel(pos, rot, scale, lo, step, scale_lut, out_pos, out_rot, out_scale):
-    """q13 codes -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic); rotations stored by computed slot
-    (see :func:`_q13_gathered`: 100k rotations of a key frame 0.70 against 1.15 ms with selects, round eleven)."""
-    one, two = np.uint64(1), np.uint64(2)
+    """q13 codes -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic); out_rot C-contiguous (100k
+    rotations of a key frame 0.70 ms stored by :func:`_q13_rotation_at`, 1.15 with selects, round eleven)."""
+    flat_rot = out_rot.reshape(-1)
     for m in range(rot.shape[0]):
         for c in range(3):
             out_pos[m, c] = np.float32(lo[c] + np.float64(pos[3 * m + c]) * step[c])
             out_scale[m, c] = scale_lut[scale[3 * m + c]]
-        v = rot[m]
-        a0, a1, a2, largest = _q13_components(v)
-        big = np.uint64(v >> np.uint32(30))
-        out_rot[m, np.uint64(big < one)] = a0
-        out_rot[m, one + np.uint64(big <= one)] = a1
-        out_rot[m, two + np.uint64(big <= two)] = a2
-        out_rot[m, big] = largest
+        _q13_rotation_at(rot[m], flat_rot, np.uint64(4 * m))
 
 
 @nb.njit(inline="always", **_NB)
@@ -70,6 +64,20 @@ def _q13_components(v):
     d = d + a1 * a1
     d = d + a2 * a2
     return a0, a1, a2, np.sqrt(max(np.float32(1.0) - d, np.float32(0.0)))
+
+
+@nb.njit(inline="always", **_NB)
+def _q13_rotation_at(v, out, b):
+    """One q13 rotation code -> its four float32 components at out[b:b + 4], stored by computed slot (the largest at
+    its index, the three small ones around it in order): selects on the index compile to branches, which random
+    indices mispredict (2.3x the time)."""
+    one, two = np.uint64(1), np.uint64(2)
+    a0, a1, a2, largest = _q13_components(v)
+    big = np.uint64(v >> np.uint32(30))
+    out[b + np.uint64(big < one)] = a0
+    out[b + one + np.uint64(big <= one)] = a1
+    out[b + two + np.uint64(big <= two)] = a2
+    out[b + big] = largest
 
 
 @nb.njit(**_NB)
@@ -132,22 +140,14 @@ def delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot,
 
 @nb.njit(**_NB)
 def _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
-    """Held q13 codes of rows ids -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic). The rotation's
-    four components are stored by computed slot (the largest at its index, the three small ones around it in
-    order): selects on the index compile to branches here, which random indices mispredict (2.3x the time)."""
-    one, three, four = np.uint64(1), np.uint64(3), np.uint64(4)
+    """Held q13 codes of rows ids -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic)."""
+    three, four = np.uint64(3), np.uint64(4)
     for j in range(np.uint64(ids.shape[0])):
         i = np.uint64(ids[j])
         for c in range(three):
             out_p[three * j + c] = np.float32(lo[c] + np.float64(held_p[three * i + c]) * step[c])
             out_s[three * j + c] = lut[held_s[three * i + c]]
-        v = held_r[i]
-        a0, a1, a2, largest = _q13_components(v)
-        b, big = four * j, np.uint64(v >> np.uint32(30))
-        out_r[b + np.uint64(big < one)] = a0
-        out_r[b + one + np.uint64(big <= one)] = a1
-        out_r[b + np.uint64(2) + np.uint64(big <= np.uint64(2))] = a2
-        out_r[b + big] = largest
+        _q13_rotation_at(held_r[i], out_r, four * j)
 
 
 @nb.njit(**_NB)

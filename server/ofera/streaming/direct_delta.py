@@ -185,24 +185,10 @@ def deform_delta_kernel_parallel(q13, verts, geo, codes, held, out, spare, scrat
             (sp, sr, ss, gathered, edges, face))
         res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4], res[c, 5] = n, n_p, w, n_r, n_s, ok
     at = _chunk_offsets(res)
-    rk = out_rot.size // max(out_rot.shape[0], 1)
     for c in nb.prange(1, res.shape[0]):
-        base = chunk_j[c]
-        n0, p0, w0, r0, s0_ = at[c, 0], at[c, 1], at[c, 2], at[c, 3], at[c, 4]
-        cn, cp, cw, cr, cs = res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4]
-        _copy(sp_sel, out_sel, 1, base, n0, cn)
-        _copy(sp_moved.reshape(-1), out_moved.reshape(-1), 3, base, n0, cn)
-        _copy(sp_wide, out_wide, 1, base, p0, cp)
-        _copy(sp_res.reshape(-1), out_res.reshape(-1), 3, base, p0 - w0, cp - cw)
-        _copy(sp_pos.reshape(-1), out_pos.reshape(-1), 3, base, w0, cw)
-        _copy(sp_rot.reshape(-1), out_rot.reshape(-1), rk, base, r0, cr)
-        _copy(sp_scale.reshape(-1), out_scale.reshape(-1), 3, base, s0_, cs)
-    n = n_p = w = n_r = n_s = 0
-    ok = True
-    for c in range(res.shape[0]):  # the totals (zero without candidates: no chunk)
-        n, n_p, w, n_r, n_s = n + res[c, 0], n_p + res[c, 1], w + res[c, 2], n_r + res[c, 3], n_s + res[c, 4]
-        ok &= res[c, 5] != 0
-    return n, n_p, w, n_r, n_s, ok
+        _place_chunk(c, chunk_j[c], at, res, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
+                     (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
+    return _totals(res)
 
 
 @nb.njit(**_NB)
@@ -216,8 +202,25 @@ def _chunk_offsets(res):
 
 
 @nb.njit(inline="always", **_NB)
+def _place_chunk(c, base, at, res, src, dst):
+    """Chunk c's outputs, from row ``base`` of the output group ``src``, to where the previous chunks' end in ``dst``
+    (``at``: :func:`_chunk_offsets`). ``src`` may be ``dst``: every destination is then at or below its source, so
+    copying forward is safe. Element by element over flat views (a row assignment costs tens of ns in numba)."""
+    n, n_p, w, n_r, n_s = at[c, 0], at[c, 1], at[c, 2], at[c, 3], at[c, 4]
+    cn, cp, cw, cr, cs = res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4]
+    _copy(src[0], dst[0], 1, base, n, cn)
+    _copy(src[1].reshape(-1), dst[1].reshape(-1), 3, base, n, cn)
+    _copy(src[2], dst[2], 1, base, n_p, cp)
+    _copy(src[3].reshape(-1), dst[3].reshape(-1), 3, base, n_p - w, cp - cw)
+    _copy(src[4].reshape(-1), dst[4].reshape(-1), 3, base, w, cw)
+    _copy(src[5].reshape(-1), dst[5].reshape(-1), dst[5].size // dst[5].shape[0], base, n_r, cr)
+    _copy(src[6].reshape(-1), dst[6].reshape(-1), 3, base, n_s, cs)
+
+
+@nb.njit(inline="always", **_NB)
 def _copy(src, dst, k, first, to, count):
-    """Rows first.. of a flat (rows k,) array to rows to.. of another (unsigned indices: no wrap-around checks)."""
+    """Rows first.. of a flat (rows k,) array to rows to.. of another, or of itself if to <= first (unsigned indices:
+    no wrap-around checks)."""
     a, b = np.uint64(k * first), np.uint64(k * to)
     for i in range(np.uint64(k * count)):
         dst[b + i] = src[a + i]
@@ -226,31 +229,24 @@ def _copy(src, dst, k, first, to, count):
 @nb.njit(**_NB)
 def _gather_chunks(res, chunk_j, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
     """Move each chunk's outputs (from index chunk_j[c]) down to follow the previous chunks' (in candidate order: the
-    single-threaded kernel's layout); every destination is at or below its source, so copying forward is safe.
-    Returns the totals (n, n_p, w, n_r, n_s, ok)."""
+    single-threaded kernel's layout). Returns the totals (n, n_p, w, n_r, n_s, ok)."""
+    at = _chunk_offsets(res)
+    out = (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale)
+    for c in range(1, res.shape[0]):
+        if chunk_j[c] != at[c, 0]:
+            _place_chunk(c, chunk_j[c], at, res, out, out)
+    return _totals(res)
+
+
+@nb.njit(**_NB)
+def _totals(res):
+    """(n, n_p, w, n_r, n_s, ok) of all chunks (zeros and True without any)."""
     n = n_p = w = n_r = n_s = 0
     ok = True
     for c in range(res.shape[0]):
-        base = chunk_j[c]
-        cn, cp, cw, cr, cs = res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4]
+        n, n_p, w, n_r, n_s = n + res[c, 0], n_p + res[c, 1], w + res[c, 2], n_r + res[c, 3], n_s + res[c, 4]
         ok &= res[c, 5] != 0
-        if base != n:  # element by element over flat views (a row assignment costs tens of ns in numba)
-            _move(out_sel, 1, base, n, cn)
-            _move(out_moved.reshape(-1), 3, base, n, cn)
-            _move(out_wide, 1, base, n_p, cp)
-            _move(out_res.reshape(-1), 3, base, n_p - w, cp - cw)
-            _move(out_pos.reshape(-1), 3, base, w, cw)
-            _move(out_rot.reshape(-1), out_rot.size // out_rot.shape[0], base, n_r, cr)
-            _move(out_scale.reshape(-1), 3, base, n_s, cs)
-        n, n_p, w, n_r, n_s = n + cn, n_p + cp, w + cw, n_r + cr, n_s + cs
     return n, n_p, w, n_r, n_s, ok
-
-
-@nb.njit(inline="always", **_NB)
-def _move(flat, k, src, dst, count):
-    """Rows src.. of a flat (rows k,) array to rows dst.. (dst <= src), count rows."""
-    for i in range(k * count):
-        flat[k * dst + i] = flat[k * src + i]
 
 
 def split_blocks(run_len: np.ndarray, blocks: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
