@@ -18,6 +18,7 @@ Run as a script, this module is the server process: ``python benchmarks/_common.
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
 import platform
@@ -164,8 +165,10 @@ def mapper():
 
 
 def avatars_dir(count: int | None) -> tuple[Path, list[str]]:
-    """A temporary avatars directory holding ``bench`` (and its EPM if the default is missing)."""
+    """A temporary avatars directory holding ``bench`` (and its EPM if the default is missing), removed when the
+    benchmark exits."""
     d = Path(tempfile.mkdtemp(prefix="ofera-bench-"))
+    atexit.register(shutil.rmtree, d, ignore_errors=True)
     src = bench_avatar(count)
     try:
         (d / f"{AVATAR_ID}.npz").symlink_to(src)

@@ -25,7 +25,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import shutil
 import sys
 import time
 from pathlib import Path
@@ -293,7 +292,6 @@ def main(argv: list[str] | None = None) -> dict:
         png = C.png_path(args.json)
         plot(png, report)
         print(f"wrote {args.json} and {png}")
-    shutil.rmtree(avatars, ignore_errors=True)
     return report
 
 

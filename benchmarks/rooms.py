@@ -417,7 +417,6 @@ def main(argv: list[str] | None = None) -> dict:
         hop = res.pop("bus_hop", hop)
         for enc, by_k in res.items():
             runs[(mode, enc)] = by_k
-    shutil.rmtree(avatars, ignore_errors=True)
 
     limits = {}  # what one frame costs to move at all: loopback WebSocket, no compute (`_common.transport_floor`)
     if args.floor_seconds > 0:
