@@ -362,20 +362,27 @@ def test_delta_kernels_equal_the_reference(kernels, enc, coords, gathered) -> No
 def test_delta_masks_kernel_equals_the_reference(kernels) -> None:
     """The numba bitmasks of a delta frame are delta_masks_reference's bytes, empty selections and counts that are
     not multiples of 8 included."""
-    from ofera_protocol.delta import delta_masks_reference
+    from ofera_protocol.codec import unpack_bits
+    from ofera_protocol.delta import delta_masks_reference, row_runs
 
     rng = np.random.default_rng(11)
     fast = numba_kernels()
-    for count in (1, 5, 8, 13, 64, 1000):
-        ids = np.sort(rng.choice(count, max(1, count * 2 // 3), replace=False)).astype(np.int64)
-        for n in {0, 1, ids.size // 2, ids.size}:
-            sel = np.sort(rng.choice(ids.size, n, replace=False)).astype(np.int64)
-            moved = rng.random((ids.size, 3)) < 0.5
-            wide = rng.random(ids.size) < 0.4
-            n_p = int(moved[:n, 0].sum())
-            want = delta_masks_reference(count, ids, sel, moved, wide, n, n_p)
-            got = fast.delta_masks(count, ids, sel, moved, wide, n, n_p)
-            assert [a.tobytes() for a in got] == [a.tobytes() for a in want], (count, n)
+    for count in (1, 5, 8, 13, 64, 1000, 4099):
+        for ids in (np.sort(rng.choice(count, max(1, count * 2 // 3), replace=False)),  # short runs
+                    np.concatenate([np.arange(count // 7, count // 2), np.arange(count * 3 // 5, count)])):  # long
+            ids = np.unique(ids).astype(np.int64)
+            id_runs = row_runs(ids)
+            for n in {0, 1, ids.size // 2, ids.size}:
+                sel = np.sort(rng.choice(ids.size, n, replace=False)).astype(np.int64)
+                flags = np.zeros(ids.size, np.uint8)
+                flags[sel] = rng.integers(1, 8, n)  # a changed candidate moved something, any of the 7 ways
+                moved = rng.random((ids.size, 3)) < 0.5
+                wide = rng.random(ids.size) < 0.4
+                n_p = int(moved[:n, 0].sum())
+                want = delta_masks_reference(count, id_runs, flags, moved, wide, n, n_p)
+                assert np.array_equal(np.flatnonzero(unpack_bits(want[0].tobytes(), count, "changed")), ids[sel])
+                got = fast.delta_masks(count, id_runs, flags, moved, wide, n, n_p)
+                assert [a.tobytes() for a in got] == [a.tobytes() for a in want], (count, n)
 
 
 @pytest.mark.parametrize("enc", ["f16", "q13"])

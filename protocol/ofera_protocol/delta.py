@@ -228,12 +228,14 @@ def delta_f16_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsig
     return n, n_p, w, n_r, n_s
 
 
-def delta_masks_reference(count: int, ids, sel, moved, wide, n: int, n_p: int) -> tuple[np.ndarray, ...]:
-    """A delta frame's bitmasks from a kernel's selection (``sel[:n]`` candidate positions, ``moved[:n]`` (n, 3)
-    bool, ``wide[:n_p]``): (changed over the ``count`` Gaussians (their session ids ``ids[sel]``),
+def delta_masks_reference(count: int, id_runs, flags, moved, wide, n: int, n_p: int) -> tuple[np.ndarray, ...]:
+    """A delta frame's bitmasks from a kernel's flags and selection (``flags`` (K,) of every candidate, non-zero where
+    it changed; ``id_runs`` (R, 3) the runs of consecutive session ids among the candidates, :func:`row_runs` of
+    them; ``moved[:n]`` (n, 3) bool of the selection, ``wide[:n_p]``): (changed over the ``count`` Gaussians,
     moved_position, moved_rotation, moved_scale, wide), each uint8 LSB first (:func:`pack_bits`)."""
     changed = np.zeros(count, bool)
-    changed[ids[sel[:n]]] = True
+    for first_id, first, length in id_runs:
+        changed[first_id:first_id + length] = flags[first:first + length] != 0
     m = moved[:n]
     return pack_bits(changed), pack_bits(m[:, 0]), pack_bits(m[:, 1]), pack_bits(m[:, 2]), pack_bits(wide[:n_p])
 
@@ -318,6 +320,7 @@ class DeltaEncoder:
         self.held_s = np.zeros((n, 3), np.uint8 if q13 else np.uint16)
         m = self.ids.size
         self.runs = row_runs(self.rows)
+        self.id_runs = row_runs(self.ids)  # the changed mask's runs (delta_masks)
         self.dec = np.zeros((10, m), np.float32)  # decodings of the held codes (HELD_POSITION ...)
         self._flags = np.zeros(m, np.uint8)
         self._work = np.zeros((7, m), np.int32)  # the numba kernels' lists and scratch
@@ -328,6 +331,10 @@ class DeltaEncoder:
         self._pos = np.zeros((m, 3), np.uint16)
         self._rot = np.zeros((m,) if q13 else (m, 4), self.held_r.dtype)
         self._scale = np.zeros((m, 3), self.held_s.dtype)
+        # The outputs as flat bytes and the bytes of one row: a frame packs slices of these (msgpack takes a
+        # memoryview as bin itself; a numpy array goes through codec._as_bin, a Python call per field)
+        self._bins = tuple((memoryview(a.reshape(-1).view(np.uint8)), a.nbytes // m if m else 0)
+                           for a in (self._res, self._pos, self._rot, self._scale))
         self.has_key = False
         self._key_asked = True
         self.since_key = 0
@@ -408,13 +415,15 @@ class DeltaEncoder:
         n, n_p, w, n_r, n_s = counts
         self.frames += 1
         self.since_key += 1
-        changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.ids, self._sel, self._moved,
-                                                             self._wide, n, n_p)
+        changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.id_runs, self._flags,
+                                                             self._moved, self._wide, n, n_p)
         timing = self._stamped(timing, start_ns)
+        (res, r3), (pos, r6), (rot, rr), (scl, rs) = self._bins
         return self._packer.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
-                                  "changed": changed, "moved_position": mp, "moved_rotation": mr, "moved_scale": ms,
-                                  "wide": wide, "position_delta": self._res[:n_p - w], "position": self._pos[:w],
-                                  "rotation": self._rot[:n_r], "scale": self._scale[:n_s]})
+                                  "changed": memoryview(changed), "moved_position": memoryview(mp),
+                                  "moved_rotation": memoryview(mr), "moved_scale": memoryview(ms),
+                                  "wide": memoryview(wide), "position_delta": res[:r3 * (n_p - w)],
+                                  "position": pos[:r6 * w], "rotation": rot[:rr * n_r], "scale": scl[:rs * n_s]})
 
 
 # ----------------------------------------------------------------------------- decoder (client)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import AsyncIterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, WebSocket
@@ -18,6 +17,7 @@ from starlette.websockets import WebSocketDisconnect
 from .. import __version__, web
 from .affinity import cpus_in_use, usable_cpus
 from .bus import RoomBus
+from .compute_pool import ComputePool
 from .config import Settings, normalize_origin
 from .metrics import CONTENT_TYPE, Metrics
 from .registry import registry_for
@@ -98,7 +98,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     registry = registry_for(settings)
     threads = settings.compute_threads or usable_cpus()
-    hub = Hub(settings, registry, ThreadPoolExecutor(threads, thread_name_prefix="ofera-compute"), Metrics())
+    hub = Hub(settings, registry, ComputePool(threads), Metrics())
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

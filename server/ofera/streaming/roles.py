@@ -33,6 +33,7 @@ from ofera_protocol import Blendshapes, Frame, FrameFormat, ProtocolError, encod
 from ofera_protocol import errors as E
 
 from ..avatar.state import GaussianState
+from .compute_pool import offload
 from .direct import DirectWriter
 from .metrics import Metrics
 from .pipeline import Pipeline
@@ -236,7 +237,7 @@ class Source:
                 elif self.in_loop is not None and self.in_loop():
                     frame = self._compute(pending)  # nothing else to serve meanwhile: the hops cost more
                 else:
-                    frame = await loop.run_in_executor(self.executor, self._compute, pending)
+                    frame = await offload(self.executor, self._compute, pending)
             except Exception as exc:
                 self._failed(pending, exc)
                 continue
@@ -353,7 +354,6 @@ class Viewer:
         return encode_timed(frame, self.key, self.make, self.metrics)
 
     async def run(self) -> None:
-        loop = asyncio.get_running_loop()
         while True:
             frame = await self.slot.get()
             if self.on_ready is not None:
@@ -361,7 +361,7 @@ class Viewer:
             try:  # bytes, or a pooled memoryview (not reused while referenced)
                 data = frame.cached(self.key)  # made in the compute thread (Source.eager), else now
                 if data is None and getattr(self.writer, "needs_state", True):
-                    data = await loop.run_in_executor(self.executor, self._encode, frame)
+                    data = await offload(self.executor, self._encode, frame)
                 elif data is None:  # params (~0.01 ms): cheaper here than a hop to the pool
                     data = self._encode(frame)
             except Exception as exc:

@@ -34,6 +34,7 @@ from ofera_protocol.messages import Join, Leave
 
 from ..avatar.rig import RigError
 from .bus import BusListener, ExpressionValues, MemberInfo, RoomBus
+from .compute_pool import offload
 from .config import ROOM_CONTROL_BYTES, Settings
 from .member_wire import MemberWire, prepare_member_wire, wire_key
 from .metrics import Metrics
@@ -250,7 +251,6 @@ class RoomViewer:
 
     async def run(self) -> None:
         """Send until the connection fails (its exception) or the control queue overflows (SessionFatal)."""
-        loop = asyncio.get_running_loop()
         self._task = asyncio.current_task()
         try:
             while True:
@@ -286,7 +286,7 @@ class RoomViewer:
                     slot.busy = True
                     try:
                         if slot.wire.needs_state:
-                            data = await loop.run_in_executor(self.executor, self._encode, slot.wire, frame)
+                            data = await offload(self.executor, self._encode, slot.wire, frame)
                         else:  # params (~0.01 ms): cheaper here than a hop to the pool
                             data = self._encode(slot.wire, frame)
                     except Exception as exc:  # noqa: BLE001 - one member's bad frame: dropped, the viewer goes on
