@@ -559,6 +559,58 @@ def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
     assert dec.rotation[0] == 3 << 30
 
 
+@pytest.mark.parametrize("enc", ["q13", "f16"])
+def test_fast_delta_frames_refuse_bad_fields_with_the_codecs_error(kernels, enc, monkeypatch) -> None:
+    """A delta frame decoded in one kernel call (delta_frame_kernel) refuses whatever codec.decode_delta_frame refuses
+    in its fields (types, lengths, f16 codes sent whole that are not finite, seq, t, timing) with the codec's own
+    error, changing nothing held; the good frame then decodes as the reference does."""
+    from ofera.client.fast_decode import FastFrameDecoder
+    from ofera_protocol import ProtocolError
+    from ofera_protocol.codec import pack_map
+
+    q13 = enc == "q13"
+    fmt = FrameFormat(enc, 20, False, make_quant(np.zeros((20, 3)), np.full((20, 3), 1e-3)) if q13 else None,
+                      delta=True)
+    one = np.ones(1, np.uint8)
+    rot = np.array([3 << 30], "<u4") if q13 else np.array([[0, 0, 0, 0x3C00]], "<f2")
+    scale, wide_pos = np.zeros((1, 3), np.uint8 if q13 else "<f2"), np.array([[1, 2, 3]], "<u2")
+    good = {"type": "frame", "seq": 2, "t": 0, "timing": {"total": 5}, "key": False, "n": 2,
+            "changed": np.array([0, 0x12, 0], np.uint8), "moved_position": np.array([3], np.uint8),
+            "moved_rotation": one, "moved_scale": np.array([2], np.uint8), "wide": np.array([2], np.uint8),
+            "position_delta": np.array([[5, -3, 1]], np.int8), "position": wide_pos, "rotation": rot, "scale": scale}
+    nan = np.array([[0x7E00, 0, 0]], "<u2")
+    bad = [dict(good, position_delta=np.zeros((2, 3), np.int8)), dict(good, position=np.zeros((0, 3), "<u2")),
+           dict(good, rotation=np.zeros(0, np.uint8)), dict(good, scale=np.zeros((2, 3), scale.dtype)),
+           dict(good, changed=5), dict(good, position=[1, 2, 3]), dict(good, n=2.0), dict(good, seq=-1),
+           dict(good, t="0"), dict(good, timing={"total": -1}), dict(good, timing=3), dict(good, n=None)]
+    if not q13:  # f16 codes sent whole: finite
+        bad += [dict(good, position=nan), dict(good, scale=nan.view("<f2")),
+                dict(good, rotation=np.array([[0, 0, 0, 0x7C00]], "<u2"))]
+    ref, fast = DeltaDecoder(fmt), FastFrameDecoder(fmt)
+    for held in (ref, fast.delta):
+        held.has_key = True
+        held.position[:] = 100
+    for b in bad:
+        with pytest.raises(ProtocolError) as want:
+            ref.apply(decode_server_message(pack_map(b), fmt))
+        with pytest.raises(ProtocolError) as got:
+            fast.decode(pack_map(b))
+        assert (got.value.code, str(got.value)) == (want.value.code, str(want.value)), b
+        assert (fast.delta.position == 100).all() and not fast.delta.scale.any()
+    want = ref.apply(decode_server_message(pack_map(good), fmt))
+    import ofera_protocol.codec
+
+    def never(*args: object) -> None:
+        raise AssertionError("a good delta frame took the codec's path")
+
+    monkeypatch.setattr(ofera_protocol.codec, "frame_parts", never)
+    got = fast.decode(pack_map(good))
+    assert got.index.tolist() == want.index.tolist() == [9, 12] and got.timing == {"total": 5}
+    for name in ("position", "rotation", "scale"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+        np.testing.assert_array_equal(getattr(fast.delta, name), getattr(ref, name))
+
+
 def test_fast_delta_decoder_refuses_an_f16_change_to_infinity_like_the_reference(kernels) -> None:
     """A narrow f16 position change that lands on an infinite half (0x7BFF + 1) is refused by both decoders with
     non_finite, and neither changes what it holds."""
