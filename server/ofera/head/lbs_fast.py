@@ -85,8 +85,8 @@ def _nonzero(coef, nz):
 @nb.njit(inline="always", **_NB)
 def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, count, out):
     """Vertices lo..hi-1 of the subset: blend shapes, then skinning (see _subset_lbs); nz[:count] the non-zero
-    coefficients. Each vertex's arithmetic is the same whichever block it is in (the parallel twin's bits)."""
-    k_joints = a.shape[0]
+    coefficients, weights (5, S) by joint. Each vertex's arithmetic is the same whichever block it is in (the
+    parallel twin's bits)."""
     # Blend shapes: acc[r] = v_id[r] + sum_j coef[j] B[j, r] over the non-zero coefficients in ascending order,
     # four per pass over acc (one load and store of acc per four products: the passes were bound by those stores,
     # 1.5x, measured), each product added in turn (no sum reassociated: the bits of one axpy per coefficient).
@@ -114,29 +114,54 @@ def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, count, out):
         for r in range(r0, r1):
             acc[r] += np.float64(col[r]) * cj
         q += 1
-    # Skinning: v = (sum_k W_k A_k) v_po.
-    for s_ in range(lo, hi):
-        p0 = acc[3 * s_]
-        p1 = acc[3 * s_ + 1]
-        p2 = acc[3 * s_ + 2]
-        for i in range(3):
-            t0 = 0.0
-            t1 = 0.0
-            t2 = 0.0
-            t3 = 0.0
-            for k in range(k_joints):
-                w = weights[s_, k]
-                t0 += w * a[k, i, 0]
-                t1 += w * a[k, i, 1]
-                t2 += w * a[k, i, 2]
-                t3 += w * a[k, i, 3]
-            out[s_, i] = t0 * p0 + t1 * p1 + t2 * p2 + t3
+    _skin5(lo, hi, weights, a, acc, out)
+
+
+@nb.njit(inline="always", **_NB)
+def _skin5(lo, hi, weights, a, acc, out):
+    """Skinning of vertices lo..hi-1: out[s, i] = (sum_k W[k, s] A_k[i]) . (v_po[s], 1), the five joints of every
+    head model (HeadModel checks it) written out, the weights by joint (5, S), one output row i per pass: straight
+    code over the joints, which LLVM runs across vertices in SIMD lanes (each sum still added joint by joint in
+    order: the bits of the loop over joints it replaced, 0.23 -> 0.16 ms at 5k vertices on a cold CPU,
+    benchmarks/README.md, round twelve)."""
+    w0, w1, w2, w3, w4 = weights[0], weights[1], weights[2], weights[3], weights[4]
+    three = np.uint64(3)
+    for i in range(3):
+        x00, x01, x02, x03 = a[0, i, 0], a[0, i, 1], a[0, i, 2], a[0, i, 3]
+        x10, x11, x12, x13 = a[1, i, 0], a[1, i, 1], a[1, i, 2], a[1, i, 3]
+        x20, x21, x22, x23 = a[2, i, 0], a[2, i, 1], a[2, i, 2], a[2, i, 3]
+        x30, x31, x32, x33 = a[3, i, 0], a[3, i, 1], a[3, i, 2], a[3, i, 3]
+        x40, x41, x42, x43 = a[4, i, 0], a[4, i, 1], a[4, i, 2], a[4, i, 3]
+        for s in range(np.uint64(lo), np.uint64(hi)):
+            u0, u1, u2, u3, u4 = w0[s], w1[s], w2[s], w3[s], w4[s]
+            t0 = 0.0 + u0 * x00
+            t0 += u1 * x10
+            t0 += u2 * x20
+            t0 += u3 * x30
+            t0 += u4 * x40
+            t1 = 0.0 + u0 * x01
+            t1 += u1 * x11
+            t1 += u2 * x21
+            t1 += u3 * x31
+            t1 += u4 * x41
+            t2 = 0.0 + u0 * x02
+            t2 += u1 * x12
+            t2 += u2 * x22
+            t2 += u3 * x32
+            t2 += u4 * x42
+            t3 = 0.0 + u0 * x03
+            t3 += u1 * x13
+            t3 += u2 * x23
+            t3 += u3 * x33
+            t3 += u4 * x43
+            r = three * s
+            out[s, i] = t0 * acc[r] + t1 * acc[r + np.uint64(1)] + t2 * acc[r + np.uint64(2)] + t3
 
 
 @nb.njit(**_NB)
 def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz,
                 out):
-    """expr (n,) f32/f64, rot (K, 3, 3) -> out (S, 3) float64. v_id (3S,) flat; basis_t (C, 3S).
+    """expr (n,) f32/f64, rot (K, 3, 3) -> out (S, 3) float64. v_id (3S,) flat; basis_t (C, 3S); weights (5, S).
     Scratch: coef (C,), joints (K, 3), a (K, 3, 4), acc (3S,), nz (C,) int64."""
     _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
     _blend_skin(0, out.shape[0], coef, v_id, basis_t, weights, a, acc, nz, _nonzero(coef, nz), out)
@@ -259,7 +284,7 @@ class SubsetLBS:
         basis = np.concatenate([expr_rows.T, pose[used].reshape(len(used), 3 * s)], axis=0)
         self.basis_t = np.ascontiguousarray(basis, np.float32)  # (C, 3S): one row per coefficient
         self.v_id = np.ascontiguousarray(subject.v_id[ids], np.float64).reshape(-1)
-        self.weights = np.ascontiguousarray(model.weights[ids], np.float64)
+        self.weights = np.ascontiguousarray(model.weights[ids].T, np.float64)  # (5, S): by joint (_skin5)
         self.j_id = np.ascontiguousarray(subject.j_id, np.float64)
         self.j_expr = np.ascontiguousarray(subject.j_expr[:, :, :n_expr], np.float64)
         self.parents = np.asarray(model.parents, np.int64)
