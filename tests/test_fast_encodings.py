@@ -376,11 +376,13 @@ def test_delta_masks_kernel_equals_the_reference(kernels) -> None:
                 sel = np.sort(rng.choice(ids.size, n, replace=False)).astype(np.int64)
                 flags = np.zeros(ids.size, np.uint8)
                 flags[sel] = rng.integers(1, 8, n)  # a changed candidate moved something, any of the 7 ways
-                moved = rng.random((ids.size, 3)) < 0.5
+                moved = flags[sel]  # the selection's flags, as the kernels leave them
                 wide = rng.random(ids.size) < 0.4
-                n_p = int(moved[:n, 0].sum())
+                n_p = int((moved & 1).sum())
                 want = delta_masks_reference(count, id_runs, flags, moved, wide, n, n_p)
                 assert np.array_equal(np.flatnonzero(unpack_bits(want[0].tobytes(), count, "changed")), ids[sel])
+                for c in range(3):
+                    assert np.array_equal(unpack_bits(want[1 + c].tobytes(), n, "moved"), moved & (1 << c) != 0)
                 got = fast.delta_masks(count, id_runs, flags, moved, wide, n, n_p)
                 assert [a.tobytes() for a in got] == [a.tobytes() for a in want], (count, n)
 

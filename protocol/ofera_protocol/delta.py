@@ -160,7 +160,7 @@ def _select(moved, flags, out_sel, out_moved):
     sel = np.flatnonzero(moved.any(axis=1))
     n = sel.size
     out_sel[:n] = sel
-    out_moved[:n] = moved[sel]
+    out_moved[:n] = flags[sel]
     p_sel, r_sel, s_sel = (sel[moved[sel, c]] for c in range(3))
     return sel, n, p_sel, r_sel, s_sel
 
@@ -185,10 +185,10 @@ def delta_q13_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsig
     :func:`row_runs`) with held codes ``held_*`` (indexed by session id) and their decodings ``dec`` (10, K)
     float32 (:data:`HELD_POSITION` ...): find what moved (``flags`` (K,) uint8: bit 0, 1, 2 = position, rotation,
     scale), encode it with ``kern`` (the frame kernels), write the selection (candidate positions ``out_sel[:n]``,
-    ``out_moved[:n]`` (n, 3) bool), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide position
-    codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``, update the held codes
-    and decodings, and return (n, n_p, w, n_r, n_s). ``runs`` and ``work`` (7, K) int32 serve the numba kernels
-    (contiguous reads, the lists of what moved, a float32 scratch); the reference needs neither."""
+    their flags ``out_moved[:n]``), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide
+    position codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``, update the
+    held codes and decodings, and return (n, n_p, w, n_r, n_s). ``runs`` and ``work`` (7, K) int32 serve the numba
+    kernels (contiguous reads, the lists of what moved, a float32 scratch); the reference needs neither."""
     moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec)
     sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_sel, out_moved)
     new_p = np.empty((p_sel.size, 3), np.uint16)
@@ -231,13 +231,14 @@ def delta_f16_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsig
 def delta_masks_reference(count: int, id_runs, flags, moved, wide, n: int, n_p: int) -> tuple[np.ndarray, ...]:
     """A delta frame's bitmasks from a kernel's flags and selection (``flags`` (K,) of every candidate, non-zero where
     it changed; ``id_runs`` (R, 3) the runs of consecutive session ids among the candidates, :func:`row_runs` of
-    them; ``moved[:n]`` (n, 3) bool of the selection, ``wide[:n_p]``): (changed over the ``count`` Gaussians,
+    them; ``moved[:n]`` (n,) uint8 the flags of the selection, ``wide[:n_p]``): (changed over the ``count`` Gaussians,
     moved_position, moved_rotation, moved_scale, wide), each uint8 LSB first (:func:`pack_bits`)."""
     changed = np.zeros(count, bool)
     for first_id, first, length in id_runs:
         changed[first_id:first_id + length] = flags[first:first + length] != 0
     m = moved[:n]
-    return pack_bits(changed), pack_bits(m[:, 0]), pack_bits(m[:, 1]), pack_bits(m[:, 2]), pack_bits(wide[:n_p])
+    return (pack_bits(changed), pack_bits(m & 1 != 0), pack_bits(m & 2 != 0), pack_bits(m & 4 != 0),
+            pack_bits(wide[:n_p]))
 
 
 class ReferenceKernels:
@@ -325,7 +326,7 @@ class DeltaEncoder:
         self._flags = np.zeros(m, np.uint8)
         self._work = np.zeros((7, m), np.int32)  # the numba kernels' lists and scratch
         self._sel = np.zeros(m, np.int64)
-        self._moved = np.zeros((m, 3), bool)
+        self._moved = np.zeros(m, np.uint8)  # the flags of the selection (delta_masks)
         self._wide = np.zeros(m, bool)
         self._res = np.zeros((m, 3), np.int8)
         self._pos = np.zeros((m, 3), np.uint16)

@@ -209,7 +209,7 @@ def _place_chunk(c, base, at, res, src, dst):
     n, n_p, w, n_r, n_s = at[c, 0], at[c, 1], at[c, 2], at[c, 3], at[c, 4]
     cn, cp, cw, cr, cs = res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4]
     _copy(src[0], dst[0], 1, base, n, cn)
-    _copy(src[1].reshape(-1), dst[1].reshape(-1), 3, base, n, cn)
+    _copy(src[1], dst[1], 1, base, n, cn)
     _copy(src[2], dst[2], 1, base, n_p, cp)
     _copy(src[3].reshape(-1), dst[3].reshape(-1), 3, base, n_p - w, cp - cw)
     _copy(src[4].reshape(-1), dst[4].reshape(-1), 3, base, w, cw)

@@ -597,9 +597,7 @@ def compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved):
     for j in range(np.uint64(lo), np.uint64(hi)):
         f = np.uint64(flags[j])
         out_sel[n] = j
-        out_moved[n, 0] = f & one
-        out_moved[n, 1] = (f >> one) & one
-        out_moved[n, 2] = f >> two
+        out_moved[n] = np.uint8(f)
         n += np.uint64(f != 0)
         lists[0, n_p] = j
         n_p += f & one
@@ -759,26 +757,40 @@ def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p
     return n, n_p, w, n_r, n_s, ok
 
 
+_LOW_BITS = np.uint64(0x0101010101010101)  # bit 0 of each byte of a word
+_GATHER = np.uint64(0x0102040810204080)  # times a word of 0 / 1 bytes: byte k's bit to bit 56 + k (no carries)
+
+
 @nb.njit(inline="always", **_NB)
-def _pack_bools(flat, first, stride, count, out):
-    """count bools flat[first], flat[first + stride], ... (uint8 0 / 1) into out (ceil(count / 8) uint8, LSB
-    first). Unsigned indices and a flat array: the (n, 3) column form with signed indices took 3x as long (the
-    masks of a 48k-Gaussian delta frame 193 against 66 us, round eleven)."""
-    first, stride = np.uint64(first), np.uint64(stride)
+def _word8(a, j):
+    """a[j..j+7] (uint8) as one little-endian uint64 (LLVM makes it one load)."""
+    eight = np.uint64(8)
+    x = np.uint64(0)
+    for t in range(eight):
+        x |= np.uint64(a[j + t]) << (eight * t)
+    return x
+
+
+@nb.njit(inline="always", **_NB)
+def _gather8(x):
+    """A word of 0 / 1 bytes -> one byte, byte k's bit at bit k (LSB first)."""
+    return np.uint8((x * _GATHER) >> np.uint64(56))
+
+
+@nb.njit(inline="always", **_NB)
+def _pack_bit(flags, bit, count, out):
+    """Bit ``bit`` of flags[0..count-1] (uint8) into out (ceil(count / 8) uint8, LSB first), 8 flags a word. The
+    selection's bools as (n, 3) columns, gathered a bit at a time, took 45 us a frame on a cold CPU (round twelve)."""
+    bit = np.uint64(bit)
     full = np.uint64(count) >> np.uint64(3)
-    for b in range(full):  # whole bytes: a fixed 8-bit loop (unrolled)
-        q = first + stride * (np.uint64(8) * b)
-        byte = np.uint32(0)
-        for bit in range(np.uint64(8)):
-            byte |= np.uint32(flat[q + stride * bit]) << np.uint32(bit)
-        out[b] = np.uint8(byte)
+    for b in range(full):
+        out[b] = _gather8((_word8(flags, np.uint64(8) * b) >> bit) & _LOW_BITS)
     rest = np.uint64(count) & np.uint64(7)
     if rest:
-        q = first + stride * (np.uint64(8) * full)
-        byte = np.uint32(0)
-        for bit in range(rest):
-            byte |= np.uint32(flat[q + stride * bit]) << np.uint32(bit)
-        out[full] = np.uint8(byte)
+        byte = np.uint8(0)
+        for t in range(rest):
+            byte |= ((flags[np.uint64(8) * full + t] >> np.uint8(bit)) & np.uint8(1)) << np.uint8(t)
+        out[full] = byte
 
 
 @nb.njit(inline="always", **_NB)
@@ -799,11 +811,8 @@ def _changed_run(flags, first_id, first, length, changed):
     whole = max(a, i1 & ~np.uint64(7))
     j = np.uint64(first) + (a - i0)
     for b in range(a >> np.uint64(3), whole >> np.uint64(3)):
-        x = np.uint64(0)
-        for t in range(eight):
-            x |= np.uint64(flags[j + t]) << (eight * t)
-        x = (x | (x >> np.uint64(1)) | (x >> np.uint64(2))) & np.uint64(0x0101010101010101)  # flags are 3 bits
-        changed[b] = np.uint8((x * np.uint64(0x0102040810204080)) >> np.uint64(56))
+        x = _word8(flags, j)
+        changed[b] = _gather8((x | (x >> np.uint64(1)) | (x >> np.uint64(2))) & _LOW_BITS)  # flags are 3 bits
         j += eight
     _flag_bits(flags, np.uint64(first) + (whole - i0), whole, i1, changed)
 
@@ -811,17 +820,17 @@ def _changed_run(flags, first_id, first, length, changed):
 @nb.njit(**_NB)
 def delta_masks_kernel(id_runs, flags, moved, wide, n, n_p, changed, out_mp, out_mr, out_ms, out_wide):
     """ofera_protocol.delta.delta_masks_reference into `changed` (ceil(count / 8), zeroed here) and the other outputs
-    (ceil(n / 8), ceil(n_p / 8)). The changed bits come from the candidates' flags run by run (the candidates are a
-    few hundred runs of consecutive ids): a scatter of the selection's ids into the mask took 77 us a frame on a cold
-    CPU, its read-modify-writes chained through memory (benchmarks/README.md, round twelve)."""
+    (ceil(n / 8), ceil(n_p / 8)); moved (K,) uint8 the selection's flags. The changed bits come from the
+    candidates' flags run by run (the candidates are a few hundred runs of consecutive ids): a scatter of the
+    selection's ids into the mask took 77 us a frame on a cold CPU, its read-modify-writes chained through memory
+    (benchmarks/README.md, round twelve)."""
     changed[:] = 0
     for r in range(id_runs.shape[0]):
         _changed_run(flags, id_runs[r, 0], id_runs[r, 1], id_runs[r, 2], changed)
-    flat = moved.reshape(-1).view(np.uint8)  # (n, 3) bools, row-major
-    _pack_bools(flat, 0, 3, n, out_mp)
-    _pack_bools(flat, 1, 3, n, out_mr)
-    _pack_bools(flat, 2, 3, n, out_ms)
-    _pack_bools(wide.view(np.uint8), 0, 1, n_p, out_wide)
+    _pack_bit(moved, 0, n, out_mp)  # moved: the selection's flags
+    _pack_bit(moved, 1, n, out_mr)
+    _pack_bit(moved, 2, n, out_ms)
+    _pack_bit(wide.view(np.uint8), 0, n_p, out_wide)
 
 
 def delta_kernel_warm() -> None:
