@@ -45,7 +45,8 @@ class Settings(BaseSettings):
     bs_rate: float = Field(240.0, gt=0, description="Most bs (and ping) messages per second per session.")
     bs_burst: float | None = Field(None, gt=0, description="Token-bucket depth for bs_rate (default: one "
                                    "second's worth).")
-    compute_threads: int = Field(0, ge=0, description="Threads running pipelines (0: one per CPU it may use).")
+    compute_threads: int = Field(0, ge=0, description="Threads running pipelines (the compute pool, "
+                                 "streaming.compute_pool; 0: one per CPU it may use).")
     cpus: str | None = Field(
         None, description="CPUs the server runs on, as Linux lists them (e.g. 0 or 2-3,6): every thread's affinity, "
         "set when `ofera serve` starts (streaming.affinity; not by an in-process ServerThread), and numba's thread "
