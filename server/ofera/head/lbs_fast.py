@@ -118,6 +118,17 @@ def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, count, out):
 
 
 @nb.njit(inline="always", **_NB)
+def _joint_sum(u0, u1, u2, u3, u4, x0, x1, x2, x3, x4):
+    """sum_k u_k x_k over the five joints, added joint by joint in order (the bits of a loop over them)."""
+    t = 0.0 + u0 * x0
+    t += u1 * x1
+    t += u2 * x2
+    t += u3 * x3
+    t += u4 * x4
+    return t
+
+
+@nb.njit(inline="always", **_NB)
 def _skin5(lo, hi, weights, a, acc, out):
     """Skinning of vertices lo..hi-1: out[s, i] = (sum_k W[k, s] A_k[i]) . (v_po[s], 1), the five joints of every
     head model (HeadModel checks it) written out, the weights by joint (5, S), one output row i per pass: straight
@@ -134,26 +145,10 @@ def _skin5(lo, hi, weights, a, acc, out):
         x40, x41, x42, x43 = a[4, i, 0], a[4, i, 1], a[4, i, 2], a[4, i, 3]
         for s in range(np.uint64(lo), np.uint64(hi)):
             u0, u1, u2, u3, u4 = w0[s], w1[s], w2[s], w3[s], w4[s]
-            t0 = 0.0 + u0 * x00
-            t0 += u1 * x10
-            t0 += u2 * x20
-            t0 += u3 * x30
-            t0 += u4 * x40
-            t1 = 0.0 + u0 * x01
-            t1 += u1 * x11
-            t1 += u2 * x21
-            t1 += u3 * x31
-            t1 += u4 * x41
-            t2 = 0.0 + u0 * x02
-            t2 += u1 * x12
-            t2 += u2 * x22
-            t2 += u3 * x32
-            t2 += u4 * x42
-            t3 = 0.0 + u0 * x03
-            t3 += u1 * x13
-            t3 += u2 * x23
-            t3 += u3 * x33
-            t3 += u4 * x43
+            t0 = _joint_sum(u0, u1, u2, u3, u4, x00, x10, x20, x30, x40)
+            t1 = _joint_sum(u0, u1, u2, u3, u4, x01, x11, x21, x31, x41)
+            t2 = _joint_sum(u0, u1, u2, u3, u4, x02, x12, x22, x32, x42)
+            t3 = _joint_sum(u0, u1, u2, u3, u4, x03, x13, x23, x33, x43)
             r = three * s
             out[s, i] = t0 * acc[r] + t1 * acc[r + np.uint64(1)] + t2 * acc[r + np.uint64(2)] + t3
 
