@@ -296,6 +296,9 @@ def test_thread_choice_rules() -> None:
     assert not use_threads(2, 2)  # another session computes: one thread each
     assert not use_threads(1, 1)  # no second thread
     assert not use_threads(1, 2, load=2.3)  # other processes hold the cores
+    calls = []
+    assert not use_threads(2, 2, load=lambda: calls.append(1) or 0.1) and not calls  # read only where threads may run
+    assert use_threads(1, 2, load=lambda: calls.append(1) or 0.1) and calls == [1]
     activity = Activity(window_s=0.5)
     assert activity.note(1, now=10.0) == 1
     assert activity.note(2, now=10.1) == 2

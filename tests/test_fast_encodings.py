@@ -600,12 +600,12 @@ def test_fast_delta_frames_refuse_bad_fields_with_the_codecs_error(kernels, enc,
         assert (got.value.code, str(got.value)) == (want.value.code, str(want.value)), b
         assert (fast.delta.position == 100).all() and not fast.delta.scale.any()
     want = ref.apply(decode_server_message(pack_map(good), fmt))
-    import ofera_protocol.codec
+    import ofera.client.fast_decode
 
     def never(*args: object) -> None:
         raise AssertionError("a good delta frame took the codec's path")
 
-    monkeypatch.setattr(ofera_protocol.codec, "frame_parts", never)
+    monkeypatch.setattr(ofera.client.fast_decode, "frame_parts", never)
     got = fast.decode(pack_map(good))
     assert got.index.tolist() == want.index.tolist() == [9, 12] and got.timing == {"total": 5}
     for name in ("position", "rotation", "scale"):

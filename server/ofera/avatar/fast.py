@@ -54,6 +54,7 @@ import sys
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import SimpleNamespace
 
@@ -183,10 +184,15 @@ ACTIVITY = Activity()
 """The process-wide activity record every automatic FastSession consults."""
 
 
-def use_threads(active_sessions: int, threads: int, load: float | None = None) -> bool:
+def use_threads(active_sessions: int, threads: int, load: float | Callable[[], float | None] | None = None) -> bool:
     """Whether parallel kernels may run: a second thread, a session alone, and (if known) a 1-minute load
-    average below the thread count."""
-    return threads > 1 and active_sessions <= 1 and (load is None or load < threads)
+    average below the thread count. ``load`` may be a function (:func:`load_average`: a system call), called only
+    where the rest allows threads."""
+    if threads <= 1 or active_sessions > 1:
+        return False
+    if callable(load):
+        load = load()
+    return load is None or load < threads
 
 
 def load_average() -> float | None:
@@ -397,9 +403,8 @@ class FastSession:
         frame counts as this session's activity, threaded or not."""
         par = self.parallel
         if par is None:  # note the activity first; the load average (a system call) only where threads may run
-            active, threads = self.activity.note(id(self)), numba.get_num_threads()
-            par = (use_threads(active, threads) and use_threads(active, threads, load_average())
-                   and self.choice.choose())
+            par = use_threads(self.activity.note(id(self)), numba.get_num_threads(), load_average) \
+                and self.choice.choose()
         self.threaded = par
         return par
 

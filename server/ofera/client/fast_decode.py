@@ -19,7 +19,12 @@ from typing import Any
 import numba as nb
 import numpy as np
 from ofera_protocol import Frame, FrameFormat
+from ofera_protocol import _fields as F
+from ofera_protocol.codec import decode_server_message, decode_timing, delta_masks, frame_parts, unpack_message
+from ofera_protocol.constants import INT64_MAX, INT64_MIN, MAX_SERVER_MESSAGE, UINT32_MAX
+from ofera_protocol.delta import DeltaDecoder
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS
+from ofera_protocol.errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
 from ofera_protocol.messages import DeltaFrame
 
 from ..jit import NB as _NB
@@ -340,8 +345,6 @@ class FastFrameDecoder:
         self._scale = np.zeros((n, 3), np.float32)
         self.delta: Any = None
         if fmt.delta:
-            from ofera_protocol.delta import DeltaDecoder
-
             self.delta = DeltaDecoder(fmt)
             d = self.delta  # flat views, made once (its held codes change in place; numpy calls cost on a cold CPU)
             self._held_flat = (d.position.reshape(-1), d.rotation.reshape(-1), d.scale.reshape(-1))
@@ -365,10 +368,6 @@ class FastFrameDecoder:
     def _masks(self, m: dict, fmt: FrameFormat) -> Any:
         """codec.delta_masks by unpack_delta_masks_kernel into this decoder's buffers; the codec's own on any fault (it
         raises the exact ProtocolError)."""
-        from ofera_protocol import _fields as F
-        from ofera_protocol.codec import delta_masks
-        from ofera_protocol.constants import UINT32_MAX
-
         w = "frame"
         n = F.get_int(m, "n", w, lo=0, hi=UINT32_MAX)
         bins = [np.frombuffer(F.get_bin(m, k, w), np.uint8) for k in
@@ -388,9 +387,6 @@ class FastFrameDecoder:
         anything is off or not as usual (nothing held has changed then: :meth:`decode` runs the codec's checks,
         which name the fault). The checks and their order are the codec's: seq, t, timing, then the masks and
         fields."""
-        from ofera_protocol.codec import decode_timing
-        from ofera_protocol.constants import INT64_MAX, INT64_MIN
-
         seq, t, n = m.get("seq"), m.get("t"), m.get("n")
         if not (type(seq) is int and type(t) is int and type(n) is int and 0 <= seq <= INT64_MAX
                 and INT64_MIN <= t <= INT64_MAX and 0 <= n <= self.format.count and self.delta.has_key):
@@ -411,8 +407,6 @@ class FastFrameDecoder:
 
     def _apply_delta(self, d: DeltaFrame) -> Frame:
         """The numba twin of ofera_protocol.delta.DeltaDecoder.apply (same checks, same values)."""
-        from ofera_protocol.errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
-
         dd, fmt = self.delta, self.format
         if not dd.has_key:
             raise ProtocolError(NOT_READY, "frame: a delta frame before any key frame (send resync)")
@@ -432,10 +426,6 @@ class FastFrameDecoder:
     def decode(self, data) -> object:
         """A `frame` message -> ofera_protocol.Frame whose arrays are views of this decoder's buffers;
         other messages are decoded by the reference codec. Raises ProtocolError like the codec."""
-        from ofera_protocol.codec import decode_server_message, frame_parts, unpack_message
-        from ofera_protocol.constants import MAX_SERVER_MESSAGE
-        from ofera_protocol.errors import NON_FINITE, ProtocolError
-
         m = unpack_message(data, MAX_SERVER_MESSAGE)
         if m.get("type") != "frame":
             return decode_server_message(data, self.format)

@@ -17,6 +17,7 @@ else the server runs on its threads (loading avatars, preparing wires).
 from __future__ import annotations
 
 import asyncio
+import functools
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -103,7 +104,7 @@ class ComputePool(Executor):
             else:
                 fut.set_exception(exc)
 
-        self._give(((lambda: fn(*args, **kwargs)) if kwargs else fn, args if not kwargs else (), settle))
+        self._give((functools.partial(fn, **kwargs) if kwargs else fn, args, settle))
         return fut
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
