@@ -1,8 +1,8 @@
 """Delta frames the deformation writes (`streaming.direct_delta`, `Source.direct`): the kernel, serial or on numba's
-threads, in one chunk or several, gives the bytes and the held codes of the state path (``FastSession.deform`` then
-``DeltaEncoder.encode``, whose numba kernels test_fast_encodings compares with the numpy reference), for both delta
-encodings, both coordinate systems and a reduced (gathered) session; a v1 delta session on the fast path streams
-them, its key frames from the state."""
+threads (one, two or three sharing the blocks), gives the bytes and the held codes of the state path
+(``FastSession.deform`` then ``DeltaEncoder.encode``, whose numba kernels test_fast_encodings compares with the numpy
+reference), for both delta encodings, both coordinate systems and a reduced (gathered) session; a v1 delta session on
+the fast path streams them, its key frames from the state."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import pytest
 from ofera.avatar import load_avatar
 from ofera.avatar.fast import FastAvatar
 from ofera.client import connect
+from ofera.streaming import direct_delta
 from ofera.streaming.direct import DirectDeltaFrames
-from ofera.streaming.direct_delta import BLOCK, DirectDelta, block_rows, candidate_runs, chunk_faces, split_blocks
+from ofera.streaming.direct_delta import BLOCK, DirectDelta, block_faces, block_rows, candidate_runs
 from ofera.streaming.encode_fast import delta_encoder
 from ofera_protocol import FrameFormat, decode_server_message, make_quant
 from ofera_protocol.delta import DeltaEncoder, _decode_codes
@@ -55,14 +56,18 @@ def session_of(fast: FastAvatar, enc: str, coords: str, gathered: bool) -> tuple
 
 @pytest.mark.parametrize("enc,coords,gathered", [("q13", "flame", False), ("q13", "unity", True),
                                                  ("f16", "unity", False), ("f16", "flame", True)])
-@pytest.mark.parametrize("chunks,parallel", [(1, False), (3, False), (1, True), (2, True), (3, True)])
+@pytest.mark.parametrize("threads,parallel,block", [(1, False, BLOCK), (3, False, 64), (1, True, BLOCK),
+                                                     (2, True, BLOCK), (2, True, 64), (3, True, 64)])
 def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coords: str, gathered: bool,
-                                                 chunks: int, parallel: bool) -> None:
+                                                 threads: int, parallel: bool, block: int,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """Blocks of 64 candidates: hundreds of blocks, which threads take in turns that differ from run to run."""
+    monkeypatch.setattr(direct_delta, "BLOCK", block)
     fmt, gather, ids, rows = session_of(fast, enc, coords, gathered)
     ref = delta_encoder(fmt, coords, gather, ids, rows, key_interval=4)
     mine = delta_encoder(fmt, coords, gather, ids, rows, key_interval=4)
-    direct = DirectDelta(fast, mine, threads=chunks)
-    assert direct.geo[0].size - 1 == chunks
+    direct = DirectDelta(fast, mine, threads=threads)
+    assert direct.threads == threads and direct.blocks >= rows.size // (2 * block)
     a, b = fast.session(), fast.session(parallel=parallel)
     direct_frames = narrow = wide = 0
     for k, y in enumerate(flame_values(np.random.default_rng(7), 7)):
@@ -94,37 +99,37 @@ def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) 
 
 
 def test_no_candidates_select_nothing_on_either_kernel(fast: FastAvatar) -> None:
-    """An encoder without candidates (an avatar nothing moves): no chunk, and both kernels select nothing."""
+    """An encoder without candidates (an avatar nothing moves): no block, and both kernels select nothing."""
     n = fast.neutral
     fmt = FrameFormat("q13", fast.count, False, make_quant(n.position, n.scale), delta=True)
     encoder = delta_encoder(fmt, candidates=np.zeros(0, np.int64))
     encoder.encode(0, 0, {}, n.position, n.rotation, n.scale)
     direct = DirectDelta(fast, encoder)
-    assert direct.res.shape[0] == 0
+    assert direct.blocks == 0
     verts = fast.session().flame_head(np.zeros(68, np.float32)).copy()
     assert direct.select(verts, False) == (0, 0, 0, 0, 0) == direct.select(verts, True)
 
 
-def test_chunks_cover_the_candidates_once_with_their_own_faces(fast: FastAvatar) -> None:
-    """Runs, blocks and chunks: every candidate in one run of consecutive deformed rows on one face, blocks of at least
-    BLOCK candidates, chunks of about equal size, each with its own face list naming the faces its runs use."""
+def test_blocks_cover_the_candidates_once_with_their_own_faces(fast: FastAvatar) -> None:
+    """Runs and blocks: every candidate in one run of consecutive deformed rows on one face, blocks of at least BLOCK
+    candidates, each with its own face list naming the faces its runs use."""
     a = fast.arrays
     gface = np.repeat(a.run_face, a.run_len)
     rows = a.ids[::3]  # candidates with gaps: short runs
     run_face, run_m, run_len, blocks = candidate_runs(a.ids, gface, rows)
     assert run_len.sum() == rows.size and blocks[0] == 0 and blocks[-1] == run_len.size
+    sizes = np.add.reduceat(run_len, blocks[:-1])
+    assert (sizes[:-1] >= BLOCK).all() and (sizes < BLOCK + run_len.max()).all()
     m = np.concatenate([np.arange(s, s + n) for s, n in zip(run_m, run_len)])
     np.testing.assert_array_equal(a.ids[m], rows)
     np.testing.assert_array_equal(np.repeat(run_face, run_len), gface[m])
     brow = block_rows(run_len, blocks)
     assert brow.min() == 0 and (np.diff(brow)[np.diff(brow) != 1] <= 0).all()  # 0, 1, 2 ... within each block
-    chunks, chunk_j = split_blocks(run_len, blocks, 3)
-    sizes = np.diff(np.append(chunk_j, rows.size))
-    assert chunks.size == 4 and sizes.max() - sizes.min() < 2 * (BLOCK + run_len.max())
-    local, chunk_u, face_vids = chunk_faces(run_face, blocks, chunks, a.face_vids)
-    for c in range(3):
-        q0, q1 = blocks[chunks[c]], blocks[chunks[c + 1]]
-        assert (chunk_u[c] <= local[q0:q1]).all() and (local[q0:q1] < chunk_u[c + 1]).all()
+    local, block_u, face_vids = block_faces(run_face, blocks, a.face_vids)
+    for b in range(blocks.size - 1):
+        q0, q1 = blocks[b], blocks[b + 1]
+        assert (block_u[b] <= local[q0:q1]).all() and (local[q0:q1] < block_u[b + 1]).all()
+        assert np.unique(local[q0:q1]).size == block_u[b + 1] - block_u[b]  # no face a block does not use
     np.testing.assert_array_equal(face_vids[local], a.face_vids[run_face])
 
 

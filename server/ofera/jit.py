@@ -4,7 +4,7 @@ them needs. Imported only by fast-path modules (it needs numba and llvmlite); an
 from __future__ import annotations
 
 from llvmlite import ir
-from numba.core import types
+from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
@@ -38,3 +38,22 @@ def f32_to_f16_bits(typingctx, x):
 
 F16_MAX = 65504.0
 """The largest finite IEEE binary16."""
+
+
+@intrinsic
+def atomic_add(typingctx, array, index, value):
+    """array[index] += value as one atomic read-modify-write (LLVM atomicrmw add, sequentially consistent) on an int64
+    array; returns the value before. For threads of one parallel loop sharing a counter (numba has no atomics)."""
+    if not (isinstance(array, types.Array) and array.dtype == types.int64 and isinstance(index, types.Integer)
+            and isinstance(value, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+        val = context.cast(builder, args[2], signature.args[2], types.int64)
+        return builder.atomic_rmw("add", ptr, val, "seq_cst")
+
+    return types.int64(array, index, value), codegen

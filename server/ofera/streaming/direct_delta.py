@@ -10,15 +10,16 @@ back (5 MB a frame at 100k Gaussians). On the 2-core Zen 1 VM of December 2026 t
 is bound by arithmetic there, not memory); what it buys is the second core: see below (benchmarks/README.md, round
 eight).
 
-    direct = DirectDelta(fast_avatar, encoder)          # once per session: candidate runs, chunks, blocks
+    direct = DirectDelta(fast_avatar, encoder)          # once per session: candidate runs, blocks, face lists
     if not encoder.next_is_key:                         # key frames (join, resync, key_interval) take the state
         counts = session.deform_delta(verts, direct.select)          # FastSession: its thread choice
         data = encoder.encode_selected(seq, t, timing, counts, start_ns)
 
-Both cores: the candidates are cut into chunks (one a thread, :func:`split_blocks`), each with its own list of faces
-(:func:`chunk_faces`), scratch and outputs, so a chunk on another core reads nothing another chunk writes; the
-serial kernel runs the same chunks one after another and closes the gaps between their outputs in place; the threaded
-one has each thread copy its chunk's outputs into place from a spare set. Either way the outputs end in candidate order.
+Both cores: every block has its own list of faces (:func:`block_faces`) and its own rows of every scratch, so a block
+on another core reads nothing another block writes. The serial kernel runs the blocks in order into the outputs in
+place; the threaded one shares them out as it goes (:func:`deform_delta_kernel_parallel`): thread 0 from the first
+block on, in place, the others from the last down into a spare set, from which each then copies its own blocks into
+place. Either way the outputs end in candidate order.
 
 The plain reference is ``DeltaEncoder.encode(FastSession.deform(verts))``; tests compare them byte for byte.
 Triangle binding only (the barycentric binding's positions are float64 sums of vertices: the state path runs).
@@ -33,6 +34,7 @@ from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
 
 from ..avatar import kernels as K
 from ..jit import NB as _NB
+from ..jit import atomic_add
 from .encode_fast import (
     NO_LUT,
     NO_TABLE,
@@ -108,106 +110,160 @@ def _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, count
 
 
 @nb.njit(**_NBC)
-def _delta_chunk(q13, c, verts, geo, codes, held, out, scratch):
-    """Chunk c: its faces' frames, then its blocks, each deformed into the scratch (signed, as the f16 writer's), then
-    the selection and one pass per attribute over what moved (q13 codes, else f16 bits), the held codes and their
-    decodings updated. Every output and list of the chunk starts at its first candidate's index (a chunk selects at
-    most its own candidates; :func:`_gather_chunks` or the threaded kernel's copies close the gaps). Returns (n, n_p,
-    w, n_r, n_s, ok) of the chunk; ok False if an f16 value is out of range. Argument groups: see
+def _delta_block(q13, b, t, base, counts, w, verts, geo, codes, held, out, scratch):
+    """Block b on thread t's scratch: its faces' frames, its runs deformed into the scratch (signed, as the f16
+    writer's), the selection, then one pass per attribute over what moved (q13 codes, else f16 bits), the held codes
+    and their decodings updated. Its outputs continue a stream of blocks whose outputs start at candidate ``base``:
+    ``counts`` (n, n_p, n_r, n_s) so far (indices into the outputs), ``w`` positions of the stream sent whole so far.
+    Returns (n, n_p, n_r, n_s, w, ok) after it; ok False if an f16 value is out of range. Argument groups: see
     :meth:`DirectDelta.select`."""
-    chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
+    block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
     lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
     ids, held_p, held_r, held_s, dec, flags, work = held
     out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
-    sp, sr, ss, gathered, edges, face = scratch[0][c], scratch[1][c], scratch[2][c], scratch[3], scratch[4], scratch[5]
-    K.face_frames_range(chunk_u[c], chunk_u[c + 1], verts, face_vids, edges, face, False)
+    sp, sr, ss, gathered, edges, face = scratch[0][t], scratch[1][t], scratch[2][t], scratch[3], scratch[4], scratch[5]
+    K.face_frames_range(block_u[b], block_u[b + 1], verts, face_vids, edges, face, False)
+    ja = block_j[b]
+    jb = ja + _deform_block(blocks[b], blocks[b + 1], face, run_face, run_m, run_len, local, signs, sp, sr, ss)
     word = flags[: (flags.shape[0] >> 3) << 3].view(np.uint64)
-    ja = base = chunk_j[c]
-    counts = (base, base, base, base)  # (n, n_p, n_r, n_s) + base: the next free slot of each output
-    w = 0  # positions sent whole so far (out_pos[base:]); narrow so far: (n_p - base) - w (out_res[n_p - w:])
-    ok = True
-    for b in range(chunks[c], chunks[c + 1]):
-        jb = ja + _deform_block(blocks[b], blocks[b + 1], face, run_face, run_m, run_len, local, signs, sp, sr, ss)
-        n0, p0, r0, s0 = counts
-        counts = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work, out_sel,
-                               out_moved)
-        n, n_p, n_r, n_s = counts
-        wb, okb = encode_positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
-                             out_wide[p0:], out_res[p0 - w:], out_pos[base + w:])
-        w += wb
-        ok &= okb
-        if q13:
-            encode_rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec,
-                                 gathered[4 * base:], out_rot[r0:])
-        else:
-            ok &= encode_rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, ones4, held_r, dec, out_rot[r0:])
-        ok &= encode_scales(q13, ss, brow, ids, work[2, s0:], n_s - s0, table, scale_lut, held_s, dec, out_scale[s0:])
-        ja = jb
-    n, n_p, n_r, n_s = counts
-    return n - base, n_p - base, w, n_r - base, n_s - base, ok
+    n0, p0, r0, s0 = counts
+    n, n_p, n_r, n_s = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work, out_sel,
+                                     out_moved)
+    wb, ok = encode_positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
+                              out_wide[p0:], out_res[p0 - w:], out_pos[base + w:])
+    if q13:  # (the rotations' gather scratch: the block's own rows, which no other block uses)
+        encode_rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec, gathered[4 * ja:],
+                             out_rot[r0:])
+    else:
+        ok &= encode_rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, ones4, held_r, dec, out_rot[r0:])
+    ok &= encode_scales(q13, ss, brow, ids, work[2, s0:], n_s - s0, table, scale_lut, held_s, dec, out_scale[s0:])
+    return n, n_p, n_r, n_s, w + wb, ok
+
+
+FRONT, BACK = 1, 1 << 32  # a claim's increment of the shared counter: blocks taken from the front, from the back
 
 
 @nb.njit(**_NBC)
-def deform_delta_kernel(q13, verts, geo, codes, held, out, scratch, res):
+def _front(q13, blocks, verts, geo, codes, held, out, scratch, claims):
+    """The blocks from the first on, in order, on thread 0, into the outputs in place (one stream from candidate 0):
+    all of them, or (``claims`` a (1,) int64 counter shared with :func:`_back`) each once claimed. Returns (n, n_p, w,
+    n_r, n_s, ok, the number of blocks done)."""
+    counts = (0, 0, 0, 0)
+    w, ok, b = 0, True, 0
+    while b < blocks:
+        if claims.shape[0] and _claim(claims, FRONT, blocks) < 0:
+            break
+        n, n_p, n_r, n_s, w, okb = _delta_block(q13, b, 0, 0, counts, w, verts, geo, codes, held, out, scratch)
+        counts = (n, n_p, n_r, n_s)
+        ok &= okb
+        b += 1
+    n, n_p, n_r, n_s = counts
+    return n, n_p, w, n_r, n_s, ok, b
+
+
+@nb.njit(inline="always", **_NB)
+def _claim(claims, step, blocks):
+    """Take the next block from the front (step FRONT) or the back (BACK): its number from that end (0 = the first /
+    the last), or -1 when none is left. The counter holds both ends' counts (front in the low 32 bits) in one int64,
+    so a claim sees both at once: a claim succeeds only while front + back < blocks, so the two ends never take the
+    same block."""
+    c = atomic_add(claims, 0, step)
+    front, back = c & (BACK - 1), c >> 32
+    if front + back >= blocks:
+        return -1
+    return front if step == FRONT else back
+
+
+@nb.njit(**_NBC)
+def _back(q13, t, blocks, verts, geo, codes, held, spare, scratch, claims, res):
+    """Blocks from the last one down, each once claimed, on thread t >= 1, each into ``spare`` from its first
+    candidate (a stream of its own): res[b] = its (n, n_p, w, n_r, n_s, ok, t)."""
+    block_j = geo[1]
+    while True:
+        x = _claim(claims, BACK, blocks)
+        if x < 0:
+            return
+        b = blocks - 1 - x
+        j = block_j[b]
+        n, n_p, n_r, n_s, w, ok = _delta_block(q13, b, t, j, (j, j, j, j), 0, verts, geo, codes, held, spare, scratch)
+        res[b, 0], res[b, 1], res[b, 2], res[b, 3], res[b, 4], res[b, 5], res[b, 6] = (
+            n - j, n_p - j, w, n_r - j, n_s - j, ok, t)
+
+
+@nb.njit(**_NBC)
+def deform_delta_kernel(q13, verts, geo, codes, held, out, scratch):
     """encode_fast's delta kernels (``q13``: delta_q13_kernel, else delta_f16_kernel) on the candidates deformed from
-    the subset vertices ``verts`` (S, 3) float64, single-threaded: chunk after chunk (:func:`_delta_chunk`), then
-    :func:`_gather_chunks`. Returns (n, n_p, w, n_r, n_s, ok)."""
-    for c in range(res.shape[0]):
-        n, n_p, w, n_r, n_s, ok = _delta_chunk(q13, c, verts, geo, codes, held, out, scratch)
-        res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4], res[c, 5] = n, n_p, w, n_r, n_s, ok
-    return _gather_chunks(res, geo[1], *out)
+    the subset vertices ``verts`` (S, 3) float64, single-threaded: block after block into the outputs in place.
+    Returns (n, n_p, w, n_r, n_s, ok)."""
+    n, n_p, w, n_r, n_s, ok, _ = _front(q13, geo[6].shape[0] - 1, verts, geo, codes, held, out, scratch,
+                                        np.zeros(0, np.int64))
+    return n, n_p, w, n_r, n_s, ok
 
 
 @nb.njit(parallel=True, **_NBC)
-def deform_delta_kernel_parallel(q13, verts, geo, codes, held, out, spare, scratch, res):
-    """:func:`deform_delta_kernel` with the chunks on numba's threads (no chunk writes what another reads: each has its
-    own faces, scratch and candidates); every value is computed by the same code either way: the same bytes. Chunk 0
-    writes its outputs in place, the others into ``spare`` (arrays shaped as ``out``), from which each thread then
-    copies its own chunk's (still in its cache) to where the previous chunks' end: the serial gather read them from
-    the other core's cache, 0.28 ms of a heavy frame's 2.2 (round eleven). (A parallel loop takes arrays and scalars
-    only: the groups are taken apart here and rebuilt in the loop.)"""
-    chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
+def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res):
+    """:func:`deform_delta_kernel` on ``threads`` of numba's threads, which share the blocks as they go: thread 0 takes
+    them from the first on and writes in place (as the serial kernel), the others from the last down, each block into
+    ``spare`` (arrays shaped as ``out``); each of those then copies its own blocks (still in its cache) to where the
+    front's outputs end, in block order. Every value is computed by the same code either way: the same bytes. A split
+    fixed in advance (two chunks of equal candidate counts, round eleven) left the second thread 0.30 ms p50 behind
+    the first: it wakes later, and where the face moves most, more of its Gaussians are encoded. ``claims`` (1,) and
+    ``res`` (B + 1, 7) int64 scratch. (A parallel loop takes arrays and scalars only: the groups are taken apart here
+    and rebuilt in the loop.)"""
+    block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
     s0, s1, s2, s3, s4, s5, s6 = signs
     lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
     ids, held_p, held_r, held_s, dec, flags, work = held
     out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
     sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale = spare
     sp, sr, ss, gathered, edges, face = scratch
-    for c in nb.prange(res.shape[0]):
-        o = ((out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) if c == 0 else
-             (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale))
-        n, n_p, w, n_r, n_s, ok = _delta_chunk(
-            q13, c, verts,
-            (chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, local, brow,
-             (s0, s1, s2, s3, s4, s5, s6)),
-            (lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4),
-            (ids, held_p, held_r, held_s, dec, flags, work), o,
-            (sp, sr, ss, gathered, edges, face))
-        res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4], res[c, 5] = n, n_p, w, n_r, n_s, ok
-    at = _chunk_offsets(res)
-    for c in nb.prange(1, res.shape[0]):
-        _place_chunk(c, chunk_j[c], at, res, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
-                     (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
-    return _totals(res)
+    count = blocks.shape[0] - 1
+    claims[0] = 0
+    for t in nb.prange(threads):
+        g = (block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, (s0, s1, s2, s3, s4, s5, s6))
+        c = (lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4)
+        h = (ids, held_p, held_r, held_s, dec, flags, work)
+        x = (sp, sr, ss, gathered, edges, face)
+        if t == 0:
+            n, n_p, w, n_r, n_s, ok, done = _front(q13, count, verts, g, c, h,
+                                                   (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale),
+                                                   x, claims)
+            res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4], res[count, 5] = (
+                n, n_p, w, n_r, n_s, ok)
+            res[count, 6] = done
+        else:
+            _back(q13, t, count, verts, g, c, h, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale), x,
+                  claims, res)
+    first = res[count, 6]  # the first block a back thread did
+    at = _block_offsets(res, first, count)
+    for t in nb.prange(1, threads):
+        for b in range(first, count):
+            if res[b, 6] == t:
+                _place_block(b, block_j[b], at, res, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
+                             (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
+    return _totals(res, first, count)
 
 
 @nb.njit(**_NB)
-def _chunk_offsets(res):
-    """(C, 5) int64: where each chunk's outputs start once gathered, (n, n_p, w, n_r, n_s) of the chunks before it."""
-    at = np.zeros((res.shape[0], 5), np.int64)
-    for c in range(1, res.shape[0]):
-        for x in range(5):
-            at[c, x] = at[c - 1, x] + res[c - 1, x]
+def _block_offsets(res, first, count):
+    """(B, 5) int64: where each back block's outputs start once placed, (n, n_p, w, n_r, n_s) of the front's blocks
+    (row ``count`` of ``res``) and of the back blocks before it (rows ``first``..)."""
+    at = np.zeros((count, 5), np.int64)
+    for x in range(5):
+        total = res[count, x]
+        for b in range(first, count):
+            at[b, x] = total
+            total += res[b, x]
     return at
 
 
 @nb.njit(inline="always", **_NB)
-def _place_chunk(c, base, at, res, src, dst):
-    """Chunk c's outputs, from row ``base`` of the output group ``src``, to where the previous chunks' end in ``dst``
-    (``at``: :func:`_chunk_offsets`). ``src`` may be ``dst``: every destination is then at or below its source, so
-    copying forward is safe. Element by element over flat views (a row assignment costs tens of ns in numba)."""
-    n, n_p, w, n_r, n_s = at[c, 0], at[c, 1], at[c, 2], at[c, 3], at[c, 4]
-    cn, cp, cw, cr, cs = res[c, 0], res[c, 1], res[c, 2], res[c, 3], res[c, 4]
+def _place_block(b, base, at, res, src, dst):
+    """Block b's outputs, from row ``base`` of the output group ``src``, to where the blocks before it end in ``dst``
+    (``at``: :func:`_block_offsets`). Element by element over flat views (a row assignment costs tens of ns in
+    numba)."""
+    n, n_p, w, n_r, n_s = at[b, 0], at[b, 1], at[b, 2], at[b, 3], at[b, 4]
+    cn, cp, cw, cr, cs = res[b, 0], res[b, 1], res[b, 2], res[b, 3], res[b, 4]
     _copy(src[0], dst[0], 1, base, n, cn)
     _copy(src[1], dst[1], 1, base, n, cn)
     _copy(src[2], dst[2], 1, base, n_p, cp)
@@ -219,54 +275,32 @@ def _place_chunk(c, base, at, res, src, dst):
 
 @nb.njit(inline="always", **_NB)
 def _copy(src, dst, k, first, to, count):
-    """Rows first.. of a flat (rows k,) array to rows to.. of another, or of itself if to <= first (unsigned indices:
-    no wrap-around checks)."""
+    """Rows first.. of a flat (rows k,) array to rows to.. of another (unsigned indices: no wrap-around checks)."""
     a, b = np.uint64(k * first), np.uint64(k * to)
     for i in range(np.uint64(k * count)):
         dst[b + i] = src[a + i]
 
 
 @nb.njit(**_NB)
-def _gather_chunks(res, chunk_j, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
-    """Move each chunk's outputs (from index chunk_j[c]) down to follow the previous chunks' (in candidate order: the
-    single-threaded kernel's layout). Returns the totals (n, n_p, w, n_r, n_s, ok)."""
-    at = _chunk_offsets(res)
-    out = (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale)
-    for c in range(1, res.shape[0]):
-        if chunk_j[c] != at[c, 0]:
-            _place_chunk(c, chunk_j[c], at, res, out, out)
-    return _totals(res)
-
-
-@nb.njit(**_NB)
-def _totals(res):
-    """(n, n_p, w, n_r, n_s, ok) of all chunks (zeros and True without any)."""
-    n = n_p = w = n_r = n_s = 0
-    ok = True
-    for c in range(res.shape[0]):
-        n, n_p, w, n_r, n_s = n + res[c, 0], n_p + res[c, 1], w + res[c, 2], n_r + res[c, 3], n_s + res[c, 4]
-        ok &= res[c, 5] != 0
+def _totals(res, first, count):
+    """(n, n_p, w, n_r, n_s, ok) of the front's blocks (row ``count``) and the back blocks (rows first..count-1)."""
+    n, n_p, w, n_r, n_s = res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]
+    ok = res[count, 5] != 0
+    for b in range(first, count):
+        n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
+        ok &= res[b, 5] != 0
     return n, n_p, w, n_r, n_s, ok
 
 
-def split_blocks(run_len: np.ndarray, blocks: np.ndarray, parts: int) -> tuple[np.ndarray, np.ndarray]:
-    """(chunks (C + 1,), chunk_j (C,)): ``blocks`` cut into at most ``parts`` chunks of about equal candidate counts
-    (the blocks of chunk c are chunks[c]..chunks[c + 1] - 1; its first candidate is chunk_j[c])."""
-    cum = np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)
-    at = cum[blocks]  # first candidate of each block, and the total last
-    cuts = np.searchsorted(at, at[-1] * np.arange(1, parts) / parts)
-    chunks = np.unique(np.concatenate([[0], cuts, [blocks.size - 1]])).astype(np.int64)
-    return chunks, at[chunks[:-1]]
-
-
-def chunk_faces(run_face: np.ndarray, blocks: np.ndarray, chunks: np.ndarray, face_vids: np.ndarray
+def block_faces(run_face: np.ndarray, blocks: np.ndarray, face_vids: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each chunk's own list of faces: (run_face renumbered into the concatenated lists, chunk_u (C + 1,) the first
-    face of each chunk's list and the total last, face_vids of the concatenated lists (F, 3)). A face with
-    Gaussians in two chunks is in both lists (computed twice, the same values): no thread reads another's."""
+    """Each block's own list of faces: (run_face renumbered into the concatenated lists, block_u (B + 1,) the first
+    face of each block's list and the total last, face_vids of the concatenated lists (F, 3)). A face with Gaussians
+    in two blocks is in both lists (computed twice, the same values): no thread reads a face another writes, whichever
+    blocks each takes."""
     out, lists, first = np.empty_like(run_face), [], [0]
-    for c in range(chunks.size - 1):
-        q0, q1 = blocks[chunks[c]], blocks[chunks[c + 1]]
+    for b in range(blocks.size - 1):
+        q0, q1 = blocks[b], blocks[b + 1]
         own, inverse = np.unique(run_face[q0:q1], return_inverse=True)
         out[q0:q1] = first[-1] + inverse.reshape(-1)
         lists.append(own)
@@ -278,7 +312,7 @@ def chunk_faces(run_face: np.ndarray, blocks: np.ndarray, chunks: np.ndarray, fa
 class DirectDelta:
     """One delta session's frames written by the deformation (see the module docstring): ``fast`` a FastAvatar
     (triangle binding), ``encoder`` the session's DeltaEncoder (the numba kernel set) whose candidates the fast
-    path deforms; ``threads``: chunks of work (numba's thread count by default: one chunk a thread when parallel).
+    path deforms; ``threads``: the threads a threaded frame shares its blocks among (numba's thread count by default).
     ValueError when it cannot (another binding, a candidate the fast path keeps neutral)."""
 
     def __init__(self, fast, encoder: DeltaEncoder, threads: int | None = None) -> None:
@@ -291,12 +325,14 @@ class DirectDelta:
         a = fast.arrays
         gface = np.repeat(a.run_face, a.run_len)  # used-face slot of each deformed Gaussian (rows of local)
         self.fast, self.encoder = fast, encoder
+        self.threads = max(1, numba.config.NUMBA_NUM_THREADS if threads is None else int(threads))
         run_face, run_m, run_len, blocks = candidate_runs(a.ids, gface, encoder.rows)
-        chunks, chunk_j = split_blocks(run_len, blocks, numba.config.NUMBA_NUM_THREADS if threads is None else threads)
-        run_face, chunk_u, face_vids = chunk_faces(run_face, blocks, chunks, a.face_vids)
+        run_face, block_u, face_vids = block_faces(run_face, blocks, a.face_vids)
+        first = np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)
+        block_j = first[blocks[:-1]]  # each block's first candidate
         signs = tuple(np.float32(x) for x in (*encoder.psign, *encoder.rsign))  # loaded once (signed_run)
-        self.geo = (chunks, chunk_j, chunk_u, face_vids, run_face, run_m, run_len, blocks, a.local,
-                    block_rows(run_len, blocks), signs)
+        self.geo = (block_u, block_j, face_vids, run_face, run_m, run_len, blocks, a.local, block_rows(run_len, blocks),
+                    signs)
         ones3, ones4 = np.ones(3, np.float32), np.ones(4, np.float32)
         self.q13 = encoder.format.encoding == "q13"
         if self.q13:
@@ -314,24 +350,29 @@ class DirectDelta:
             held_r, out_rot = rotations_u64(held_r), rotations_u64(out_rot)
         self.held = (e.ids, e.held_p, held_r, e.held_s, e.dec, e._flags, e._work)
         self.out = (e._sel, e._moved, e._wide, e._res, e._pos, out_rot, e._scale)
-        parts, rows = chunks.size - 1, BLOCK + int(run_len.max(initial=0))
-        # chunks 1.. of a threaded frame write here (one chunk never does: the outputs stand in, unwritten)
-        self.spare = tuple(np.zeros_like(a) for a in self.out) if parts > 1 else self.out
-        self.res = np.zeros((max(parts, 0), 6), np.int64)
-        self.scratch = (*(np.zeros((max(parts, 1), rows, c), np.float32) for c in (3, 4, 3)),
-                        e._work[3:].view(np.float32).reshape(-1), np.zeros((9, chunk_u[-1]), np.float32),
-                        np.zeros((K.FACE_COLS, chunk_u[-1]), np.float32))
+        # the blocks threads 1.. take are written here, then placed (one thread never does: the outputs stand in)
+        self.spare = tuple(np.zeros_like(a) for a in self.out) if self.threads > 1 else self.out
+        self.claims = np.zeros(1, np.int64)
+        self.res = np.zeros((blocks.size, 7), np.int64)  # a row a block, the front's last (the threaded kernel)
+        rows = BLOCK + int(run_len.max(initial=0))
+        self.scratch = (*(np.zeros((self.threads, rows, c), np.float32) for c in (3, 4, 3)),
+                        e._work[3:].view(np.float32).reshape(-1), np.zeros((9, block_u[-1]), np.float32),
+                        np.zeros((K.FACE_COLS, block_u[-1]), np.float32))
+
+    @property
+    def blocks(self) -> int:
+        """Blocks of candidates (:data:`BLOCK`)."""
+        return int(self.geo[6].size - 1)
 
     def select(self, verts: np.ndarray, parallel: bool = False) -> tuple[int, ...]:
         """Fill the encoder's selection and outputs for subset vertices ``verts`` (S, 3) float64 C-contiguous (the
         fast session's head output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r,
         n_s). ValueError if an f16 value sent is NaN, infinite or beyond +-65504."""
         if parallel:
-            *counts, ok = deform_delta_kernel_parallel(self.q13, verts, self.geo, self.codes, self.held, self.out,
-                                                       self.spare, self.scratch, self.res)
+            *counts, ok = deform_delta_kernel_parallel(self.q13, self.threads, verts, self.geo, self.codes, self.held,
+                                                       self.out, self.spare, self.scratch, self.claims, self.res)
         else:
-            *counts, ok = deform_delta_kernel(self.q13, verts, self.geo, self.codes, self.held, self.out, self.scratch,
-                                              self.res)
+            *counts, ok = deform_delta_kernel(self.q13, verts, self.geo, self.codes, self.held, self.out, self.scratch)
         if not ok:
             raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
         return tuple(int(x) for x in counts)
