@@ -361,14 +361,14 @@ class FastSession:
         self._rot = np.zeros((5, 3, 3), np.float32)
         self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
 
-    def flame_head(self, y: np.ndarray, wake: bool = True) -> np.ndarray:
+    def flame_head(self, y: np.ndarray) -> np.ndarray:
         """:meth:`head` of :meth:`flame` (y (68,) FLAME values -> (S, 3) float64), the same values in one numba call
-        (the split is left in the buffers :meth:`flame` returns). ``wake``: on the frame's threads if it has them
-        (see :meth:`_start`); False keeps the head on one thread (a delta frame's: its kernel was slower after a
-        threaded head, head + deform + encode p50 1.78-1.92 against 1.48-1.59 ms in four of six alternating pairs,
-        round eleven)."""
+        (the split is left in the buffers :meth:`flame` returns), on the frame's threads if it has them (see
+        :meth:`_start`). A delta frame's head too since its kernel's threads share the blocks as they go: head +
+        deform + encode p50 1.58-1.66 -> 1.44-1.55 ms in four alternating pairs (round thirteen; with the kernel's
+        fixed split of round eleven it was slower)."""
         par = self._start()
-        return self.lbs.forward_flame(self._values(y), self._expr, self._rot, par and wake)
+        return self.lbs.forward_flame(self._values(y), self._expr, self._rot, par)
 
     def _values(self, y: np.ndarray) -> np.ndarray:
         """y as a writable float32 vector: what the pipeline passes, else a copy. A read-only array (a remote room

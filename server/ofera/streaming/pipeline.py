@@ -292,7 +292,7 @@ class Pipeline:
         the encoding passes it runs on the way). No state is made."""
         clock = time.perf_counter_ns
         t3 = clock()
-        verts = self.fast.flame_head(values, wake=False)
+        verts = self.fast.flame_head(values)
         t4 = clock()
         counts = self.fast.deform_delta(verts, direct.select)
         t5 = clock()
