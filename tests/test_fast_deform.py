@@ -90,7 +90,8 @@ def test_subset_lbs_matches_reference(head, subject) -> None:
 
 
 def test_subset_lbs_on_threads_gives_the_same_bits(head, subject) -> None:
-    """forward / forward_flame with ``parallel``: the vertices in blocks on numba's threads, bit for bit."""
+    """forward / forward_flame with ``parallel``: the vertices in blocks the threads claim (1501 vertices: three blocks,
+    the last partial), bit for bit."""
     rng = np.random.default_rng(1)
     sub = SubsetLBS(subject, np.sort(rng.choice(head.num_vertices, 1501, replace=False)))
     for _ in range(3):

@@ -23,6 +23,7 @@ import numba as nb
 import numpy as np
 
 from ..jit import NB as _NB
+from ..jit import atomic_add
 from .lbs import HeadSubject, lbs
 
 
@@ -162,18 +163,37 @@ def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents
     _blend_skin(0, out.shape[0], coef, v_id, basis_t, weights, a, acc, nz, _nonzero(coef, nz), out)
 
 
+VERTEX_BLOCK = 512
+"""Vertices a thread of the parallel head takes at a time (:func:`_blend_skin_shared`)."""
+
+
+@nb.njit(inline="always", **_NB)
+def _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out):
+    """:func:`_blend_skin` of blocks of :data:`VERTEX_BLOCK` vertices, each claimed through ``claims`` ((1,) int64,
+    0 at the start, shared by the threads of one parallel loop): whichever thread is free takes the next, so one that
+    wakes late takes fewer (a fixed half each made the first wait for the second at the loop's end)."""
+    s = out.shape[0]
+    parts = (s + VERTEX_BLOCK - 1) // VERTEX_BLOCK
+    while True:
+        b = atomic_add(claims, 0, 1)
+        if b >= parts:
+            return
+        _blend_skin(b * VERTEX_BLOCK, min(s, (b + 1) * VERTEX_BLOCK), coef, v_id, basis_t, weights, a, acc, nz, count,
+                    out)
+
+
 @nb.njit(parallel=True, **_NB)
-def _subset_lbs_parallel(parts, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a,
-                         acc, nz, out):
-    """:func:`_subset_lbs` with the vertices in ``parts`` blocks on numba's threads (the same bits). Alone it is no
-    faster (the blend reads 3 MB of basis; waking the sleeping worker costs what the split saves), but it wakes the
-    worker for the frame's threaded deformation, whose first region then starts 0.15 ms sooner (benchmarks/README.md,
-    round eleven)."""
+def _subset_lbs_parallel(threads, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints,
+                         a, acc, nz, out, claims):
+    """:func:`_subset_lbs` with the vertices in blocks shared by ``threads`` of numba's threads (the same bits). It
+    wakes the worker for the frame's threaded deformation, whose first region then starts sooner (benchmarks/README.md,
+    round eleven); with the blocks claimed as the threads go, a late worker no longer holds up the first thread
+    (round thirteen). claims: (1,) int64 scratch."""
     _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
     count = _nonzero(coef, nz)
-    s = out.shape[0]
-    for b in nb.prange(parts):
-        _blend_skin(s * b // parts, s * (b + 1) // parts, coef, v_id, basis_t, weights, a, acc, nz, count, out)
+    claims[0] = 0
+    for _t in nb.prange(threads):
+        _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
 @nb.njit(**_NB)
@@ -186,16 +206,16 @@ def flame_subset_lbs(y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr,
 
 
 @nb.njit(parallel=True, **_NB)
-def flame_subset_lbs_parallel(parts, y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights,
-                              joints, a, acc, nz, out):
+def flame_subset_lbs_parallel(threads, y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights,
+                              joints, a, acc, nz, out, claims):
     """:func:`flame_subset_lbs` with the blocks of :func:`_subset_lbs_parallel` (a parallel loop of its own: a
     parallel function called from another runs serially)."""
     flame_values_kernel(y, expr.shape[0], expr, rot)
     _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
     count = _nonzero(coef, nz)
-    s = out.shape[0]
-    for b in nb.prange(parts):
-        _blend_skin(s * b // parts, s * (b + 1) // parts, coef, v_id, basis_t, weights, a, acc, nz, count, out)
+    claims[0] = 0
+    for _t in nb.prange(threads):
+        _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
 @nb.njit(**_NB)
@@ -293,6 +313,7 @@ class SubsetLBS:
         self._joints = np.zeros((k, 3), np.float64)
         self._a = np.zeros((k, 3, 4), np.float64)
         self.out = np.zeros((self.vertex_ids.size, 3), np.float64)
+        self._claims = np.zeros(1, np.int64)  # the parallel kernels' shared block counter
 
     def clone(self) -> SubsetLBS:
         """Another instance sharing the (read-only) precomputed arrays, with its own scratch buffers."""
@@ -314,7 +335,7 @@ class SubsetLBS:
         args = (y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
                 self.weights, self._joints, self._a, self._acc, self._nz, self.out)
         if parallel:
-            flame_subset_lbs_parallel(nb.get_num_threads(), *args)
+            flame_subset_lbs_parallel(nb.get_num_threads(), *args, self._claims)
         else:
             flame_subset_lbs(*args)
         return self.out
@@ -331,7 +352,7 @@ class SubsetLBS:
         args = (expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
                 self.weights, self._joints, self._a, self._acc, self._nz, self.out)
         if parallel:
-            _subset_lbs_parallel(nb.get_num_threads(), *args)
+            _subset_lbs_parallel(nb.get_num_threads(), *args, self._claims)
         else:
             _subset_lbs(*args)
         return self.out
