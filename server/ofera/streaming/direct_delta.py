@@ -204,8 +204,10 @@ def deform_delta_kernel(q13, verts, geo, codes, held, out, scratch):
 def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res):
     """:func:`deform_delta_kernel` on ``threads`` of numba's threads, which share the blocks as they go: thread 0 takes
     them from the first on and writes in place (as the serial kernel), the others from the last down, each block into
-    ``spare`` (arrays shaped as ``out``); each of those then copies its own blocks (still in its cache) to where the
-    front's outputs end, in block order. Every value is computed by the same code either way: the same bytes. A split
+    ``spare`` (arrays shaped as ``out``); the back blocks are then copied to where the front's outputs end, in block
+    order, a loop per back thread (with two threads one iteration, which numba runs on the calling thread: the copies
+    done by the thread that wrote them, after a spin-wait for the front's end, measured the same, round thirteen).
+    Every value is computed by the same code either way: the same bytes. A split
     fixed in advance (two chunks of equal candidate counts, round eleven) left the second thread 0.30 ms p50 behind
     the first: it wakes later, and where the face moves most, more of its Gaussians are encoded. ``claims`` (1,) and
     ``res`` (B + 1, 7) int64 scratch. (A parallel loop takes arrays and scalars only: the groups are taken apart here
