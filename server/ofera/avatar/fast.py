@@ -360,6 +360,7 @@ class FastSession:
         self._expr = np.zeros(50, np.float32)
         self._rot = np.zeros((5, 3, 3), np.float32)
         self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
+        self._claims = np.zeros(1, np.int64)  # the threaded kernels' shared block counter
 
     def flame_head(self, y: np.ndarray) -> np.ndarray:
         """:meth:`head` of :meth:`flame` (y (68,) FLAME values -> (S, 3) float64), the same values in one numba call
@@ -446,8 +447,7 @@ class FastSession:
         state, pos, rot, scale = self.pool.acquire()
         bary = a.inv_canonical is not None
         par = self._begin()
-        frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
-        frames(verts, a.face_vids, self.edges, self.face, bary)
+        self._face_frames(verts, par, bary)
         if bary:
             K.barycentric_kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, verts, a.face_vids, a.local,
                                  a.inv_canonical, pos, rot, scale)
@@ -456,6 +456,15 @@ class FastSession:
             kernel(self.face, a.run_face, a.run_m, a.run_len, a.run_row, a.local, pos, rot, scale)
         self._end(a.ids.shape[0])
         return state
+
+    def _face_frames(self, verts: np.ndarray, parallel: bool, with_normal: bool) -> None:
+        """The used faces' frames into ``self.face``, on numba's threads if ``parallel``."""
+        a = self.fast.arrays
+        if parallel:
+            K.face_frames_kernel_parallel(verts, a.face_vids, self.edges, self.face, with_normal,
+                                          numba.get_num_threads(), self._claims)
+        else:
+            K.face_frames_kernel(verts, a.face_vids, self.edges, self.face, with_normal)
 
     @property
     def writes_f16(self) -> bool:
@@ -481,10 +490,10 @@ class FastSession:
         par = self._begin()
         args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
                 draft.position, draft.rotation, draft.scale)
-        frames = K.face_frames_kernel_parallel if par else K.face_frames_kernel
-        frames(verts, a.face_vids, self.edges, self.face, False)
+        self._face_frames(verts, par, False)
         if par:
-            ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, *args)
+            ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, numba.get_num_threads(), self._claims,
+                                                *args)
         else:
             ok = K.triangle_f16_kernel(self.face, *args)
         self._end(a.ids.shape[0])

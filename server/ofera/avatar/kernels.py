@@ -33,7 +33,7 @@ import math
 import numba as nb
 import numpy as np
 
-from ..jit import F16_MAX, f32_to_f16_bits
+from ..jit import F16_MAX, atomic_add, f32_to_f16_bits
 from ..jit import NB as _NB
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # fused multiply-add allowed (no reassociation)
@@ -57,17 +57,22 @@ def face_frames_kernel(verts, face_vids, edges, face, with_normal):
     face_frames_range(0, face_vids.shape[0], verts, face_vids, edges, face, with_normal)
 
 
-FACE_CHUNKS = 8
-"""Chunks of faces :func:`face_frames_kernel_parallel` hands to numba's threads."""
+FACE_CHUNKS = 16
+"""Chunks of faces :func:`face_frames_kernel_parallel`'s threads claim."""
 
 
 @nb.njit(parallel=True, **_NBC)
-def face_frames_kernel_parallel(verts, face_vids, edges, face, with_normal):
-    """:func:`face_frames_kernel` over numba's threads (prange over :data:`FACE_CHUNKS` chunks)."""
+def face_frames_kernel_parallel(verts, face_vids, edges, face, with_normal, threads, claims):
+    """:func:`face_frames_kernel` over ``threads`` of numba's threads, which claim :data:`FACE_CHUNKS` chunks as they
+    go (``claims`` (1,) int64 scratch): a thread that wakes late takes fewer."""
     n = face_vids.shape[0]
     step = (n + FACE_CHUNKS - 1) // FACE_CHUNKS
-    for b in nb.prange(FACE_CHUNKS):
-        face_frames_range(min(n, b * step), min(n, (b + 1) * step), verts, face_vids, edges, face, with_normal)
+    claims[0] = 0
+    for _t in nb.prange(threads):
+        b = atomic_add(claims, 0, 1)
+        while b < FACE_CHUNKS:
+            face_frames_range(min(n, b * step), min(n, (b + 1) * step), verts, face_vids, edges, face, with_normal)
+            b = atomic_add(claims, 0, 1)
 
 
 @nb.njit(**_NBC)
@@ -279,24 +284,30 @@ def triangle_f16_kernel(face, run_face, run_m, run_len, run_row, local, psign, r
 
 
 @nb.njit(parallel=True, **_NBC)
-def triangle_f16_kernel_parallel(face, blocks, run_face, run_m, run_len, run_row, local, psign, rsign, scratch_pos,
-                                 scratch_rot, scratch_scale, out_pos, out_rot, out_scale):
-    """:func:`triangle_f16_kernel` over numba's threads: prange over its blocks (``blocks``, :func:`f16_blocks`:
-    disjoint rows), the scratch (threads, .., 3 | 4 | 3) one per thread. Same arguments, and ``blocks`` second."""
-    bad = 0
+def triangle_f16_kernel_parallel(face, blocks, threads, claims, run_face, run_m, run_len, run_row, local, psign, rsign,
+                                 scratch_pos, scratch_rot, scratch_scale, out_pos, out_rot, out_scale):
+    """:func:`triangle_f16_kernel` over ``threads`` of numba's threads, which claim its blocks (``blocks``,
+    :func:`f16_blocks`: disjoint rows) as they go (``claims`` (1,) int64 scratch; a fixed half each made the first
+    thread wait for a worker that woke late), the scratch (>= threads, .., 3 | 4 | 3) one per thread. Same arguments,
+    and ``blocks``, ``threads``, ``claims`` second to fourth."""
     signs = (psign[0], psign[1], psign[2], rsign[0], rsign[1], rsign[2], rsign[3])
-    for b in nb.prange(blocks.shape[0] - 1):
-        t = nb.get_thread_id()
-        first = run_row[blocks[b]]
-        count = 0
-        for q in range(blocks[b], blocks[b + 1]):
-            signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos[t], scratch_rot[t],
-                     scratch_scale[t])
-            count += run_len[q]
-        ok = _to_half(count, first, scratch_pos[t], out_pos)
-        ok &= _to_half(count, first, scratch_rot[t], out_rot)
-        ok &= _to_half(count, first, scratch_scale[t], out_scale)
-        bad += 0 if ok else 1
+    count_blocks = blocks.shape[0] - 1
+    bad = 0
+    claims[0] = 0
+    for t in nb.prange(threads):
+        b = atomic_add(claims, 0, 1)
+        while b < count_blocks:
+            first = run_row[blocks[b]]
+            count = 0
+            for q in range(blocks[b], blocks[b + 1]):
+                signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos[t], scratch_rot[t],
+                           scratch_scale[t])
+                count += run_len[q]
+            ok = _to_half(count, first, scratch_pos[t], out_pos)
+            ok &= _to_half(count, first, scratch_rot[t], out_rot)
+            ok &= _to_half(count, first, scratch_scale[t], out_scale)
+            bad += 0 if ok else 1
+            b = atomic_add(claims, 0, 1)
     return bad == 0
 
 
