@@ -292,6 +292,26 @@ def test_parallel_kernels_match_serial(head, subject, kind) -> None:
     np.testing.assert_array_equal(a.scale, b.scale)
 
 
+def test_load_average_is_read_at_most_once_a_refresh(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 1-minute load average (a system call on every automatic frame's path) is re-read only after
+    LOAD_REFRESH_S, or when the clock went back; where the OS has none: None."""
+    import ofera.avatar.fast as fast_module
+
+    reads = []
+    monkeypatch.setattr(fast_module, "_load", (-np.inf, None))
+    monkeypatch.setattr(fast_module.os, "getloadavg", lambda: reads.append(1) or (0.25 * len(reads), 0.0, 0.0))
+    assert fast_module.load_average(now=100.0) == 0.25 and len(reads) == 1
+    assert fast_module.load_average(now=100.0 + fast_module.LOAD_REFRESH_S / 2) == 0.25 and len(reads) == 1
+    assert fast_module.load_average(now=100.0 + fast_module.LOAD_REFRESH_S) == 0.5 and len(reads) == 2
+    assert fast_module.load_average(now=50.0) == 0.75 and len(reads) == 3  # a clock that went back: read again
+
+    def no_load() -> tuple[float, float, float]:
+        raise OSError("no load average here")
+
+    monkeypatch.setattr(fast_module.os, "getloadavg", no_load)
+    assert fast_module.load_average(now=200.0) is None
+
+
 def test_thread_choice_rules() -> None:
     assert use_threads(1, 2) and use_threads(1, 2, load=0.5)
     assert not use_threads(2, 2)  # another session computes: one thread each
