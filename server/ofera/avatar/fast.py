@@ -365,6 +365,10 @@ class FastSession:
         self.activity = activity
         self.choice = ThreadChoice()
         self.threaded = False  # whether the last frame ran on numba's threads
+        # numba's thread count, read once: numba.get_num_threads() took 37 us p50 on a cold CPU (round thirteen), and a
+        # frame asked it up to four times. A parallel kernel told of more threads than run is still right (they
+        # claim their work), only not faster.
+        self.threads = numba.get_num_threads()
         self._frame: tuple[bool, int] | None = None  # the frame under way: (its thread choice, its start in ns)
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
@@ -418,7 +422,7 @@ class FastSession:
         frame counts as this session's activity, threaded or not."""
         par = self.parallel
         if par is None:  # note the activity first; the load average (a system call) only where threads may run
-            par = use_threads(self.activity.note(id(self)), numba.get_num_threads(), load_average) \
+            par = use_threads(self.activity.note(id(self)), self.threads, load_average) \
                 and self.choice.choose()
         self.threaded = par
         return par
@@ -475,8 +479,8 @@ class FastSession:
         """The used faces' frames into ``self.face``, on numba's threads if ``parallel``."""
         a = self.fast.arrays
         if parallel:
-            K.face_frames_kernel_parallel(verts, a.face_vids, self.edges, self.face, with_normal,
-                                          numba.get_num_threads(), self._claims)
+            K.face_frames_kernel_parallel(verts, a.face_vids, self.edges, self.face, with_normal, self.threads,
+                                          self._claims)
         else:
             K.face_frames_kernel(verts, a.face_vids, self.edges, self.face, with_normal)
 
@@ -506,8 +510,7 @@ class FastSession:
                 draft.position, draft.rotation, draft.scale)
         self._face_frames(verts, par, False)
         if par:
-            ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, numba.get_num_threads(), self._claims,
-                                                *args)
+            ok = K.triangle_f16_kernel_parallel(self.face, self.fast.f16_blocks, self.threads, self._claims, *args)
         else:
             ok = K.triangle_f16_kernel(self.face, *args)
         self._end(a.ids.shape[0])

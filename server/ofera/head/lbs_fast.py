@@ -314,6 +314,7 @@ class SubsetLBS:
         self._a = np.zeros((k, 3, 4), np.float64)
         self.out = np.zeros((self.vertex_ids.size, 3), np.float64)
         self._claims = np.zeros(1, np.int64)  # the parallel kernels' shared block counter
+        self.threads = nb.get_num_threads()  # read once (a slow call on a cold CPU: see FastSession.threads)
 
     def clone(self) -> SubsetLBS:
         """Another instance sharing the (read-only) precomputed arrays, with its own scratch buffers."""
@@ -335,7 +336,7 @@ class SubsetLBS:
         args = (y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
                 self.weights, self._joints, self._a, self._acc, self._nz, self.out)
         if parallel:
-            flame_subset_lbs_parallel(nb.get_num_threads(), *args, self._claims)
+            flame_subset_lbs_parallel(self.threads, *args, self._claims)
         else:
             flame_subset_lbs(*args)
         return self.out
@@ -352,7 +353,7 @@ class SubsetLBS:
         args = (expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
                 self.weights, self._joints, self._a, self._acc, self._nz, self.out)
         if parallel:
-            _subset_lbs_parallel(nb.get_num_threads(), *args, self._claims)
+            _subset_lbs_parallel(self.threads, *args, self._claims)
         else:
             _subset_lbs(*args)
         return self.out
