@@ -18,7 +18,7 @@ eight).
 Both cores: every block has its own list of faces (:func:`block_faces`) and its own rows of every scratch, so a block
 on another core reads nothing another block writes. The serial kernel runs the blocks in order into the outputs in
 place; the threaded one shares them out as it goes (:func:`deform_delta_kernel_parallel`): thread 0 from the first
-block on, in place, the others from the last down into a spare set, from which each then copies its own blocks into
+block on, in place, the others from the last down into a spare set, from which their blocks are then copied into
 place. Either way the outputs end in candidate order.
 
 The plain reference is ``DeltaEncoder.encode(FastSession.deform(verts))``; tests compare them byte for byte.
@@ -81,11 +81,15 @@ def candidate_runs(fast_ids: np.ndarray, gface: np.ndarray, rows: np.ndarray
     return slot[start].astype(np.int64), m[start].astype(np.int64), length, np.asarray(blocks, np.int64)
 
 
+def block_starts(run_len: np.ndarray, blocks: np.ndarray) -> np.ndarray:
+    """(B + 1,) int64: each block's first candidate, and the candidate count last."""
+    return np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)[blocks]
+
+
 def block_rows(run_len: np.ndarray, blocks: np.ndarray) -> np.ndarray:
     """(K,) int64: each candidate's row in its block's scratch (its index minus the block's first)."""
-    cum = np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)
-    first, end = cum[blocks[:-1]], cum[blocks[1:]]
-    return np.arange(cum[-1], dtype=np.int64) - np.repeat(first, end - first)
+    at = block_starts(run_len, blocks)
+    return np.arange(at[-1], dtype=np.int64) - np.repeat(at[:-1], np.diff(at))
 
 
 @nb.njit(**_NBC)
@@ -237,35 +241,24 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
             _back(q13, t, count, verts, g, c, h, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale), x,
                   claims, res)
     first = res[count, 6]  # the first block a back thread did
-    at = _block_offsets(res, first, count)
     for t in nb.prange(1, threads):
-        for b in range(first, count):
+        n, n_p, w, n_r, n_s = res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]
+        for b in range(first, count):  # (where each back block goes: after the front's and the back blocks before it)
             if res[b, 6] == t:
-                _place_block(b, block_j[b], at, res, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
+                _place_block(block_j[b], (n, n_p, w, n_r, n_s), res[b],
+                             (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
                              (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
+            n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
     return _totals(res, first, count)
 
 
-@nb.njit(**_NB)
-def _block_offsets(res, first, count):
-    """(B, 5) int64: where each back block's outputs start once placed, (n, n_p, w, n_r, n_s) of the front's blocks
-    (row ``count`` of ``res``) and of the back blocks before it (rows ``first``..)."""
-    at = np.zeros((count, 5), np.int64)
-    for x in range(5):
-        total = res[count, x]
-        for b in range(first, count):
-            at[b, x] = total
-            total += res[b, x]
-    return at
-
-
 @nb.njit(inline="always", **_NB)
-def _place_block(b, base, at, res, src, dst):
-    """Block b's outputs, from row ``base`` of the output group ``src``, to where the blocks before it end in ``dst``
-    (``at``: :func:`_block_offsets`). Element by element over flat views (a row assignment costs tens of ns in
-    numba)."""
-    n, n_p, w, n_r, n_s = at[b, 0], at[b, 1], at[b, 2], at[b, 3], at[b, 4]
-    cn, cp, cw, cr, cs = res[b, 0], res[b, 1], res[b, 2], res[b, 3], res[b, 4]
+def _place_block(base, at, counts, src, dst):
+    """A block's outputs (``counts``: its row of the threaded kernel's ``res``, (n, n_p, w, n_r, n_s) first), from row
+    ``base`` of the output group ``src``, to rows ``at`` (n, n_p, w, n_r, n_s) of ``dst``. Element by element over
+    flat views (a row assignment costs tens of ns in numba)."""
+    n, n_p, w, n_r, n_s = at
+    cn, cp, cw, cr, cs = counts[0], counts[1], counts[2], counts[3], counts[4]
     _copy(src[0], dst[0], 1, base, n, cn)
     _copy(src[1], dst[1], 1, base, n, cn)
     _copy(src[2], dst[2], 1, base, n_p, cp)
@@ -330,8 +323,7 @@ class DirectDelta:
         self.threads = max(1, numba.config.NUMBA_NUM_THREADS if threads is None else int(threads))
         run_face, run_m, run_len, blocks = candidate_runs(a.ids, gface, encoder.rows)
         run_face, block_u, face_vids = block_faces(run_face, blocks, a.face_vids)
-        first = np.concatenate([[0], np.cumsum(run_len)]).astype(np.int64)
-        block_j = first[blocks[:-1]]  # each block's first candidate
+        block_j = block_starts(run_len, blocks)[:-1]
         signs = tuple(np.float32(x) for x in (*encoder.psign, *encoder.rsign))  # loaded once (signed_run)
         self.geo = (block_u, block_j, face_vids, run_face, run_m, run_len, blocks, a.local, block_rows(run_len, blocks),
                     signs)
