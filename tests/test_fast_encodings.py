@@ -439,19 +439,22 @@ def test_delta_client_error_is_bounded_whatever_is_dropped(kernels, enc) -> None
         assert perr <= pos_bound + 1e-7 and rerr <= rot_bound + 1e-3 and serr <= s_bound + 1e-6, (f, perr, rerr, serr)
 
 
+@pytest.mark.parametrize("parallel", [False, True])
 @pytest.mark.parametrize("enc", ["f16", "q13"])
-def test_fast_delta_decoder_equals_the_reference(kernels, enc) -> None:
-    """ofera.client.fast_decode (numba) applies key and delta frames exactly like ofera_protocol.delta."""
-    from ofera.client.fast_decode import FastFrameDecoder
+def test_fast_delta_decoder_equals_the_reference(kernels, enc, parallel) -> None:
+    """ofera.client.fast_decode (numba) applies key and delta frames exactly like ofera_protocol.delta, on one thread
+    or on numba's threads (five blocks of DECODE_BLOCK Gaussians, the last partial)."""
+    from ofera.client.fast_decode import DECODE_BLOCK, FastFrameDecoder
 
     rng = np.random.default_rng(9)
-    n = 3000
-    cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
+    n = 6000
+    cand = np.sort(rng.choice(n, 5000, replace=False)).astype(np.int64)
     frames = moving(rng, n, 15, cand)
     quant = make_quant(frames[0][0], frames[0][2])
     fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
     encoder = delta_encoder(fmt, "unity", None, cand, key_interval=6)
-    ref, fast = DeltaDecoder(fmt), FastFrameDecoder(fmt)
+    ref, fast = DeltaDecoder(fmt), FastFrameDecoder(fmt, parallel=parallel)
+    sizes = []
     for f, (p, r, s) in enumerate(frames):
         data = encoder.encode(f, 0, {}, p, r, s)
         msg = decode_server_message(data, fmt)
@@ -459,6 +462,9 @@ def test_fast_delta_decoder_equals_the_reference(kernels, enc) -> None:
         if not isinstance(msg, DeltaFrame):
             ref.key(msg)
         got = fast.decode(data)
+        if isinstance(msg, DeltaFrame):
+            sizes.append(msg.n)
+            assert fast.threaded is parallel
         assert got.key is want.key and (got.index is None) == (want.index is None)
         if want.index is not None:
             np.testing.assert_array_equal(got.index, want.index)
@@ -466,6 +472,38 @@ def test_fast_delta_decoder_equals_the_reference(kernels, enc) -> None:
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
     for name in ("position", "rotation", "scale"):
         np.testing.assert_array_equal(getattr(fast.delta, name), getattr(ref, name))
+    assert max(sizes) > 4 * DECODE_BLOCK and max(sizes) % DECODE_BLOCK  # several blocks, the last partial
+
+
+def test_fast_delta_decoder_threads_while_alone_and_faster(kernels, monkeypatch) -> None:
+    """An automatic decoder (parallel None) decodes a delta frame on threads while it is the only one of its activity
+    decoding and its threaded frames were faster; with another decoder active, or serial faster: one thread."""
+    import ofera.client.fast_decode as fd
+    from ofera.thread_choice import Activity
+
+    monkeypatch.setattr(fd, "load_average", lambda: 0.0)  # the test machine's load is not the subject
+    rng = np.random.default_rng(10)
+    n = 3000
+    cand = np.arange(0, n, 2, dtype=np.int64)
+    frames = moving(rng, n, 4, cand)
+    fmt = FrameFormat("q13", n, False, make_quant(frames[0][0], frames[0][2]), delta=True)
+    encoder = delta_encoder(fmt, "unity", None, cand, key_interval=100)
+    data = [encoder.encode(f, 0, {}, *frame) for f, frame in enumerate(frames)]
+    activity = Activity(window_s=60.0)
+    a, b = (fd.FastFrameDecoder(fmt, activity=activity) for _ in range(2))
+    a.threads = b.threads = 2
+    for dec, faster in ((a, True), (b, False)):
+        for _ in range(3):
+            dec.choice.record(True, 1 if faster else 10)
+            dec.choice.record(False, 10 if faster else 1)
+        dec.decode(data[0])  # the key frame
+    a.decode(data[1])
+    assert a.threaded  # alone, threads faster
+    b.decode(data[1])
+    assert not b.threaded  # serial faster
+    a.decode(data[2])
+    assert not a.threaded  # b decoded within the window: one thread each
+    assert len(a.choice.times[True]) == 4 and len(a.choice.times[False]) == 4  # every automatic frame recorded
 
 
 def bad_delta_frames(good: dict) -> list[dict]:
@@ -561,8 +599,9 @@ def test_delta_decoder_refuses_bad_frames_without_changing_state() -> None:
     assert dec.rotation[0] == 3 << 30
 
 
+@pytest.mark.parametrize("parallel", [False, True])
 @pytest.mark.parametrize("enc", ["q13", "f16"])
-def test_fast_delta_frames_refuse_bad_fields_with_the_codecs_error(kernels, enc, monkeypatch) -> None:
+def test_fast_delta_frames_refuse_bad_fields_with_the_codecs_error(kernels, enc, parallel, monkeypatch) -> None:
     """A delta frame decoded in one kernel call (delta_frame_kernel) refuses whatever codec.decode_delta_frame refuses
     in its fields (types, lengths, f16 codes sent whole that are not finite, seq, t, timing) with the codec's own
     error, changing nothing held; the good frame then decodes as the reference does."""

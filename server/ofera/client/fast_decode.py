@@ -14,8 +14,10 @@ One call instead of the codec's field-by-field checks and two kernels: 0.09 ms l
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
+import numba
 import numba as nb
 import numpy as np
 from ofera_protocol import Frame, FrameFormat
@@ -28,7 +30,8 @@ from ofera_protocol.errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolErro
 from ofera_protocol.messages import DeltaFrame
 
 from ..jit import NB as _NB
-from ..jit import f16_bits_to_f32
+from ..jit import atomic_add, f16_bits_to_f32
+from ..thread_choice import Activity, ThreadChoice, load_average, use_threads
 
 
 @nb.njit(**_NB)
@@ -91,6 +94,16 @@ def _q13_rotation_at(v, out, b):
 @nb.njit(**_NB)
 def delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot, scl, held_p, held_r, held_s, lo, step,
                        lut, out_p, out_r, out_s):
+    """A checked DeltaFrame (PROTOCOL.md 7.1) onto the held codes (:func:`_hold_delta`), then the n carried
+    Gaussians decoded (:func:`_gathered`): 0, or _hold_delta's fault code (nothing held has changed then)."""
+    code = _hold_delta(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot, scl, held_p, held_r, held_s)
+    if code == 0:
+        _gathered(q13, 0, ids.shape[0], ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
+    return code
+
+
+@nb.njit(inline="always", **_NB)
+def _hold_delta(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot, scl, held_p, held_r, held_s):
     """A checked DeltaFrame (PROTOCOL.md 7.1) onto the held codes. Every array is flat (C order): ids (n,) the
     changed Gaussians; lists (4, >= n) the rows j carrying a position / rotation / scale (n_p, n_r, n_s of them:
     unpack_delta_masks_kernel), then scratch; wide (n_p,) bool, nw of them set; res (3 (n_p - nw),) int8; wpos
@@ -98,8 +111,7 @@ def delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot,
     the codes sent whole; held_p (3 count,) uint16, held_r (rw count,), held_s (3 count,) the held codes (q13:
     rw = 1, uint32 rotations, uint8 scales; f16: rw = 4, every code uint16). Pass 1 checks every narrow change
     (0 = ok, 1 = a code outside 0..65535, 2 = an f16 position NaN / infinite) and changes nothing on failure; pass
-    2 holds the new codes; pass 3 decodes the n carried Gaussians into the first 3 n / 4 n / 3 n entries of out_p,
-    out_r, out_s float32. Unsigned indices throughout (no wrap-around code: see ofera.avatar.kernels)."""
+    2 holds the new codes. Unsigned indices throughout (no wrap-around code: see ofera.avatar.kernels)."""
     three, rw = np.uint64(3), np.uint64(1 if q13 else 4)
     narrow = lists[0, :n_p]  # the rows carrying a narrow position: all of them unless some are wide
     if nw:
@@ -139,18 +151,24 @@ def delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide, res, wpos, rot,
         i = three * np.uint64(ids[lists[2, t]])
         for c in range(three):
             held_s[i + c] = scl[three * t + c]
-    if q13:
-        _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
-    else:
-        _f16_gathered(ids, held_p, held_r, held_s, out_p, out_r, out_s)
     return 0
 
 
-@nb.njit(**_NB)
-def _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
-    """Held q13 codes of rows ids -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic)."""
+@nb.njit(inline="always", **_NB)
+def _gathered(q13, start, stop, ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
+    """The held codes of rows ids[start:stop] -> float32 entries start..stop - 1 of out_p, out_r, out_s (3, 4 and 3
+    a row)."""
+    if q13:
+        _q13_gathered(start, stop, ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
+    else:
+        _f16_gathered(start, stop, ids, held_p, held_r, held_s, out_p, out_r, out_s)
+
+
+@nb.njit(inline="always", **_NB)
+def _q13_gathered(start, stop, ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
+    """Held q13 codes of rows ids[start:stop] -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic)."""
     three, four = np.uint64(3), np.uint64(4)
-    for j in range(np.uint64(ids.shape[0])):
+    for j in range(np.uint64(start), np.uint64(stop)):
         i = np.uint64(ids[j])
         for c in range(three):
             out_p[three * j + c] = np.float32(lo[c] + np.float64(held_p[three * i + c]) * step[c])
@@ -158,11 +176,11 @@ def _q13_gathered(ids, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_
         _q13_rotation_at(held_r[i], out_r, four * j)
 
 
-@nb.njit(**_NB)
-def _f16_gathered(ids, held_p, held_r, held_s, out_p, out_r, out_s):
-    """Held f16 codes of rows ids -> float32."""
+@nb.njit(inline="always", **_NB)
+def _f16_gathered(start, stop, ids, held_p, held_r, held_s, out_p, out_r, out_s):
+    """Held f16 codes of rows ids[start:stop] -> float32."""
     three, four = np.uint64(3), np.uint64(4)
-    for j in range(np.uint64(ids.shape[0])):
+    for j in range(np.uint64(start), np.uint64(stop)):
         i = np.uint64(ids[j])
         for c in range(three):
             out_p[three * j + c] = f16_bits_to_f32(np.uint16(held_p[three * i + c]))
@@ -261,13 +279,13 @@ def _finite_f16(codes):
     return bad == 0
 
 
-@nb.njit(**_NB)
-def delta_frame_kernel(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists,
-                       wide, wide_bools, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
+@nb.njit(inline="always", **_NB)
+def _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists, wide,
+                wide_bools, held_p, held_r, held_s):
     """A whole delta frame from its bins (uint8, as received): its masks (:func:`_masks_checked`), the lengths of
     its code fields and, f16, the codes sent whole finite (codec.decode_delta_frame's checks), then
-    :func:`delta_apply_kernel` (wide: the wide bits' words, wide_bools the same memory as bools). Returns 0, or
-    non-zero for any fault (nothing held has changed then: the codec's path names it)."""
+    :func:`_hold_delta` (wide: the wide bits' words, wide_bools the same memory as bools). Returns 0, or non-zero for
+    any fault (nothing held has changed then: the codec's path names it)."""
     ok, n_p, n_r, n_s, nw = _masks_checked(changed, count, n, mpos, mrot, mscale, wide_bits, index, lists, wide)
     rb, sb = (4, 3) if q13 else (8, 6)
     if not ok or res.shape[0] != 3 * (n_p - nw) or wpos.shape[0] != 6 * nw or rot.shape[0] != rb * n_r \
@@ -275,14 +293,51 @@ def delta_frame_kernel(q13, count, n, changed, mpos, mrot, mscale, wide_bits, re
         return 3
     wpos16, ids = wpos.view(np.uint16), index[:n]
     if q13:
-        return delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide_bools, res.view(np.int8), wpos16,
-                                  rot.view(np.uint32), scl, held_p, held_r, held_s, lo, step, lut, out_p, out_r,
-                                  out_s)
+        return _hold_delta(q13, ids, lists, n_p, n_r, n_s, nw, wide_bools, res.view(np.int8), wpos16,
+                           rot.view(np.uint32), scl, held_p, held_r, held_s)
     rot16, scl16 = rot.view(np.uint16), scl.view(np.uint16)
     if not (_finite_f16(wpos16) and _finite_f16(rot16) and _finite_f16(scl16)):
         return 3
-    return delta_apply_kernel(q13, ids, lists, n_p, n_r, n_s, nw, wide_bools, res.view(np.int8), wpos16, rot16,
-                              scl16, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
+    return _hold_delta(q13, ids, lists, n_p, n_r, n_s, nw, wide_bools, res.view(np.int8), wpos16, rot16, scl16, held_p,
+                       held_r, held_s)
+
+
+@nb.njit(**_NB)
+def delta_frame_kernel(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists,
+                       wide, wide_bools, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
+    """A whole delta frame from its bins onto the held codes (:func:`_frame_held`), then its n carried Gaussians
+    decoded into out_p, out_r, out_s (:func:`_gathered`). Returns 0, or _frame_held's fault code."""
+    code = _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists, wide,
+                       wide_bools, held_p, held_r, held_s)
+    if code == 0:
+        _gathered(q13, 0, n, index, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
+    return code
+
+
+DECODE_BLOCK = 1024
+"""Carried Gaussians a thread of :func:`delta_frame_kernel_parallel` decodes at a time."""
+
+
+@nb.njit(parallel=True, **_NB)
+def delta_frame_kernel_parallel(threads, claims, q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos,
+                                rot, scl, index, lists, wide, wide_bools, held_p, held_r, held_s, lo, step, lut,
+                                out_p, out_r, out_s):
+    """:func:`delta_frame_kernel` with the decoding in blocks of :data:`DECODE_BLOCK` Gaussians that ``threads`` of
+    numba's threads claim as they go (claims: (1,) int64 scratch): the same values."""
+    code = _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists, wide,
+                       wide_bools, held_p, held_r, held_s)
+    if code:
+        return code
+    blocks = (n + DECODE_BLOCK - 1) // DECODE_BLOCK
+    claims[0] = 0
+    for _t in nb.prange(threads):
+        while True:
+            b = atomic_add(claims, 0, 1)
+            if b >= blocks:
+                break
+            _gathered(q13, b * DECODE_BLOCK, min(n, (b + 1) * DECODE_BLOCK), index, held_p, held_r, held_s, lo, step,
+                      lut, out_p, out_r, out_s)
+    return 0
 
 
 def _codes(a: np.ndarray) -> np.ndarray:
@@ -298,8 +353,9 @@ _Z3 = np.zeros(3)
 _Z256 = np.zeros(256, np.float32)
 
 
-def decoder_warm() -> None:
-    """Compile the decoding kernels for message buffers (read-only uint views)."""
+def decoder_warm(parallel: bool = True) -> None:
+    """Compile the decoding kernels for message buffers (read-only uint views); ``parallel``: the threaded delta
+    kernel as well (and start numba's threads)."""
     raw = bytes(64)
     f16_decode_kernel(np.frombuffer(raw, "<u2", 6), np.zeros(6, np.float32))
     out3, out4 = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32)
@@ -313,9 +369,11 @@ def decoder_warm() -> None:
     for q13 in (True, False):
         held = (np.zeros(3, np.uint16), np.zeros(1, np.uint32) if q13 else np.zeros(4, np.uint16),
                 np.zeros(3, np.uint8 if q13 else np.uint16))
-        delta_frame_kernel(q13, 1, 1, one, one, one, one, bins[:1], bins[:0], bins[:6], bins[:0], bins[:0], index,
-                           lists, wide, wide.view(bool), *held, np.zeros(3), np.ones(3), np.ones(256, np.float32),
-                           out3[0], out4[0], out3[1])
+        frame = (q13, 1, 1, one, one, one, one, bins[:1], bins[:0], bins[:6], bins[:0], bins[:0], index, lists, wide,
+                 wide.view(bool), *held, np.zeros(3), np.ones(3), np.ones(256, np.float32), out3[0], out4[0], out3[1])
+        delta_frame_kernel(*frame)
+        if parallel:
+            delta_frame_kernel_parallel(numba.get_num_threads(), np.zeros(1, np.int64), *frame)
     ids = np.zeros(1, np.uint32)  # the types of a DeltaFrame's arrays (read-only views of the message)
     res = np.frombuffer(raw, np.int8, 3)
     for q13 in (True, False):
@@ -329,16 +387,32 @@ def decoder_warm() -> None:
                            out3[0], out4[0], out3[1])
 
 
+DECODERS = Activity()
+"""The process-wide activity record of automatic decoders (a client process decoding several streams keeps its cores
+busy: one thread each)."""
+
+
 class FastFrameDecoder:
     """Decodes the frames of one session (FrameFormat) into float32 buffers owned by the decoder (reused:
     each call overwrites the previous frame's arrays), with the codec's checks (lengths, finiteness, index).
     In a delta session it also keeps the codes the client holds (``delta``) and returns delta frames as
     sparse-like Frames (``index`` = the changed Gaussians). ``ofera_protocol.decode_server_message`` is the
-    reference."""
+    reference.
 
-    def __init__(self, fmt: FrameFormat) -> None:
-        decoder_warm()  # compiled (or loaded from the on-disk cache) before the first frame
+    ``parallel``: a delta frame's decoding on numba's threads (:func:`delta_frame_kernel_parallel`, the same values)
+    or on one (False); None (the default) chooses per frame as the server's sessions do (``ofera.thread_choice``):
+    threads only while this decoder is the only one of ``activity`` decoding, the machine is not busy, and its
+    threaded frames were faster per changed Gaussian."""
+
+    def __init__(self, fmt: FrameFormat, parallel: bool | None = None, activity: Activity = DECODERS) -> None:
+        decoder_warm(parallel is not False)  # compiled (or loaded from the on-disk cache) before the first frame
         self.format = fmt
+        self.parallel = parallel  # a delta frame's decoding on numba's threads; None: automatic (see the class)
+        self.activity = activity
+        self.choice = ThreadChoice()
+        self.threads = numba.get_num_threads()  # read once (37 us on a cold CPU: ofera.avatar.fast)
+        self.threaded = False  # the last delta frame's mode
+        self._claims = np.zeros(1, np.int64)
         n = fmt.count
         self._pos = np.zeros((n, 3), np.float32)
         self._rot = np.zeros((n, 4), np.float32)
@@ -398,9 +472,17 @@ class FastFrameDecoder:
         timing = decode_timing(m)  # the codec's error if it is not a map of stage durations
         q13 = self.format.encoding == "q13"
         lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
-        if delta_frame_kernel(q13, self.format.count, n, *[np.frombuffer(b, np.uint8) for b in bins], self._index,
-                              self._lists, self._wide, self._wide_bools, *self._held_flat, lo, step, lut,
-                              *self._out_flat):
+        args = (q13, self.format.count, n, *[np.frombuffer(b, np.uint8) for b in bins], self._index, self._lists,
+                self._wide, self._wide_bools, *self._held_flat, lo, step, lut, *self._out_flat)
+        par = self.parallel
+        if par is None:
+            par = use_threads(self.activity.note(id(self)), self.threads, load_average) and self.choice.choose()
+        self.threaded = par
+        start = time.perf_counter_ns()
+        code = delta_frame_kernel_parallel(self.threads, self._claims, *args) if par else delta_frame_kernel(*args)
+        if self.parallel is None:
+            self.choice.record(par, time.perf_counter_ns() - start, max(n, 1))
+        if code:
             return None
         return Frame(seq=seq, t=t, timing=timing, index=self._index[:n], position=self._pos[:n],
                      rotation=self._rot[:n], scale=self._scale[:n], key=False)
