@@ -489,21 +489,24 @@ def test_fast_delta_decoder_threads_while_alone_and_faster(kernels, monkeypatch)
     fmt = FrameFormat("q13", n, False, make_quant(frames[0][0], frames[0][2]), delta=True)
     encoder = delta_encoder(fmt, "unity", None, cand, key_interval=100)
     data = [encoder.encode(f, 0, {}, *frame) for f, frame in enumerate(frames)]
-    activity = Activity(window_s=60.0)
-    a, b = (fd.FastFrameDecoder(fmt, activity=activity) for _ in range(2))
+    a, b = (fd.FastFrameDecoder(fmt, activity=Activity(window_s=60.0)) for _ in range(2))
     a.threads = b.threads = 2
     for dec, faster in ((a, True), (b, False)):
         for _ in range(3):
-            dec.choice.record(True, 1 if faster else 10)
-            dec.choice.record(False, 10 if faster else 1)
+            dec.choices["delta"].record(True, 1 if faster else 10)
+            dec.choices["delta"].record(False, 10 if faster else 1)
         dec.decode(data[0])  # the key frame
     a.decode(data[1])
     assert a.threaded  # alone, threads faster
     b.decode(data[1])
-    assert not b.threaded  # serial faster
+    assert not b.threaded  # alone, serial faster
+    b.activity = a.activity
+    b.decode(data[2])
     a.decode(data[2])
     assert not a.threaded  # b decoded within the window: one thread each
-    assert len(a.choice.times[True]) == 4 and len(a.choice.times[False]) == 4  # every automatic frame recorded
+    times = a.choices["delta"].times
+    assert len(times[True]) == 4 and len(times[False]) == 4  # every automatic frame recorded
+    assert len(a.choices["dense"].times[False]) == 1  # the key frame, in the dense frames' own choice
 
 
 def bad_delta_frames(good: dict) -> list[dict]:
@@ -679,10 +682,15 @@ def test_fast_delta_decoder_refuses_an_f16_change_to_infinity_like_the_reference
     assert ok.index.tolist() == [8] and ok.position[0, 0] == np.float32(np.uint16(0x7BFE).view(np.float16))
 
 
+@pytest.mark.parametrize("parallel", [False, True])
 @pytest.mark.parametrize("enc", ["f32", "f16", "q13"])
 @pytest.mark.parametrize("sparse", [False, True])
-def test_fast_decoder_equals_codec(kernels, enc, sparse) -> None:
-    from ofera.client.fast_decode import FastFrameDecoder
+def test_fast_decoder_equals_codec(kernels, enc, sparse, parallel) -> None:
+    """FastFrameDecoder gives the codec's values, its dense and sparse frames decoded on one thread or on numba's
+    (blocks of DENSE_BLOCK rows, the last partial)."""
+    from ofera.client.fast_decode import DENSE_BLOCK, FastFrameDecoder
+
+    assert N > 2 * DENSE_BLOCK and N % DENSE_BLOCK
 
     rng = np.random.default_rng(8)
     pos, rot, scale = state(rng, edge_cases=False)
@@ -692,14 +700,18 @@ def test_fast_decoder_equals_codec(kernels, enc, sparse) -> None:
     data = bytes(FrameWriter(fmt, "unity", gather, None if gather is None else gather.astype(np.uint32),
                              kernels=kernels).encode(4, 5, TIMING, pos, rot, scale))
     ref = decode_server_message(data, fmt)
-    got = FastFrameDecoder(fmt).decode(data)
+    dec = FastFrameDecoder(fmt, parallel=parallel)
+    got = dec.decode(data)
+    assert dec.threaded is (parallel and enc != "f32")
     assert (got.seq, got.t, got.timing) == (ref.seq, ref.t, ref.timing)
     assert (got.index is None) == (ref.index is None)
     for name in ("position", "rotation", "scale"):
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
 
 
-def test_fast_decoder_checks_like_the_codec(kernels) -> None:
+@pytest.mark.parametrize("parallel", [False, True])
+def test_fast_decoder_checks_like_the_codec(kernels, parallel) -> None:
+    """A dense f16 frame with a non-finite half in any field is refused with the codec's error, naming the field."""
     from ofera.client.fast_decode import FastFrameDecoder
     from ofera_protocol import ProtocolError
     from ofera_protocol.codec import pack_map
@@ -709,11 +721,16 @@ def test_fast_decoder_checks_like_the_codec(kernels) -> None:
     pos[1, 2] = np.inf
     good = {"type": "frame", "seq": 1, "t": 2, "timing": {}, "n": 2, "position": np.zeros((2, 3), "<f2"),
             "rotation": np.zeros((2, 4), "<f2"), "scale": np.zeros((2, 3), "<f2")}
-    dec = FastFrameDecoder(fmt)
+    dec = FastFrameDecoder(fmt, parallel=parallel)
     assert dec.decode(pack_map(good)).n == 2
-    with pytest.raises(ProtocolError) as e:
-        dec.decode(pack_map({**good, "position": pos}))
-    assert e.value.code == "non_finite"
+    for name in ("position", "rotation", "scale"):
+        bad = np.zeros((2, 4 if name == "rotation" else 3), "<f2")
+        bad[1, -1] = np.inf
+        with pytest.raises(ProtocolError) as want:
+            decode_server_message(pack_map({**good, name: bad}), fmt)
+        with pytest.raises(ProtocolError) as e:
+            dec.decode(pack_map({**good, name: bad}))
+        assert (e.value.code, str(e.value)) == (want.value.code, str(want.value)) and e.value.code == "non_finite"
     with pytest.raises(ProtocolError) as e:
         dec.decode(pack_map({**good, "scale": np.zeros((1, 3), "<f2")}))
     assert e.value.code == "bad_length"

@@ -34,12 +34,13 @@ from ..jit import atomic_add, f16_bits_to_f32
 from ..thread_choice import Activity, ThreadChoice, load_average, use_threads
 
 
-@nb.njit(**_NB)
-def f16_decode_kernel(src, dst):
-    """half bits (n,) -> float32 (n,); False if any is NaN or infinite (exponent all ones)."""
+@nb.njit(inline="always", **_NB)
+def _f16_finite_into(src, lo, hi, dst):
+    """half bits src[lo:hi] -> float32 dst[lo:hi]; False if any is NaN or infinite (exponent all ones). (uint16 bits;
+    the cast only types the q13 twin's branch, which never runs it.)"""
     ok = True
-    for i in range(src.shape[0]):
-        h = src[i]
+    for i in range(np.uint64(lo), np.uint64(hi)):
+        h = np.uint16(src[i])
         ok &= (h & 0x7C00) != 0x7C00
         dst[i] = f16_bits_to_f32(h)
     return ok
@@ -52,16 +53,58 @@ def _q13_field(v, shift):
     return np.float32(max(f, -ROT_LEVELS))
 
 
+@nb.njit(inline="always", **_NB)
+def _dense_rows(q13, start, stop, pos, rot, scale, lo, step, lut, out_p, out_r, out_s):
+    """Rows start..stop - 1 of a dense frame's codes (flat, as received: q13 uint16 / uint32 / uint8, f16 uint16 bits)
+    -> float32 out_p, out_r, out_s (flat, C order; q13: PROTOCOL.md 6.3, the reference decoder's arithmetic, rotations
+    stored by computed slot as :func:`_q13_rotation_at` says). Returns the fields holding NaN or infinity (f16): bit 0
+    position, 1 rotation, 2 scale."""
+    three, four = np.uint64(3), np.uint64(4)
+    a, b = np.uint64(start), np.uint64(stop)
+    if q13:
+        for m in range(a, b):
+            for c in range(three):
+                out_p[three * m + c] = np.float32(lo[c] + np.float64(pos[three * m + c]) * step[c])
+                out_s[three * m + c] = lut[scale[three * m + c]]
+            _q13_rotation_at(rot[m], out_r, four * m)
+        return 0
+    bad = 0 if _f16_finite_into(pos, three * a, three * b, out_p) else 1
+    bad |= 0 if _f16_finite_into(rot, four * a, four * b, out_r) else 2
+    return bad | (0 if _f16_finite_into(scale, three * a, three * b, out_s) else 4)
+
+
 @nb.njit(**_NB)
-def q13_decode_kernel(pos, rot, scale, lo, step, scale_lut, out_pos, out_rot, out_scale):
-    """q13 codes -> float32 (PROTOCOL.md 6.3, the reference decoder's arithmetic); out_rot C-contiguous (100k
-    rotations of a key frame 0.70 ms stored by :func:`_q13_rotation_at`, 1.15 with selects, round eleven)."""
-    flat_rot = out_rot.reshape(-1)
-    for m in range(rot.shape[0]):
-        for c in range(3):
-            out_pos[m, c] = np.float32(lo[c] + np.float64(pos[3 * m + c]) * step[c])
-            out_scale[m, c] = scale_lut[scale[3 * m + c]]
-        _q13_rotation_at(rot[m], flat_rot, np.uint64(4 * m))
+def dense_decode_kernel(q13, pos, rot, scale, lo, step, lut, out_p, out_r, out_s):
+    """A dense q13 or f16 frame's n = len(rot) (q13) or len(rot) / 4 (f16) rows (:func:`_dense_rows`): 100k q13
+    rotations of a key frame 0.70 ms stored by computed slot, 1.15 with selects (round eleven)."""
+    return _dense_rows(q13, 0, rot.shape[0] if q13 else rot.shape[0] // 4, pos, rot, scale, lo, step, lut, out_p,
+                       out_r, out_s)
+
+
+DENSE_BLOCK = 4096
+"""Rows a thread of :func:`dense_decode_kernel_parallel` decodes at a time."""
+
+
+@nb.njit(parallel=True, **_NB)
+def dense_decode_kernel_parallel(threads, claims, bad, q13, pos, rot, scale, lo, step, lut, out_p, out_r, out_s):
+    """:func:`dense_decode_kernel` in blocks of :data:`DENSE_BLOCK` rows that ``threads`` of numba's threads claim as
+    they go (the same values). claims: (1,) int64, bad: (>= threads,) int64 scratch."""
+    n = rot.shape[0] if q13 else rot.shape[0] // 4
+    blocks = (n + DENSE_BLOCK - 1) // DENSE_BLOCK
+    claims[0] = 0
+    for t in nb.prange(threads):
+        found = 0
+        while True:
+            b = atomic_add(claims, 0, 1)
+            if b >= blocks:
+                break
+            found |= _dense_rows(q13, b * DENSE_BLOCK, min(n, (b + 1) * DENSE_BLOCK), pos, rot, scale, lo, step, lut,
+                                 out_p, out_r, out_s)
+        bad[t] = found
+    found = 0
+    for t in range(threads):
+        found |= bad[t]
+    return found
 
 
 @nb.njit(inline="always", **_NB)
@@ -351,16 +394,23 @@ _DELTA_BINS = ("changed", "moved_position", "moved_rotation", "moved_scale", "wi
 """A delta frame's bin fields, in delta_frame_kernel's order."""
 _Z3 = np.zeros(3)
 _Z256 = np.zeros(256, np.float32)
+_CODES = {True: ("<u2", "<u4", "u1"), False: ("<u2", "<u2", "<u2")}
+"""A dense frame's code fields' dtypes by q13 (else f16): position, rotation, scale."""
 
 
 def decoder_warm(parallel: bool = True) -> None:
-    """Compile the decoding kernels for message buffers (read-only uint views); ``parallel``: the threaded delta
-    kernel as well (and start numba's threads)."""
+    """Compile the decoding kernels for message buffers (read-only uint views); ``parallel``: the threaded ones as
+    well (and start numba's threads)."""
     raw = bytes(64)
-    f16_decode_kernel(np.frombuffer(raw, "<u2", 6), np.zeros(6, np.float32))
     out3, out4 = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32)
-    q13_decode_kernel(np.frombuffer(raw, "<u2", 6), np.frombuffer(raw, "<u4", 2), np.frombuffer(raw, np.uint8, 6),
-                      np.zeros(3), np.ones(3), np.ones(256, np.float32), out3, out4, out3.copy())
+    threads = numba.get_num_threads()
+    for q13 in (True, False):
+        dense = (q13, *[np.frombuffer(raw, dt, 2 * w) for dt, w in zip(_CODES[q13], (3, 1 if q13 else 4, 3))],
+                 np.zeros(3), np.ones(3), np.ones(256, np.float32), out3.reshape(-1), out4.reshape(-1),
+                 out3.copy().reshape(-1))
+        dense_decode_kernel(*dense)
+        if parallel:
+            dense_decode_kernel_parallel(threads, np.zeros(1, np.int64), np.zeros(threads, np.int64), *dense)
     one = np.frombuffer(b"\x01", np.uint8)
     index, moved, lists, wide = np.zeros(9, np.uint32), np.zeros((3, 1), np.uint64), np.zeros((4, 9), np.uint32), \
         np.zeros(1, np.uint64)
@@ -373,7 +423,7 @@ def decoder_warm(parallel: bool = True) -> None:
                  wide.view(bool), *held, np.zeros(3), np.ones(3), np.ones(256, np.float32), out3[0], out4[0], out3[1])
         delta_frame_kernel(*frame)
         if parallel:
-            delta_frame_kernel_parallel(numba.get_num_threads(), np.zeros(1, np.int64), *frame)
+            delta_frame_kernel_parallel(threads, np.zeros(1, np.int64), *frame)
     ids = np.zeros(1, np.uint32)  # the types of a DeltaFrame's arrays (read-only views of the message)
     res = np.frombuffer(raw, np.int8, 3)
     for q13 in (True, False):
@@ -409,10 +459,11 @@ class FastFrameDecoder:
         self.format = fmt
         self.parallel = parallel  # a delta frame's decoding on numba's threads; None: automatic (see the class)
         self.activity = activity
-        self.choice = ThreadChoice()
+        self.choices = {"delta": ThreadChoice(), "dense": ThreadChoice()}
         self.threads = numba.get_num_threads()  # read once (37 us on a cold CPU: ofera.avatar.fast)
-        self.threaded = False  # the last delta frame's mode
+        self.threaded = False  # the last decoded frame's mode
         self._claims = np.zeros(1, np.int64)
+        self._bad = np.zeros(self.threads, np.int64)
         n = fmt.count
         self._pos = np.zeros((n, 3), np.float32)
         self._rot = np.zeros((n, 4), np.float32)
@@ -471,21 +522,31 @@ class FastFrameDecoder:
                 return None
         timing = decode_timing(m)  # the codec's error if it is not a map of stage durations
         q13 = self.format.encoding == "q13"
-        lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
-        args = (q13, self.format.count, n, *[np.frombuffer(b, np.uint8) for b in bins], self._index, self._lists,
-                self._wide, self._wide_bools, *self._held_flat, lo, step, lut, *self._out_flat)
-        par = self.parallel
-        if par is None:
-            par = use_threads(self.activity.note(id(self)), self.threads, load_average) and self.choice.choose()
-        self.threaded = par
-        start = time.perf_counter_ns()
-        code = delta_frame_kernel_parallel(self.threads, self._claims, *args) if par else delta_frame_kernel(*args)
-        if self.parallel is None:
-            self.choice.record(par, time.perf_counter_ns() - start, max(n, 1))
-        if code:
+        if self._run("delta", n, delta_frame_kernel_parallel, delta_frame_kernel, (), q13, self.format.count, n,
+                     *[np.frombuffer(b, np.uint8) for b in bins], self._index, self._lists, self._wide,
+                     self._wide_bools, *self._held_flat, *self._coding(q13), *self._out_flat):
             return None
         return Frame(seq=seq, t=t, timing=timing, index=self._index[:n], position=self._pos[:n],
                      rotation=self._rot[:n], scale=self._scale[:n], key=False)
+
+    def _coding(self, q13: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The q13 decoding's constants (lo, step, scale table), or placeholders (f16)."""
+        return (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
+
+    def _run(self, kind: str, work: int, parallel_kernel: Any, kernel: Any, scratch: tuple, *args: Any) -> int:
+        """``kernel(*args)``, or ``parallel_kernel(threads, claims, *scratch, *args)`` where this frame's thread choice
+        says so (``parallel``, or automatic: see the class); an automatic frame's time is recorded for ``work`` units
+        in the choice of its ``kind`` (delta and dense frames differ in cost per unit)."""
+        par = self.parallel
+        choice = self.choices[kind]
+        if par is None:
+            par = use_threads(self.activity.note(id(self)), self.threads, load_average) and choice.choose()
+        self.threaded = par
+        start = time.perf_counter_ns()
+        out = parallel_kernel(self.threads, self._claims, *scratch, *args) if par else kernel(*args)
+        if self.parallel is None:
+            choice.record(par, time.perf_counter_ns() - start, max(work, 1))
+        return out
 
     def _apply_delta(self, d: DeltaFrame) -> Frame:
         """The numba twin of ofera_protocol.delta.DeltaDecoder.apply (same checks, same values)."""
@@ -495,7 +556,7 @@ class FastFrameDecoder:
         q13 = fmt.encoding == "q13"
         n = d.n
         p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
-        lo, step, lut = (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
+        lo, step, lut = self._coding(q13)
         code = delta_apply_kernel(q13, d.index, self._lists, *self._counts, d.wide, d.position_delta.reshape(-1),
                                   _codes(d.position), _codes(d.rotation), _codes(d.scale), *self._held_flat, lo, step,
                                   lut, *self._out_flat)
@@ -521,26 +582,22 @@ class FastFrameDecoder:
             return self._apply_delta(parts)
         seq, t, timing, key, n, index, bufs = parts
         p, r, s = self._pos[:n], self._rot[:n], self._scale[:n]
-        if fmt.encoding == "q13":
-            q13_decode_kernel(np.frombuffer(bufs[0], "<u2"), np.frombuffer(bufs[1], "<u4"),
-                              np.frombuffer(bufs[2], np.uint8), self._lo, self._step, self._lut, p, r, s)
-        else:
-            for name, buf, out in zip(("position", "rotation", "scale"), bufs, (p, r, s)):
-                if fmt.encoding == "f16":
-                    ok = f16_decode_kernel(np.frombuffer(buf, "<u2"), out.reshape(-1))
-                else:
-                    a = np.frombuffer(buf, "<f4")
-                    ok = bool(np.isfinite(a.min()) and np.isfinite(a.max())) if a.size else True
-                if not ok:
+        if fmt.encoding == "f32":
+            for name, buf in zip(("position", "rotation", "scale"), bufs):
+                a = np.frombuffer(buf, "<f4")
+                if a.size and not (np.isfinite(a.min()) and np.isfinite(a.max())):
                     raise ProtocolError(NON_FINITE, f"frame field {name!r} holds NaN or infinity")
-            if fmt.encoding == "f32":  # read-only views of the message, like the codec
-                p, r, s = (np.frombuffer(b, "<f4").reshape(n, w) for b, w in zip(bufs, (3, 4, 3)))
-        codes = None
-        if key:
-            dts = ("<u2", "<u4", "u1") if fmt.encoding == "q13" else ("<u2", "<u2", "<u2")
-            codes = tuple(np.frombuffer(b, dt) for b, dt in zip(bufs, dts))
+            p, r, s = (np.frombuffer(b, "<f4").reshape(n, w) for b, w in zip(bufs, (3, 4, 3)))  # read-only views
+        else:
+            q13 = fmt.encoding == "q13"
+            codes = [np.frombuffer(b, dt) for b, dt in zip(bufs, _CODES[q13])]
+            bad = self._run("dense", n, dense_decode_kernel_parallel, dense_decode_kernel, (self._bad,), q13, *codes,
+                            *self._coding(q13), *self._out_flat)
+            for bit, name in enumerate(("position", "rotation", "scale")):
+                if bad >> bit & 1:
+                    raise ProtocolError(NON_FINITE, f"frame field {name!r} holds NaN or infinity")
         frame = Frame(seq=seq, t=t, timing=timing, index=index, position=p, rotation=r, scale=s, key=key,
-                      codes=codes)  # type: ignore[arg-type]
+                      codes=tuple(codes) if key else None)  # type: ignore[arg-type]
         if key:
             self.delta.key(frame)
         return frame
