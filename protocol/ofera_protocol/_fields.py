@@ -86,7 +86,7 @@ def get_bin(m: dict[str, Any], key: str, where: str, required: bool = True) -> A
     v = _get(m, key, where, required)
     if v is _MISSING:
         return None
-    if type(v) is not bytes:
+    if type(v) is not bytes and type(v) is not memoryview:  # (memoryview: a zero-copy reader's bin, never msgpack's)
         raise ProtocolError(BAD_FIELD, f"{where}: field {key!r} must be bin, got {_type_name(v)}")
     return v
 

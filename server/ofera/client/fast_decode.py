@@ -32,6 +32,7 @@ from ofera_protocol.messages import DeltaFrame
 from ..jit import NB as _NB
 from ..jit import atomic_add, f16_bits_to_f32
 from ..thread_choice import Activity, ThreadChoice, load_average, use_threads
+from .frame_scan import scan_frame
 
 
 @nb.njit(inline="always", **_NB)
@@ -518,7 +519,7 @@ class FastFrameDecoder:
             return None
         bins = [m.get(k) for k in _DELTA_BINS]
         for b in bins:
-            if type(b) is not bytes:
+            if type(b) is not memoryview and type(b) is not bytes:
                 return None
         timing = decode_timing(m)  # the codec's error if it is not a map of stage durations
         q13 = self.format.encoding == "q13"
@@ -569,7 +570,9 @@ class FastFrameDecoder:
     def decode(self, data) -> object:
         """A `frame` message -> ofera_protocol.Frame whose arrays are views of this decoder's buffers;
         other messages are decoded by the reference codec. Raises ProtocolError like the codec."""
-        m = unpack_message(data, MAX_SERVER_MESSAGE)
+        m = scan_frame(data, MAX_SERVER_MESSAGE)  # bins as views of data; None: the codec's unpacking decides
+        if m is None:
+            m = unpack_message(data, MAX_SERVER_MESSAGE)
         if m.get("type") != "frame":
             return decode_server_message(data, self.format)
         if self.delta is not None and m.get("key") is False:
