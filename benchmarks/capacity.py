@@ -119,8 +119,10 @@ async def worker_main(spec: dict) -> None:
     """A client process (--client-procs > 1): connect this share of the sessions, print "ready", read the common
     start time from stdin, stream, print the result (JSON) with the CPU this process used."""
     from ofera.client import connect
+    from ofera.client.fast_decode import decoder_warm
 
     weights, layout, _, _ = C.capture()
+    decoder_warm()  # compiled (or loaded) before connecting: a first compile blocks the loop past the keepalive
     clients = [await connect(spec["url"], layout=layout, **spec["hello"]) for _ in spec["indices"]]
     print("ready", flush=True)
     start = float(await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline))
@@ -168,7 +170,9 @@ def run_k_processes(url: str, k: int, procs: int, args, seq0: int) -> dict:
 
 async def sweep(url: str, ks: list[int], weights, layout: str, args, server_pid: int | None = None) -> dict:
     from ofera.client import connect
+    from ofera.client.fast_decode import decoder_warm
 
+    decoder_warm()  # compiled (or loaded) before connecting: a first compile blocks the loop past the keepalive
     clients = []
     if args.client_procs <= 1:
         for _ in range(max(ks)):

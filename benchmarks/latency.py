@@ -74,10 +74,12 @@ async def run_session(url: str, weights: np.ndarray, layout: str, rate: float, s
     (ofera_protocol's decoder, via the client library's connection), 'header' (arrays left undecoded).
     delta: a delta session (hello.delta); the decoder applies its delta frames to the codes it holds."""
     from ofera.client import connect, now_us
-    from ofera.client.fast_decode import FastFrameDecoder
+    from ofera.client.fast_decode import FastFrameDecoder, decoder_warm
     from ofera_protocol import Frame
 
     params = encoding == "params"
+    if decode == "fast" and not params:
+        decoder_warm()  # compiled (or loaded) before connecting: a first compile blocks the loop past the keepalive
     client = await connect(url, layout=layout, encoding=encoding, sparse=sparse, delta=delta,
                            track=params and decode != "header")
     fast = FastFrameDecoder(client.conn.format) if decode == "fast" and not params else None  # delta frames too

@@ -48,9 +48,11 @@ ORDER = ("bs_send", *SERVER_STAGES, "send", "drain", "client_decode", "wire_and_
 async def stream(url: str, weights: np.ndarray, layout: str, args) -> dict:
     """One client streaming on a fixed schedule; per-frame client-side stamps (us) and the frame's timing."""
     from ofera.client import connect, now_us
-    from ofera.client.fast_decode import FastFrameDecoder
+    from ofera.client.fast_decode import FastFrameDecoder, decoder_warm
     from ofera_protocol import Frame
 
+    if args.client_decode == "fast":
+        decoder_warm()  # compiled (or loaded) before connecting: a first compile blocks the loop past the keepalive
     client = await connect(url, layout=layout, encoding=args.encoding, sparse=args.sparse, delta=args.delta,
                            transport=args.client_transport)
     fast = FastFrameDecoder(client.conn.format) if args.client_decode == "fast" else None  # delta frames too

@@ -22,8 +22,8 @@ import numba as nb
 import numpy as np
 from ofera_protocol import Frame, FrameFormat
 from ofera_protocol import _fields as F
-from ofera_protocol.codec import decode_server_message, decode_timing, delta_masks, frame_parts, unpack_message
-from ofera_protocol.constants import INT64_MAX, INT64_MIN, MAX_SERVER_MESSAGE, UINT32_MAX
+from ofera_protocol.codec import decode_server_message, delta_masks, frame_parts, unpack_message
+from ofera_protocol.constants import MAX_SERVER_MESSAGE, UINT32_MAX
 from ofera_protocol.delta import DeltaDecoder
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS
 from ofera_protocol.errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
@@ -32,7 +32,7 @@ from ofera_protocol.messages import DeltaFrame
 from ..jit import NB as _NB
 from ..jit import atomic_add, f16_bits_to_f32
 from ..thread_choice import Activity, ThreadChoice, load_average, use_threads
-from .frame_scan import scan_frame
+from .frame_scan import DELTA_FIELDS, MEMBER, SEQ, N, T, delta_bin, scan_delta_frame, scan_frame
 
 
 @nb.njit(inline="always", **_NB)
@@ -324,12 +324,16 @@ def _finite_f16(codes):
 
 
 @nb.njit(inline="always", **_NB)
-def _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists, wide,
-                wide_bools, held_p, held_r, held_s):
-    """A whole delta frame from its bins (uint8, as received): its masks (:func:`_masks_checked`), the lengths of
-    its code fields and, f16, the codes sent whole finite (codec.decode_delta_frame's checks), then
-    :func:`_hold_delta` (wide: the wide bits' words, wide_bools the same memory as bools). Returns 0, or non-zero for
-    any fault (nothing held has changed then: the codec's path names it)."""
+def _frame_held(q13, count, n, buf, fields, index, lists, wide, wide_bools, held_p, held_r, held_s):
+    """A whole delta frame from its message (buf, uint8 as received; fields: where its bins are,
+    :func:`.frame_scan.scan_delta_frame`): its masks (:func:`_masks_checked`), the lengths of its code fields and,
+    f16, the codes sent whole finite (codec.decode_delta_frame's checks), then :func:`_hold_delta` (wide: the wide
+    bits' words, wide_bools the same memory as bools). Returns 0, or non-zero for any fault (nothing held has changed
+    then: the codec's path names it)."""
+    changed, mpos, mrot, mscale = (delta_bin(buf, fields, 0), delta_bin(buf, fields, 1), delta_bin(buf, fields, 2),
+                                   delta_bin(buf, fields, 3))
+    wide_bits, res, wpos = delta_bin(buf, fields, 4), delta_bin(buf, fields, 5), delta_bin(buf, fields, 6)
+    rot, scl = delta_bin(buf, fields, 7), delta_bin(buf, fields, 8)
     ok, n_p, n_r, n_s, nw = _masks_checked(changed, count, n, mpos, mrot, mscale, wide_bits, index, lists, wide)
     rb, sb = (4, 3) if q13 else (8, 6)
     if not ok or res.shape[0] != 3 * (n_p - nw) or wpos.shape[0] != 6 * nw or rot.shape[0] != rb * n_r \
@@ -347,12 +351,11 @@ def _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos
 
 
 @nb.njit(**_NB)
-def delta_frame_kernel(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists,
-                       wide, wide_bools, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s):
-    """A whole delta frame from its bins onto the held codes (:func:`_frame_held`), then its n carried Gaussians
+def delta_frame_kernel(q13, count, n, buf, fields, index, lists, wide, wide_bools, held_p, held_r, held_s, lo, step,
+                       lut, out_p, out_r, out_s):
+    """A whole delta frame from its message onto the held codes (:func:`_frame_held`), then its n carried Gaussians
     decoded into out_p, out_r, out_s (:func:`_gathered`). Returns 0, or _frame_held's fault code."""
-    code = _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists, wide,
-                       wide_bools, held_p, held_r, held_s)
+    code = _frame_held(q13, count, n, buf, fields, index, lists, wide, wide_bools, held_p, held_r, held_s)
     if code == 0:
         _gathered(q13, 0, n, index, held_p, held_r, held_s, lo, step, lut, out_p, out_r, out_s)
     return code
@@ -363,13 +366,11 @@ DECODE_BLOCK = 1024
 
 
 @nb.njit(parallel=True, **_NB)
-def delta_frame_kernel_parallel(threads, claims, q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos,
-                                rot, scl, index, lists, wide, wide_bools, held_p, held_r, held_s, lo, step, lut,
-                                out_p, out_r, out_s):
+def delta_frame_kernel_parallel(threads, claims, q13, count, n, buf, fields, index, lists, wide, wide_bools, held_p,
+                                held_r, held_s, lo, step, lut, out_p, out_r, out_s):
     """:func:`delta_frame_kernel` with the decoding in blocks of :data:`DECODE_BLOCK` Gaussians that ``threads`` of
     numba's threads claim as they go (claims: (1,) int64 scratch): the same values."""
-    code = _frame_held(q13, count, n, changed, mpos, mrot, mscale, wide_bits, res, wpos, rot, scl, index, lists, wide,
-                       wide_bools, held_p, held_r, held_s)
+    code = _frame_held(q13, count, n, buf, fields, index, lists, wide, wide_bools, held_p, held_r, held_s)
     if code:
         return code
     blocks = (n + DECODE_BLOCK - 1) // DECODE_BLOCK
@@ -390,9 +391,6 @@ def _codes(a: np.ndarray) -> np.ndarray:
     return a.view(np.uint16) if a.dtype == np.float16 else a
 
 
-_DELTA_BINS = ("changed", "moved_position", "moved_rotation", "moved_scale", "wide", "position_delta", "position",
-               "rotation", "scale")
-"""A delta frame's bin fields, in delta_frame_kernel's order."""
 _Z3 = np.zeros(3)
 _Z256 = np.zeros(256, np.float32)
 _CODES = {True: ("<u2", "<u4", "u1"), False: ("<u2", "<u2", "<u2")}
@@ -416,12 +414,14 @@ def decoder_warm(parallel: bool = True) -> None:
     index, moved, lists, wide = np.zeros(9, np.uint32), np.zeros((3, 1), np.uint64), np.zeros((4, 9), np.uint32), \
         np.zeros(1, np.uint64)
     unpack_delta_masks_kernel(one, 1, 1, one, one, one, np.frombuffer(b"\x00", np.uint8), index, moved, lists, wide)
-    bins = np.frombuffer(raw, np.uint8)  # a bin field as received: a read-only uint8 view of a bytes object
+    buf = np.frombuffer(raw, np.uint8)  # a message as received: a read-only uint8 view
+    fields = np.zeros((len(DELTA_FIELDS), 2), np.int64)
+    scan_delta_frame(buf, fields, np.zeros((15, 3), np.int64))
     for q13 in (True, False):
         held = (np.zeros(3, np.uint16), np.zeros(1, np.uint32) if q13 else np.zeros(4, np.uint16),
                 np.zeros(3, np.uint8 if q13 else np.uint16))
-        frame = (q13, 1, 1, one, one, one, one, bins[:1], bins[:0], bins[:6], bins[:0], bins[:0], index, lists, wide,
-                 wide.view(bool), *held, np.zeros(3), np.ones(3), np.ones(256, np.float32), out3[0], out4[0], out3[1])
+        frame = (q13, 1, 1, buf, fields, index, lists, wide, wide.view(bool), *held, np.zeros(3), np.ones(3),
+                 np.ones(256, np.float32), out3[0], out4[0], out3[1])
         delta_frame_kernel(*frame)
         if parallel:
             delta_frame_kernel_parallel(threads, np.zeros(1, np.int64), *frame)
@@ -490,6 +490,8 @@ class FastFrameDecoder:
             self._wide = np.zeros(n // 8 + 1, np.uint64)
             self._wide_bools = self._wide.view(bool)
             self._counts = (0, 0, 0, 0)
+            self._fields = np.zeros((len(DELTA_FIELDS), 2), np.int64)  # where a delta frame's fields are
+            self._timing = np.zeros((15, 3), np.int64)  # (a fixmap's stages at most)
 
     def _masks(self, m: dict, fmt: FrameFormat) -> Any:
         """codec.delta_masks by unpack_delta_masks_kernel into this decoder's buffers; the codec's own on any fault (it
@@ -508,24 +510,29 @@ class FastFrameDecoder:
         moved, wide = self._moved.view(bool)[:, :n].T, self._wide_bools[:n_p]
         return self._index[:n], moved, wide, (n_p, n_r, n_s, nw)  # views, as the frame's arrays are
 
-    def _delta(self, m: dict) -> Frame | None:
-        """A delta frame (``key`` false) decoded and applied by :func:`delta_frame_kernel` in one call, or None where
-        anything is off or not as usual (nothing held has changed then: :meth:`decode` runs the codec's checks,
-        which name the fault). The checks and their order are the codec's: seq, t, timing, then the masks and
-        fields."""
-        seq, t, n = m.get("seq"), m.get("t"), m.get("n")
-        if not (type(seq) is int and type(t) is int and type(n) is int and 0 <= seq <= INT64_MAX
-                and INT64_MIN <= t <= INT64_MAX and 0 <= n <= self.format.count and self.delta.has_key):
+    def _delta(self, data: bytes | bytearray | memoryview) -> Frame | None:
+        """A delta frame (``key`` false) read by :func:`.frame_scan.scan_delta_frame` and applied by
+        :func:`delta_frame_kernel`, one call each (no map, no copy), or None where anything is off or not as usual
+        (nothing held has changed then: :meth:`decode` reads it as the codec does, which names the fault). The
+        checks and their order are the codec's: seq, t, timing, then the masks and fields."""
+        buf = np.frombuffer(memoryview(data).toreadonly(), np.uint8)  # (read-only whatever the buffer: one type)
+        stages = scan_delta_frame(buf, self._fields, self._timing)
+        if stages < 0 or buf.shape[0] > MAX_SERVER_MESSAGE or not self.delta.has_key:
             return None
-        bins = [m.get(k) for k in _DELTA_BINS]
-        for b in bins:
-            if type(b) is not memoryview and type(b) is not bytes:
-                return None
-        timing = decode_timing(m)  # the codec's error if it is not a map of stage durations
+        values = self._fields[:, 0].tolist()
+        seq, t, n, member = values[SEQ], values[T], values[N], values[MEMBER]
+        if seq < 0 or not 0 <= n <= self.format.count:
+            return None
+        try:  # the stage names and member: UTF-8, as msgpack's strings
+            timing = {str(data[a:a + k], "utf-8"): v for a, k, v in self._timing[:stages].tolist()}
+            if member >= 0:
+                str(data[member:member + int(self._fields[MEMBER, 1])], "utf-8")
+        except UnicodeDecodeError:
+            return None
         q13 = self.format.encoding == "q13"
-        if self._run("delta", n, delta_frame_kernel_parallel, delta_frame_kernel, (), q13, self.format.count, n,
-                     *[np.frombuffer(b, np.uint8) for b in bins], self._index, self._lists, self._wide,
-                     self._wide_bools, *self._held_flat, *self._coding(q13), *self._out_flat):
+        if self._run("delta", n, delta_frame_kernel_parallel, delta_frame_kernel, (), q13, self.format.count, n, buf,
+                     self._fields, self._index, self._lists, self._wide, self._wide_bools, *self._held_flat,
+                     *self._coding(q13), *self._out_flat):
             return None
         return Frame(seq=seq, t=t, timing=timing, index=self._index[:n], position=self._pos[:n],
                      rotation=self._rot[:n], scale=self._scale[:n], key=False)
@@ -570,15 +577,15 @@ class FastFrameDecoder:
     def decode(self, data) -> object:
         """A `frame` message -> ofera_protocol.Frame whose arrays are views of this decoder's buffers;
         other messages are decoded by the reference codec. Raises ProtocolError like the codec."""
+        if self.delta is not None and isinstance(data, (bytes, bytearray, memoryview)):
+            frame = self._delta(data)
+            if frame is not None:
+                return frame
         m = scan_frame(data, MAX_SERVER_MESSAGE)  # bins as views of data; None: the codec's unpacking decides
         if m is None:
             m = unpack_message(data, MAX_SERVER_MESSAGE)
         if m.get("type") != "frame":
             return decode_server_message(data, self.format)
-        if self.delta is not None and m.get("key") is False:
-            frame = self._delta(m)
-            if frame is not None:
-                return frame
         fmt = self.format
         parts = frame_parts(m, fmt, self._masks)  # masks: delta frames only
         if isinstance(parts, DeltaFrame):

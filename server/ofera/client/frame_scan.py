@@ -15,7 +15,11 @@ from __future__ import annotations
 import struct
 from typing import Any
 
+import numba as nb
+import numpy as np
 from ofera_protocol.constants import MAX_CONTAINER_LEN, MAX_STR_LEN
+
+from ..jit import NB as _NB
 
 _FIXED = {0xC0: None, 0xC2: False, 0xC3: True}
 _NUMBERS = {0xCC: struct.Struct(">B"), 0xCD: struct.Struct(">H"), 0xCE: struct.Struct(">I"), 0xCF: struct.Struct(">Q"),
@@ -117,3 +121,160 @@ def scan_frame(data: bytes | bytearray | memoryview, max_size: int) -> dict[str,
     except _Unknown:
         return None
     return m if end == len(view) else None
+
+
+# ----------------------------------------------------------------------------- a delta frame's fields, in numba
+
+DELTA_FIELDS = ("type", "seq", "t", "timing", "key", "n", "member", "changed", "moved_position", "moved_rotation",
+                "moved_scale", "wide", "position_delta", "position", "rotation", "scale")
+"""The keys of a delta frame's map (``member`` optional), in the rows of :func:`scan_delta_frame`'s ``fields``."""
+SEQ, T, N, MEMBER, BINS = 1, 2, 5, 6, 7  # rows of fields: the integers' values; member's and the bins' (start, length)
+_TYPE, _TIMING, _KEY = 0, 3, 4
+_NAMES = np.zeros((len(DELTA_FIELDS), 16), np.uint8)
+_NAME_LENGTHS = np.array([len(k) for k in DELTA_FIELDS], np.int64)
+for _row, _key in enumerate(DELTA_FIELDS):
+    _NAMES[_row, :len(_key)] = np.frombuffer(_key.encode(), np.uint8)
+_REQUIRED = ((1 << len(DELTA_FIELDS)) - 1) & ~(1 << MEMBER)
+_FRAME = np.frombuffer(b"\xa5frame", np.uint8)  # the type's value: fixstr "frame"
+_INT64_MAX = np.uint64(2**63 - 1)
+
+
+@nb.njit(inline="always", **_NB)
+def _field(buf, i, k):
+    """The row of DELTA_FIELDS whose name is buf[i:i + k], or -1."""
+    for f in range(_NAMES.shape[0]):
+        if _NAME_LENGTHS[f] == k:
+            same = True
+            for c in range(k):
+                same &= buf[i + c] == _NAMES[f, c]
+            if same:
+                return f
+    return -1
+
+
+@nb.njit(inline="always", **_NB)
+def _int(buf, i):
+    """The msgpack integer at buf[i] (any width; a uint64 above INT64_MAX refused): (ok, value, next byte)."""
+    n = buf.shape[0]
+    tag = np.int64(buf[i])
+    if tag < 0x80:
+        return True, tag, i + 1
+    if tag >= 0xE0:
+        return True, tag - 256, i + 1
+    if 0xCC <= tag <= 0xCF:
+        size, signed = 1 << (tag - 0xCC), False
+    elif 0xD0 <= tag <= 0xD3:
+        size, signed = 1 << (tag - 0xD0), True
+    else:
+        return False, np.int64(0), i
+    if i + 1 + size > n:
+        return False, np.int64(0), i
+    v = np.uint64(0)
+    for c in range(size):
+        v = (v << np.uint64(8)) | np.uint64(buf[i + 1 + c])
+    if signed and size < 8 and v >> np.uint64(8 * size - 1):
+        v |= ~np.uint64(0) << np.uint64(8 * size)  # sign-extend
+    if not signed and v > _INT64_MAX:
+        return False, np.int64(0), i
+    return True, np.int64(v), i + 1 + size
+
+
+@nb.njit(inline="always", **_NB)
+def _sized(buf, i, width):
+    """The big-endian length of ``width`` bytes after tag byte i: (its start, the length), or (-1, 0) past the end."""
+    if i + 1 + width > buf.shape[0]:
+        return -1, 0
+    v = 0
+    for c in range(width):
+        v = (v << 8) | np.int64(buf[i + 1 + c])
+    return i + 1 + width, v
+
+
+@nb.njit(inline="always", **_NB)
+def delta_bin(buf, fields, j):
+    """The j-th bin of a scanned delta frame (0 = changed ... 8 = scale: DELTA_FIELDS from BINS), a view of buf."""
+    start = fields[BINS + j, 0]
+    return buf[start:start + fields[BINS + j, 1]]
+
+
+@nb.njit(**_NB)
+def scan_delta_frame(buf, fields, timing):
+    """A delta frame's map (PROTOCOL.md 7.1) as received (buf (size,) uint8) into ``fields`` (len(DELTA_FIELDS), 2)
+    int64: the integers' values (row, 0) and member's (start -1 if none) and each bin's (start, length) in buf;
+    ``timing`` (>= 15, 3) int64: each stage name's (start, length) and its duration. Returns the number of
+    stages, or -1 for anything but a plain delta frame: type "frame", key false, every field once (fixstr keys,
+    known ones only), integers of any width, a timing map of at most 64 stages of short names and durations 0 ..
+    INT64_MAX, nothing after the map; the caller then reads the message as the codec does (which names any fault).
+    The checks of the fields' values (ranges, lengths, masks) are the caller's."""
+    size = buf.shape[0]
+    fields[MEMBER, 0] = -1  # (none unless the map has one)
+    if size < 3:
+        return -1
+    tag = np.int64(buf[0])
+    if 0x80 <= tag <= 0x8F:
+        count, i = tag & 0x0F, 1
+    elif tag == 0xDE:
+        i, count = _sized(buf, 0, 2)
+    else:
+        return -1
+    seen, stages = 0, 0
+    for _ in range(count):
+        if i >= size or not 0xA0 <= buf[i] <= 0xBF:
+            return -1
+        k = np.int64(buf[i] & 0x1F)
+        if i + 1 + k >= size:
+            return -1
+        f = _field(buf, i + 1, k)
+        if f < 0 or seen >> f & 1:
+            return -1
+        seen |= 1 << f
+        i += 1 + k
+        tag = np.int64(buf[i])
+        if f == _TYPE:
+            if i + 6 > size:
+                return -1
+            for c in range(6):
+                if buf[i + c] != _FRAME[c]:
+                    return -1
+            i += 6
+        elif f == _KEY:
+            if tag != 0xC2:
+                return -1
+            i += 1
+        elif f == _TIMING:
+            if not 0x80 <= tag <= 0x8F:
+                return -1
+            stages, i = tag & 0x0F, i + 1
+            for s in range(stages):
+                if i >= size or not 0xA0 <= buf[i] <= 0xBF:
+                    return -1
+                k = np.int64(buf[i] & 0x1F)
+                timing[s, 0], timing[s, 1] = i + 1, k
+                i += 1 + k
+                if i >= size:
+                    return -1
+                ok, v, i = _int(buf, i)
+                if not ok or v < 0:
+                    return -1
+                timing[s, 2] = v
+        elif f == SEQ or f == T or f == N:
+            ok, v, i = _int(buf, i)
+            if not ok:
+                return -1
+            fields[f, 0] = v
+        else:  # member (a str) or a bin
+            if f == MEMBER and 0xA0 <= tag <= 0xBF:
+                start, n = i + 1, tag & 0x1F
+            elif f == MEMBER and tag == 0xD9:
+                start, n = _sized(buf, i, 1)
+            elif f != MEMBER and 0xC4 <= tag <= 0xC6:
+                start, n = _sized(buf, i, 1 << (tag - 0xC4))
+            else:
+                return -1
+            if start < 0 or start + n > size:
+                return -1
+            fields[f, 0], fields[f, 1] = start, n
+            i = start + n
+    if i != size or seen & _REQUIRED != _REQUIRED:
+        return -1
+    return stages
