@@ -2,22 +2,25 @@
 streams. The reference is the protocol codec (``ofera_protocol.decode_server_message`` + ``ClientConnection``);
 this decoder starts from the same field checks (``codec.frame_parts``) and gives the same float32 values.
 
-Delta sessions (PROTOCOL.md 7.1): key frames are decoded here and their codes handed to an
-``ofera_protocol.delta.DeltaDecoder``; a delta frame is checked, unpacked and applied from its bins in one call,
-:func:`delta_frame_kernel` (its masks: the twin of ``codec.delta_masks``; its fields: of ``codec.decode_delta_frame``;
-then :func:`delta_apply_kernel`, the twin of ``DeltaDecoder.apply``), and where it finds anything off, nothing held
-has changed and the codec's own checks run (:func:`unpack_delta_masks_kernel` for the masks), which name the fault.
-One call instead of the codec's field-by-field checks and two kernels: 0.09 ms less a frame on a cold CPU
-(benchmarks/README.md, round twelve).
-"""
+A frame message is read without copying its payload (``frame_scan.scan_frame``: bins as views of the message;
+msgpack's unpacking copies every bin), and its codes decoded on numba's threads while the decoder is alone at work
+(:func:`dense_decode_kernel_parallel`, :func:`delta_frame_kernel_parallel`; the thread choice of
+``ofera.thread_choice``): the frame's own cores are idle while a client decodes (benchmarks/README.md, round
+fourteen).
 
+Delta sessions (PROTOCOL.md 7.1): key frames are decoded here and their codes handed to an
+``ofera_protocol.delta.DeltaDecoder``; a delta frame is read in place (``frame_scan.scan_delta_frame``: where each
+field is, no map) and checked, unpacked and applied from the message in one call, :func:`delta_frame_kernel` (its
+masks: the twin of ``codec.delta_masks``; its fields: of ``codec.decode_delta_frame``; then the twin of
+``DeltaDecoder.apply``), and where either finds anything off, nothing held has changed and the codec's own checks
+run (:func:`unpack_delta_masks_kernel` for the masks, :func:`delta_apply_kernel`), which name the fault.
+"""
 from __future__ import annotations
 
 import math
 import time
 from typing import Any
 
-import numba
 import numba as nb
 import numpy as np
 from ofera_protocol import Frame, FrameFormat
@@ -402,7 +405,7 @@ def decoder_warm(parallel: bool = True) -> None:
     well (and start numba's threads)."""
     raw = bytes(64)
     out3, out4 = np.zeros((2, 3), np.float32), np.zeros((2, 4), np.float32)
-    threads = numba.get_num_threads()
+    threads = nb.get_num_threads()
     for q13 in (True, False):
         dense = (q13, *[np.frombuffer(raw, dt, 2 * w) for dt, w in zip(_CODES[q13], (3, 1 if q13 else 4, 3))],
                  np.zeros(3), np.ones(3), np.ones(256, np.float32), out3.reshape(-1), out4.reshape(-1),
@@ -450,18 +453,19 @@ class FastFrameDecoder:
     sparse-like Frames (``index`` = the changed Gaussians). ``ofera_protocol.decode_server_message`` is the
     reference.
 
-    ``parallel``: a delta frame's decoding on numba's threads (:func:`delta_frame_kernel_parallel`, the same values)
-    or on one (False); None (the default) chooses per frame as the server's sessions do (``ofera.thread_choice``):
-    threads only while this decoder is the only one of ``activity`` decoding, the machine is not busy, and its
-    threaded frames were faster per changed Gaussian."""
+    ``parallel``: a frame's decoding on numba's threads (:func:`dense_decode_kernel_parallel`,
+    :func:`delta_frame_kernel_parallel`: the same values) or on one (False); None (the default) chooses per frame as
+    the server's sessions do (``ofera.thread_choice``): threads only while this decoder is the only one of
+    ``activity`` decoding, the machine is not busy, and its threaded frames (dense and delta ones measured apart) were
+    the faster per Gaussian."""
 
     def __init__(self, fmt: FrameFormat, parallel: bool | None = None, activity: Activity = DECODERS) -> None:
         decoder_warm(parallel is not False)  # compiled (or loaded from the on-disk cache) before the first frame
         self.format = fmt
-        self.parallel = parallel  # a delta frame's decoding on numba's threads; None: automatic (see the class)
+        self.parallel = parallel  # a frame's decoding on numba's threads; None: automatic (see the class)
         self.activity = activity
         self.choices = {"delta": ThreadChoice(), "dense": ThreadChoice()}
-        self.threads = numba.get_num_threads()  # read once (37 us on a cold CPU: ofera.avatar.fast)
+        self.threads = nb.get_num_threads()  # read once (37 us on a cold CPU: ofera.avatar.fast)
         self.threaded = False  # the last decoded frame's mode
         self._claims = np.zeros(1, np.int64)
         self._bad = np.zeros(self.threads, np.int64)
@@ -516,8 +520,10 @@ class FastFrameDecoder:
         (nothing held has changed then: :meth:`decode` reads it as the codec does, which names the fault). The
         checks and their order are the codec's: seq, t, timing, then the masks and fields."""
         buf = np.frombuffer(memoryview(data).toreadonly(), np.uint8)  # (read-only whatever the buffer: one type)
+        if buf.shape[0] > MAX_SERVER_MESSAGE or not self.delta.has_key:
+            return None
         stages = scan_delta_frame(buf, self._fields, self._timing)
-        if stages < 0 or buf.shape[0] > MAX_SERVER_MESSAGE or not self.delta.has_key:
+        if stages < 0:
             return None
         values = self._fields[:, 0].tolist()
         seq, t, n, member = values[SEQ], values[T], values[N], values[MEMBER]

@@ -8,6 +8,10 @@ of such, as ``timing``), and answers None for anything else or anything off (tru
 UTF-8 string, another type, a string or map longer than the codec allows): the caller then runs the codec's
 ``unpack_message``, which names the fault. What it returns is what ``unpack_message`` returns for the same bytes,
 but for memoryviews in place of bytes.
+
+A delta frame needs no map at all: :func:`scan_delta_frame` (numba) finds where each of its fields is in the message,
+which the decoder's kernel then reads in place (16 us on a cold CPU, where the Python scanner took 134 and msgpack
+138, round fourteen).
 """
 
 from __future__ import annotations
@@ -130,10 +134,17 @@ DELTA_FIELDS = ("type", "seq", "t", "timing", "key", "n", "member", "changed", "
 """The keys of a delta frame's map (``member`` optional), in the rows of :func:`scan_delta_frame`'s ``fields``."""
 SEQ, T, N, MEMBER, BINS = 1, 2, 5, 6, 7  # rows of fields: the integers' values; member's and the bins' (start, length)
 _TYPE, _TIMING, _KEY = 0, 3, 4
-_NAMES = np.zeros((len(DELTA_FIELDS), 16), np.uint8)
-_NAME_LENGTHS = np.array([len(k) for k in DELTA_FIELDS], np.int64)
-for _row, _key in enumerate(DELTA_FIELDS):
-    _NAMES[_row, :len(_key)] = np.frombuffer(_key.encode(), np.uint8)
+
+
+def _name_table(names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Short ASCII names as rows of bytes (K, 16) uint8 and their lengths (K,) int64 (numba's constants)."""
+    table = np.zeros((len(names), 16), np.uint8)
+    for row, name in enumerate(names):
+        table[row, :len(name)] = np.frombuffer(name.encode(), np.uint8)
+    return table, np.array([len(k) for k in names], np.int64)
+
+
+_NAMES, _NAME_LENGTHS = _name_table(DELTA_FIELDS)
 _REQUIRED = ((1 << len(DELTA_FIELDS)) - 1) & ~(1 << MEMBER)
 _FRAME = np.frombuffer(b"\xa5frame", np.uint8)  # the type's value: fixstr "frame"
 _INT64_MAX = np.uint64(2**63 - 1)
