@@ -90,25 +90,23 @@ DENSE_BLOCK = 4096
 
 
 @nb.njit(parallel=True, **_NB)
-def dense_decode_kernel_parallel(threads, claims, bad, q13, pos, rot, scale, lo, step, lut, out_p, out_r, out_s):
+def dense_decode_kernel_parallel(threads, claims, q13, pos, rot, scale, lo, step, lut, out_p, out_r, out_s):
     """:func:`dense_decode_kernel` in blocks of :data:`DENSE_BLOCK` rows that ``threads`` of numba's threads claim as
-    they go (the same values). claims: (1,) int64, bad: (>= threads,) int64 scratch."""
+    they go (claims: (1,) int64 scratch): the same values, the same result."""
     n = rot.shape[0] if q13 else rot.shape[0] // 4
     blocks = (n + DENSE_BLOCK - 1) // DENSE_BLOCK
+    bad_p, bad_r, bad_s = 0, 0, 0  # (per field: a parallel loop reduces sums, not bit masks)
     claims[0] = 0
-    for t in nb.prange(threads):
-        found = 0
-        while True:
+    for _t in nb.prange(threads):
+        b = atomic_add(claims, 0, 1)
+        while b < blocks:
+            found = _dense_rows(q13, b * DENSE_BLOCK, min(n, (b + 1) * DENSE_BLOCK), pos, rot, scale, lo, step, lut,
+                                out_p, out_r, out_s)
+            bad_p += found & 1
+            bad_r += found >> 1 & 1
+            bad_s += found >> 2 & 1
             b = atomic_add(claims, 0, 1)
-            if b >= blocks:
-                break
-            found |= _dense_rows(q13, b * DENSE_BLOCK, min(n, (b + 1) * DENSE_BLOCK), pos, rot, scale, lo, step, lut,
-                                 out_p, out_r, out_s)
-        bad[t] = found
-    found = 0
-    for t in range(threads):
-        found |= bad[t]
-    return found
+    return (1 if bad_p else 0) | (2 if bad_r else 0) | (4 if bad_s else 0)
 
 
 @nb.njit(inline="always", **_NB)
@@ -379,12 +377,11 @@ def delta_frame_kernel_parallel(threads, claims, q13, count, n, buf, fields, ind
     blocks = (n + DECODE_BLOCK - 1) // DECODE_BLOCK
     claims[0] = 0
     for _t in nb.prange(threads):
-        while True:
-            b = atomic_add(claims, 0, 1)
-            if b >= blocks:
-                break
+        b = atomic_add(claims, 0, 1)
+        while b < blocks:
             _gathered(q13, b * DECODE_BLOCK, min(n, (b + 1) * DECODE_BLOCK), index, held_p, held_r, held_s, lo, step,
                       lut, out_p, out_r, out_s)
+            b = atomic_add(claims, 0, 1)
     return 0
 
 
@@ -412,7 +409,7 @@ def decoder_warm(parallel: bool = True) -> None:
                  out3.copy().reshape(-1))
         dense_decode_kernel(*dense)
         if parallel:
-            dense_decode_kernel_parallel(threads, np.zeros(1, np.int64), np.zeros(threads, np.int64), *dense)
+            dense_decode_kernel_parallel(threads, np.zeros(1, np.int64), *dense)
     one = np.frombuffer(b"\x01", np.uint8)
     index, moved, lists, wide = np.zeros(9, np.uint32), np.zeros((3, 1), np.uint64), np.zeros((4, 9), np.uint32), \
         np.zeros(1, np.uint64)
@@ -467,8 +464,7 @@ class FastFrameDecoder:
         self.choices = {"delta": ThreadChoice(), "dense": ThreadChoice()}
         self.threads = nb.get_num_threads()  # read once (37 us on a cold CPU: ofera.avatar.fast)
         self.threaded = False  # the last decoded frame's mode
-        self._claims = np.zeros(1, np.int64)
-        self._bad = np.zeros(self.threads, np.int64)
+        self._claims = np.zeros(1, np.int64)  # the threaded kernels' shared block counter
         n = fmt.count
         self._pos = np.zeros((n, 3), np.float32)
         self._rot = np.zeros((n, 4), np.float32)
@@ -536,7 +532,7 @@ class FastFrameDecoder:
         except UnicodeDecodeError:
             return None
         q13 = self.format.encoding == "q13"
-        if self._run("delta", n, delta_frame_kernel_parallel, delta_frame_kernel, (), q13, self.format.count, n, buf,
+        if self._run("delta", n, delta_frame_kernel_parallel, delta_frame_kernel, q13, self.format.count, n, buf,
                      self._fields, self._index, self._lists, self._wide, self._wide_bools, *self._held_flat,
                      *self._coding(q13), *self._out_flat):
             return None
@@ -547,8 +543,8 @@ class FastFrameDecoder:
         """The q13 decoding's constants (lo, step, scale table), or placeholders (f16)."""
         return (self._lo, self._step, self._lut) if q13 else (_Z3, _Z3, _Z256)
 
-    def _run(self, kind: str, work: int, parallel_kernel: Any, kernel: Any, scratch: tuple, *args: Any) -> int:
-        """``kernel(*args)``, or ``parallel_kernel(threads, claims, *scratch, *args)`` where this frame's thread choice
+    def _run(self, kind: str, work: int, parallel_kernel: Any, kernel: Any, *args: Any) -> int:
+        """``kernel(*args)``, or ``parallel_kernel(threads, claims, *args)`` where this frame's thread choice
         says so (``parallel``, or automatic: see the class); an automatic frame's time is recorded for ``work`` units
         in the choice of its ``kind`` (delta and dense frames differ in cost per unit)."""
         par = self.parallel
@@ -557,7 +553,7 @@ class FastFrameDecoder:
             par = use_threads(self.activity.note(id(self)), self.threads, load_average) and choice.choose()
         self.threaded = par
         start = time.perf_counter_ns()
-        out = parallel_kernel(self.threads, self._claims, *scratch, *args) if par else kernel(*args)
+        out = parallel_kernel(self.threads, self._claims, *args) if par else kernel(*args)
         if self.parallel is None:
             choice.record(par, time.perf_counter_ns() - start, max(work, 1))
         return out
@@ -607,7 +603,7 @@ class FastFrameDecoder:
         else:
             q13 = fmt.encoding == "q13"
             codes = [np.frombuffer(b, dt) for b, dt in zip(bufs, _CODES[q13])]
-            bad = self._run("dense", n, dense_decode_kernel_parallel, dense_decode_kernel, (self._bad,), q13, *codes,
+            bad = self._run("dense", n, dense_decode_kernel_parallel, dense_decode_kernel, q13, *codes,
                             *self._coding(q13), *self._out_flat)
             for bit, name in enumerate(("position", "rotation", "scale")):
                 if bad >> bit & 1:
