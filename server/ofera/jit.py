@@ -1,10 +1,16 @@
-"""What the numba fast paths share: the njit options of every kernel (``NB``) and the intrinsics more than one of
-them needs. Imported only by fast-path modules (it needs numba and llvmlite); any layer may import it."""
+"""What the numba fast paths share: the njit options of every kernel (``NB``), the intrinsics more than one of
+them needs, and a cheap call of a kernel whose many arguments stay the same (``Bound``). Imported only by fast-path
+modules (it needs numba and llvmlite); any layer may import it."""
 
 from __future__ import annotations
 
+from typing import Any
+
 from llvmlite import ir
+from numba import njit
 from numba.core import cgutils, types
+from numba.core.typing.typeof import Purpose, typeof
+from numba.experimental import structref
 from numba.extending import intrinsic
 
 NB = {"cache": True, "nogil": True, "fastmath": False, "error_model": "numpy", "boundscheck": False}
@@ -57,3 +63,56 @@ def atomic_add(typingctx, array, index, value):
         return builder.atomic_rmw("add", ptr, val, "seq_cst")
 
     return types.int64(array, index, value), codegen
+
+
+@structref.register
+class _FixedType(types.StructRef):
+    """numba type of :class:`Fixed`."""
+
+    def preprocess_fields(self, fields):
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)
+
+
+class Fixed(structref.StructRefProxy):
+    """A kernel's fixed arguments (one tuple, ``fixed.args`` in the kernel) held by numba as one object. Every call
+    with arguments in tuples types them in Python and unboxes each array again: a delta session's 55 arrays took 50 us
+    a frame there, against about 15 for one of these (benchmarks/README.md, round fifteen)."""
+
+    def __new__(cls, args: tuple) -> Fixed:
+        return _new_fixed(args)
+
+    @property
+    def args(self) -> tuple:
+        return _fixed_args(self)
+
+
+structref.define_constructor(Fixed, _FixedType, ["args"])
+structref.define_boxing(_FixedType, Fixed)
+
+
+@njit(cache=True)
+def _new_fixed(args):
+    return Fixed(args)
+
+
+@njit(cache=True)
+def _fixed_args(fixed):
+    return fixed.args
+
+
+class Bound:
+    """``kernel(fixed)`` with every argument in ``fixed`` (a tuple, held as one :class:`Fixed`). The first call goes
+    through numba's dispatcher (compiling or loading the kernel); later ones go straight to the compiled function it
+    chose (``Dispatcher.get_overload``), which skips the dispatcher's typing of the argument: 10 us a frame of the
+    delta kernel (benchmarks/README.md, round fifteen). ``fixed`` never changes type, so that is safe: the compiled
+    function itself checks nothing."""
+
+    def __init__(self, kernel: Any, fixed: tuple) -> None:
+        self.kernel, self.fixed, self.call = kernel, Fixed(fixed), None
+
+    def __call__(self) -> Any:
+        if self.call is not None:
+            return self.call(self.fixed)
+        result = self.kernel(self.fixed)
+        self.call = self.kernel.get_overload((typeof(self.fixed, Purpose.argument),))
+        return result

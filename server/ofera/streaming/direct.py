@@ -66,7 +66,8 @@ class DirectDeltaFrames:
         session = pipeline.fast
         self.key, self.encoder = key, encoder
         # one chunk when the session never runs threads (no gather of chunks), else one a thread
-        self.direct = DirectDelta(session.fast, encoder, threads=1 if session.parallel is False else None)
+        self.direct = DirectDelta(session.fast, encoder, threads=1 if session.parallel is False else None,
+                                  head=session.lbs.out)
 
     def ready(self) -> bool:
         return not self.encoder.next_is_key

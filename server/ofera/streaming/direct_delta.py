@@ -34,7 +34,7 @@ from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
 
 from ..avatar import kernels as K
 from ..jit import NB as _NB
-from ..jit import atomic_add
+from ..jit import Bound, atomic_add
 from .encode_fast import (
     NO_LUT,
     NO_TABLE,
@@ -307,10 +307,12 @@ def block_faces(run_face: np.ndarray, blocks: np.ndarray, face_vids: np.ndarray
 class DirectDelta:
     """One delta session's frames written by the deformation (see the module docstring): ``fast`` a FastAvatar
     (triangle binding), ``encoder`` the session's DeltaEncoder (the numba kernel set) whose candidates the fast
-    path deforms; ``threads``: the threads a threaded frame shares its blocks among (numba's thread count by default).
-    ValueError when it cannot (another binding, a candidate the fast path keeps neutral)."""
+    path deforms; ``threads``: the threads a threaded frame shares its blocks among (numba's thread count by default);
+    ``head``: the (S, 3) float64 buffer the session's head writes (``FastSession.lbs.out``), whose frames skip
+    numba's dispatch. ValueError when it cannot (another binding, a candidate the fast path keeps neutral)."""
 
-    def __init__(self, fast, encoder: DeltaEncoder, threads: int | None = None) -> None:
+    def __init__(self, fast, encoder: DeltaEncoder, threads: int | None = None,
+                 head: np.ndarray | None = None) -> None:
         from .encode_fast import NumbaKernels
 
         if getattr(fast, "binding_type", None) != "triangle":
@@ -352,6 +354,15 @@ class DirectDelta:
         self.scratch = (*(np.zeros((self.threads, rows, c), np.float32) for c in (3, 4, 3)),
                         e._work[3:].view(np.float32).reshape(-1), np.zeros((9, block_u[-1]), np.float32),
                         np.zeros((K.FACE_COLS, block_u[-1]), np.float32))
+        # the kernels' arguments held by numba, the head's buffer among them: their 55 arrays in tuples took 40 us a
+        # frame to type and unbox (jit.Bound)
+        self.head = np.zeros((fast.lbs.count, 3)) if head is None else head
+        if self.head.shape != (fast.lbs.count, 3) or self.head.dtype != np.float64 or not self.head.flags.c_contiguous:
+            raise ValueError(f"the head's buffer must be ({fast.lbs.count}, 3) float64 C-contiguous")
+        self._serial = Bound(_serial_bound, (self.q13, self.head, self.geo, self.codes, self.held, self.out,
+                                             self.scratch))
+        self._parallel = Bound(_parallel_bound, (self.q13, self.threads, self.head, self.geo, self.codes, self.held,
+                                                 self.out, self.spare, self.scratch, self.claims, self.res))
 
     @property
     def blocks(self) -> int:
@@ -361,15 +372,32 @@ class DirectDelta:
     def select(self, verts: np.ndarray, parallel: bool = False) -> tuple[int, ...]:
         """Fill the encoder's selection and outputs for subset vertices ``verts`` (S, 3) float64 C-contiguous (the
         fast session's head output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r,
-        n_s). ValueError if an f16 value sent is NaN, infinite or beyond +-65504."""
-        if parallel:
+        n_s). ValueError if an f16 value sent is NaN, infinite or beyond +-65504. The head's own buffer (``head``)
+        goes to the kernels bound to it; any other array through numba's dispatcher (the same kernels)."""
+        if verts is self.head:
+            *counts, ok = (self._parallel if parallel else self._serial)()
+        elif parallel:
             *counts, ok = deform_delta_kernel_parallel(self.q13, self.threads, verts, self.geo, self.codes, self.held,
                                                        self.out, self.spare, self.scratch, self.claims, self.res)
         else:
             *counts, ok = deform_delta_kernel(self.q13, verts, self.geo, self.codes, self.held, self.out, self.scratch)
         if not ok:
             raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
-        return tuple(int(x) for x in counts)
+        return tuple(counts)
+
+
+@nb.njit(**_NBC)
+def _serial_bound(fixed):
+    """:func:`deform_delta_kernel` with DirectDelta's arguments (jit.Bound)."""
+    q13, verts, geo, codes, held, out, scratch = fixed.args
+    return deform_delta_kernel(q13, verts, geo, codes, held, out, scratch)
+
+
+@nb.njit(**_NBC)
+def _parallel_bound(fixed):
+    """:func:`deform_delta_kernel_parallel` with DirectDelta's arguments (jit.Bound)."""
+    q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res = fixed.args
+    return deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res)
 
 
 def warm_up(fast, threads: bool = False) -> None:
@@ -387,6 +415,6 @@ def warm_up(fast, threads: bool = False) -> None:
         encoder = delta_encoder(FrameFormat(encoding, fast.count, False, quant, delta=True),
                                 candidates=fast.arrays.ids)
         encoder.encode(0, 0, {}, n.position, n.rotation, n.scale)
-        direct = DirectDelta(fast, encoder)
+        direct = DirectDelta(fast, encoder, head=verts)  # (the kernels bound to the head's buffer, as sessions')
         for parallel in (False, True) if threads else (False,):
             direct.select(verts, parallel)
