@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import msgpack
 import numpy as np
 import pytest
 from ofera.streaming.encode_fast import (
@@ -24,7 +25,7 @@ from ofera_protocol import (
     encode_frame,
     to_coords,
 )
-from ofera_protocol.delta import HELD_ROTATION, DeltaDecoder, DeltaEncoder, DeltaTolerance
+from ofera_protocol.delta import DELTA_BINS, HELD_ROTATION, DeltaDecoder, DeltaEncoder, DeltaTolerance
 from ofera_protocol.encodings import (
     F16_ROTATION_ERROR,
     Q13_ROTATION_ERROR,
@@ -359,32 +360,68 @@ def test_delta_kernels_equal_the_reference(kernels, enc, coords, gathered) -> No
     assert whole > 0 and narrow > 0  # positions sent both ways
 
 
-def test_delta_masks_kernel_equals_the_reference(kernels) -> None:
-    """The numba bitmasks of a delta frame are delta_masks_reference's bytes, empty selections and counts that are
-    not multiples of 8 included."""
+def test_delta_body_kernel_equals_the_reference(kernels) -> None:
+    """The numba bin fields of a delta frame are delta_body_reference's bytes (its bitmasks those of
+    delta_masks_reference), for empty selections, counts that are not multiples of 8, and fields long enough for each
+    of msgpack's bin headers (8, 16 and 32 bits of length); the bytes before and after stay as they were."""
     from ofera_protocol.codec import unpack_bits
-    from ofera_protocol.delta import delta_masks_reference, row_runs
+    from ofera_protocol.delta import delta_body_reference, delta_body_size, delta_masks_reference, row_runs
 
     rng = np.random.default_rng(11)
     fast = numba_kernels()
-    for count in (1, 5, 8, 13, 64, 1000, 4099):
+    for count in (1, 5, 8, 13, 64, 1000, 4099, 70000):
         for ids in (np.sort(rng.choice(count, max(1, count * 2 // 3), replace=False)),  # short runs
                     np.concatenate([np.arange(count // 7, count // 2), np.arange(count * 3 // 5, count)])):  # long
             ids = np.unique(ids).astype(np.int64)
             id_runs = row_runs(ids)
+            m = ids.size
+            outputs = [rng.integers(0, 256, m * r, dtype=np.uint8) for r in (3, 6, 8, 6)]  # f16's rows (bytes)
             for n in {0, 1, ids.size // 2, ids.size}:
                 sel = np.sort(rng.choice(ids.size, n, replace=False)).astype(np.int64)
                 flags = np.zeros(ids.size, np.uint8)
                 flags[sel] = rng.integers(1, 8, n)  # a changed candidate moved something, any of the 7 ways
-                moved = flags[sel]  # the selection's flags, as the kernels leave them
+                moved = np.concatenate([flags[sel], rng.integers(0, 8, m - n, dtype=np.uint8)])  # past n: stale
                 wide = rng.random(ids.size) < 0.4
-                n_p = int((moved & 1).sum())
-                want = delta_masks_reference(count, id_runs, flags, moved, wide, n, n_p)
-                assert np.array_equal(np.flatnonzero(unpack_bits(want[0].tobytes(), count, "changed")), ids[sel])
+                n_p, n_r, n_s = (int((moved[:n] & b).sum() // b) for b in (1, 2, 4))
+                w = int(wide[:n_p].sum())
+                masks = delta_masks_reference(count, id_runs, flags, moved, wide, n, n_p)
+                assert np.array_equal(np.flatnonzero(unpack_bits(masks[0].tobytes(), count, "changed")), ids[sel])
                 for c in range(3):
-                    assert np.array_equal(unpack_bits(want[1 + c].tobytes(), n, "moved"), moved & (1 << c) != 0)
-                got = fast.delta_masks(count, id_runs, flags, moved, wide, n, n_p)
-                assert [a.tobytes() for a in got] == [a.tobytes() for a in want], (count, n)
+                    assert np.array_equal(unpack_bits(masks[1 + c].tobytes(), n, "moved"), moved[:n] & (1 << c) != 0)
+                args = (count, id_runs, flags, moved, wide, n, n_p, w, n_r, n_s, *outputs, 3, 6, 8, 6)
+                size = 7 + delta_body_size(count, n, n_p, w, n_r, n_s, (3, 6, 8, 6)) + 5
+                want, got = np.full(size, 0xAB, np.uint8), np.full(size, 0xAB, np.uint8)
+                end = delta_body_reference(want, 7, *args)
+                assert fast.delta_body(got, 7, *args) == end <= size - 5, (count, n)
+                assert got.tobytes() == want.tobytes(), (count, n)
+                assert masks[0].tobytes() in want.tobytes()
+
+
+@pytest.mark.parametrize("enc", ["f16", "q13"])
+def test_delta_frame_messages_are_their_maps_packed(kernels, enc) -> None:
+    """A delta frame's message, its fields written before its header, is ``codec.pack_map`` of its own map (msgpack's
+    shortest forms, the codec's key order), from either kernel set, a header too long for the room before the fields
+    included (one copy); a message still held keeps its bytes while the next ones are written."""
+    from ofera_protocol.codec import pack_map
+
+    rng = np.random.default_rng(9)
+    n = 3000
+    cand = np.sort(rng.choice(n, 2500, replace=False)).astype(np.int64)
+    frames = moving(rng, n, 8, cand)
+    quant = make_quant(frames[0][0], frames[0][2])
+    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    for encoder in (DeltaEncoder(fmt, candidates=cand, stamp_encode=True),
+                    delta_encoder(fmt, candidates=cand, stamp_encode=True)):
+        encoder.encode(0, 0, {}, *frames[0])
+        held = []
+        for k, state in enumerate(frames[1:], 1):
+            timing = {"decode": k} if k % 3 else {f"stage_{i}": 10 ** 9 + i for i in range(40)}  # > 512 bytes
+            data = encoder.encode(k, k, timing, *state)
+            m = msgpack.unpackb(bytes(data))
+            assert not m["key"] and m["timing"]["encode"] >= 0 and list(m)[6:] == list(DELTA_BINS)
+            assert bytes(data) == pack_map(m), (type(encoder.kernels).__name__, k)
+            held.append((data, bytes(data)))
+        assert all(bytes(data) == kept for data, kept in held)
 
 
 @pytest.mark.parametrize("enc", ["f16", "q13"])

@@ -40,11 +40,13 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import msgpack
 import numpy as np
 
-from .codec import MessagePacker, pack_bits, unpack_bits  # noqa: F401 - unpack_bits: re-exported
+from .codec import MessagePacker, pack_bits, pack_map, unpack_bits  # noqa: F401 - unpack_bits: re-exported
 from .encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from .errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
+from .fast_encodings import BufferPool
 from .messages import DeltaFrame, Frame
 
 DELTA_ENCODINGS: tuple[str, ...] = ("f16", "q13")
@@ -241,6 +243,35 @@ def delta_masks_reference(count: int, id_runs, flags, moved, wide, n: int, n_p: 
             pack_bits(wide[:n_p]))
 
 
+DELTA_BINS = ("changed", "moved_position", "moved_rotation", "moved_scale", "wide", "position_delta", "position",
+              "rotation", "scale")
+"""A delta frame's bin fields, in the order of its map (after ``type``, ``seq``, ``t``, ``timing``, ``key``, ``n``)."""
+
+DELTA_KEYS = np.frombuffer(b"".join(msgpack.packb(k) for k in DELTA_BINS), np.uint8)
+"""The msgpack strings of :data:`DELTA_BINS`, one after another (each fixstr's first byte holds its length)."""
+
+
+def delta_body_size(count: int, n: int, n_p: int, w: int, n_r: int, n_s: int, row_bytes: tuple[int, ...]) -> int:
+    """Most bytes :func:`delta_body_reference` writes for these counts (``row_bytes``: the bytes of one row of
+    position_delta, position, rotation, scale): the keys, the longest bin headers and the data."""
+    r3, r6, rr, rs = row_bytes
+    data = ((count + 7) >> 3) + 3 * ((n + 7) >> 3) + ((n_p + 7) >> 3) + r3 * (n_p - w) + r6 * w + rr * n_r + rs * n_s
+    return DELTA_KEYS.size + 5 * len(DELTA_BINS) + data
+
+
+def delta_body_reference(buf: np.ndarray, at: int, count: int, id_runs, flags, moved, wide, n: int, n_p: int,
+                         w: int, n_r: int, n_s: int, res, pos, rot, scl, r3: int, r6: int, rr: int, rs: int) -> int:
+    """A delta frame's bin fields as msgpack map entries (key, bin; :data:`DELTA_BINS` in order) into buf[at..]
+    (uint8): the masks (:func:`delta_masks_reference` of ``count`` .. ``n_p``), then res, pos, rot, scl (the encoder's
+    outputs as flat uint8) cut to n_p - w, w, n_r and n_s rows of r3, r6, rr and rs bytes. Returns where they end.
+    The message is these entries after its first six (``codec.pack_map`` of the whole frame, the same bytes)."""
+    masks = delta_masks_reference(count, id_runs, flags, moved, wide, n, n_p)
+    fields = (*masks, res[:r3 * (n_p - w)], pos[:r6 * w], rot[:rr * n_r], scl[:rs * n_s])
+    body = pack_map(dict(zip(DELTA_BINS, fields)))[1:]  # (without the 9-entry map's own header byte)
+    buf[at:at + len(body)] = np.frombuffer(body, np.uint8)
+    return at + len(body)
+
+
 class ReferenceKernels:
     """The reference kernel set of :class:`DeltaEncoder`: ``fast_encodings.NumpyKernels`` (frames) plus the delta
     kernels of this module, all plain numpy (the spec in code). The server's numba set has the same methods."""
@@ -259,8 +290,8 @@ class ReferenceKernels:
     def delta_f16(self, *args) -> tuple[int, ...]:
         return delta_f16_reference(self._frames, *args)
 
-    def delta_masks(self, *args) -> tuple[np.ndarray, ...]:
-        return delta_masks_reference(*args)
+    def delta_body(self, *args) -> int:
+        return delta_body_reference(*args)
 
 
 # ----------------------------------------------------------------------------- encoder (server)
@@ -277,8 +308,8 @@ class DeltaEncoder:
 
     :meth:`encode` must be called only for frames that are then handed to the client's socket: it advances
     the held state. ``key_interval``: a key frame every that many frames (0: only on join and resync).
-    ``stamp_encode``: each frame's timing also carries "encode", the microseconds its encoding took before the
-    message was packed.
+    ``stamp_encode``: each frame's timing also carries "encode", the microseconds its encoding took: a delta frame's up
+    to writing its header (its fields written), a key frame's before its message was packed.
     """
 
     def __init__(self, fmt: FrameFormat, coords: str = "flame", gather: np.ndarray | None = None,
@@ -332,10 +363,13 @@ class DeltaEncoder:
         self._pos = np.zeros((m, 3), np.uint16)
         self._rot = np.zeros((m,) if q13 else (m, 4), self.held_r.dtype)
         self._scale = np.zeros((m, 3), self.held_s.dtype)
-        # The outputs as flat bytes and the bytes of one row: a frame packs slices of these (msgpack takes a
-        # memoryview as bin itself; a numpy array goes through codec._as_bin, a Python call per field)
-        self._bins = tuple((memoryview(a.reshape(-1).view(np.uint8)), a.nbytes // m if m else 0)
-                           for a in (self._res, self._pos, self._rot, self._scale))
+        # The outputs as flat bytes and the bytes of one row, which a delta frame's message takes its fields from,
+        # and the buffers its messages are written in (reused once nothing references them)
+        outputs = (self._res, self._pos, self._rot, self._scale)
+        self._flat = tuple(a.reshape(-1).view(np.uint8) for a in outputs)
+        self._row_bytes = tuple(a.nbytes // m if m else 0 for a in outputs)
+        self._messages = BufferPool(4, make=_bytes_array)
+        self._head = msgpack.Packer(use_bin_type=True)  # (msgpack.packb makes a Packer, a 1 MB buffer, per call)
         self.has_key = False
         self._key_asked = True
         self.since_key = 0
@@ -416,15 +450,29 @@ class DeltaEncoder:
         n, n_p, w, n_r, n_s = counts
         self.frames += 1
         self.since_key += 1
-        changed, mp, mr, ms, wide = self.kernels.delta_masks(self.format.count, self.id_runs, self._flags,
-                                                             self._moved, self._wide, n, n_p)
+        # The bin fields first, after room for the header, which is written last, ending where they begin, once the
+        # encode time it may carry is known (as fast_encodings.FrameWriter does)
+        size = _HEAD_ROOM + delta_body_size(self.format.count, n, n_p, w, n_r, n_s, self._row_bytes)
+        buf = self._messages.get(size)
+        end = self.kernels.delta_body(buf, _HEAD_ROOM, self.format.count, self.id_runs, self._flags, self._moved,
+                                      self._wide, n, n_p, w, n_r, n_s, *self._flat, *self._row_bytes)
         timing = self._stamped(timing, start_ns)
-        (res, r3), (pos, r6), (rot, rr), (scl, rs) = self._bins
-        return self._packer.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n),
-                                  "changed": memoryview(changed), "moved_position": memoryview(mp),
-                                  "moved_rotation": memoryview(mr), "moved_scale": memoryview(ms),
-                                  "wide": memoryview(wide), "position_delta": res[:r3 * (n_p - w)],
-                                  "position": pos[:r6 * w], "rotation": rot[:rr * n_r], "scale": scl[:rs * n_s]})
+        head = self._head.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n)})
+        begin = _HEAD_ROOM - len(head)
+        mv = memoryview(buf)
+        if begin < 0:  # (a header longer than the room: one copy of the message)
+            return memoryview(b"\x8f" + head[1:] + bytes(mv[_HEAD_ROOM:end]))
+        mv[begin:_HEAD_ROOM] = head
+        mv[begin] = 0x8F  # a map of the header's 6 entries and the 9 bin fields
+        return mv[begin:end]
+
+
+def _bytes_array(nbytes: int) -> np.ndarray:
+    return np.empty(nbytes, np.uint8)
+
+
+_HEAD_ROOM = 512
+"""Room before a delta frame's bin fields for its header (bytes): a frame's header is under 300."""
 
 
 # ----------------------------------------------------------------------------- decoder (client)

@@ -46,8 +46,9 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import msgpack
 import numpy as np
@@ -211,10 +212,12 @@ _PACK = msgpack.Packer(use_bin_type=True)
 
 
 class BufferPool:
-    """bytearrays handed out as memoryviews and reused once nothing references them (thread-safe)."""
+    """bytearrays (or what ``make(nbytes)`` makes: a buffer of at least that many bytes) handed out as memoryviews and
+    reused once nothing references them (thread-safe)."""
 
-    def __init__(self, size: int = 4) -> None:
+    def __init__(self, size: int = 4, make: Callable[[int], Any] = bytearray) -> None:
         self.size = size
+        self._make = make
         self._bufs: list[bytearray] = []
         self._idle: list[int] = []
         self._lock = threading.Lock()
@@ -235,15 +238,15 @@ class BufferPool:
                 if self._count(self._bufs, i) == self._idle[i]:
                     fresh = len(self._bufs[i]) < nbytes
                     if fresh:
-                        self._bufs[i] = bytearray(nbytes + (nbytes >> 4))
+                        self._bufs[i] = self._make(nbytes + (nbytes >> 4))
                         self._idle[i] = self._count(self._bufs, i)
                     return self._bufs[i], i, fresh
             if len(self._bufs) < self.size:
-                self._bufs.append(bytearray(nbytes + (nbytes >> 4)))
+                self._bufs.append(self._make(nbytes + (nbytes >> 4)))
                 self._idle.append(self._count(self._bufs, len(self._bufs) - 1))
                 return self._bufs[-1], len(self._bufs) - 1, True
             self.unpooled += 1
-            return bytearray(nbytes), None, True
+            return self._make(nbytes), None, True
 
 
 @dataclass(eq=False)

@@ -30,7 +30,7 @@ import math
 
 import numba as nb
 import numpy as np
-from ofera_protocol.delta import DeltaEncoder, DeltaTolerance, ReferenceKernels
+from ofera_protocol.delta import DELTA_KEYS, DeltaEncoder, DeltaTolerance, ReferenceKernels
 from ofera_protocol.encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from ofera_protocol.fast_encodings import (
     F16_MAX,
@@ -452,13 +452,9 @@ class NumbaKernels:
         gathered = work[3:].view(np.float32).reshape(-1)
         return tuple(int(x) for x in delta_q13_kernel(*args, table, scale_lut, rot_lut, tol, *state, *out, gathered))
 
-    def delta_masks(self, count, id_runs, flags, moved, wide, n, n_p) -> tuple[np.ndarray, ...]:
-        """ofera_protocol.delta.delta_masks_reference by :func:`delta_masks_kernel` (same bytes)."""
-        a, b, c = (count + 7) // 8, (n + 7) // 8, (n_p + 7) // 8
-        buf = np.empty(a + 3 * b + c, np.uint8)  # one allocation (each numpy call costs ~50 us on a cold CPU)
-        out = buf[:a], buf[a:a + b], buf[a + b:a + 2 * b], buf[a + 2 * b:a + 3 * b], buf[a + 3 * b:]
-        delta_masks_kernel(id_runs, flags, moved, wide, n, n_p, *out)
-        return out
+    def delta_body(self, buf, at, *args) -> int:
+        """ofera_protocol.delta.delta_body_reference by :func:`delta_body_kernel` (same bytes)."""
+        return delta_body_kernel(buf, at, DELTA_KEYS, *args)
 
     def delta_f16(self, *args) -> tuple[int, ...]:
         """ofera_protocol.delta.delta_f16_reference in one numba pass."""
@@ -817,20 +813,67 @@ def _changed_run(flags, first_id, first, length, changed):
     _flag_bits(flags, np.uint64(first) + (whole - i0), whole, i1, changed)
 
 
+@nb.njit(inline="always", **_NB)
+def _bin_head(buf, o, size):
+    """msgpack's header of a bin of ``size`` bytes at buf[o..] (the shortest: bin 8, 16 or 32); returns its end."""
+    if size < 0x100:
+        buf[o], buf[o + 1] = 0xC4, size
+        return o + 2
+    if size < 0x10000:
+        buf[o], buf[o + 1], buf[o + 2] = 0xC5, size >> 8, size & 0xFF
+        return o + 3
+    buf[o] = 0xC6
+    for b in range(4):
+        buf[o + 1 + b] = (size >> (24 - 8 * b)) & 0xFF
+    return o + 5
+
+
+@nb.njit(inline="always", **_NB)
+def _copy(dst, o, src, first, length):
+    """dst[o..o+length-1] = src[first..]: unsigned indices, so LLVM makes it a memcpy-speed loop (a slice assignment
+    took 3x as long for 150 kB, a signed loop 9x)."""
+    d, s = np.uint64(o), np.uint64(first)
+    for i in range(np.uint64(length)):
+        dst[d + i] = src[s + i]
+
+
+@nb.njit(inline="always", **_NB)
+def _key(buf, o, keys, k):
+    """The msgpack string at keys[k..] (a fixstr: its first byte holds its length) to buf[o..]: (both ends after)."""
+    length = 1 + (keys[k] & 0x1F)
+    _copy(buf, o, keys, k, length)
+    return o + length, k + length
+
+
 @nb.njit(**_NB)
-def delta_masks_kernel(id_runs, flags, moved, wide, n, n_p, changed, out_mp, out_mr, out_ms, out_wide):
-    """ofera_protocol.delta.delta_masks_reference into `changed` (ceil(count / 8), zeroed here) and the other outputs
-    (ceil(n / 8), ceil(n_p / 8)); moved (K,) uint8 the selection's flags. The changed bits come from the
-    candidates' flags run by run (the candidates are a few hundred runs of consecutive ids): a scatter of the
-    selection's ids into the mask took 77 us a frame on a cold CPU, its read-modify-writes chained through memory
-    (benchmarks/README.md, round twelve)."""
-    changed[:] = 0
-    for r in range(id_runs.shape[0]):
-        _changed_run(flags, id_runs[r, 0], id_runs[r, 1], id_runs[r, 2], changed)
-    _pack_bit(moved, 0, n, out_mp)  # moved: the selection's flags
-    _pack_bit(moved, 1, n, out_mr)
-    _pack_bit(moved, 2, n, out_ms)
-    _pack_bit(wide.view(np.uint8), 0, n_p, out_wide)
+def delta_body_kernel(buf, at, keys, count, id_runs, flags, moved, wide, n, n_p, w, n_r, n_s, res, pos, rot, scl, r3,
+                      r6, rr, rs):
+    """ofera_protocol.delta.delta_body_reference (same bytes): a delta frame's bin fields as msgpack entries into
+    buf[at..], the masks written in place. The changed bits come from the candidates' flags run by run (the
+    candidates are a few hundred runs of consecutive ids): a scatter of the selection's ids into the mask took 77 us a
+    frame on a cold CPU, its read-modify-writes chained through memory (benchmarks/README.md, round twelve). Returns
+    where the fields end."""
+    o, k = at, 0
+    sizes = ((count + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n_p + 7) >> 3)
+    for f in range(5):  # the masks: changed, moved_position, moved_rotation, moved_scale, wide
+        o, k = _key(buf, o, keys, k)
+        o = _bin_head(buf, o, sizes[f])
+        out = buf[o:o + sizes[f]]
+        if f == 0:
+            out[:] = 0
+            for r in range(id_runs.shape[0]):
+                _changed_run(flags, id_runs[r, 0], id_runs[r, 1], id_runs[r, 2], out)
+        elif f < 4:
+            _pack_bit(moved, f - 1, n, out)  # moved: the selection's flags
+        else:
+            _pack_bit(wide.view(np.uint8), 0, n_p, out)
+        o += sizes[f]
+    for src, length in ((res, r3 * (n_p - w)), (pos, r6 * w), (rot, rr * n_r), (scl, rs * n_s)):
+        o, k = _key(buf, o, keys, k)
+        o = _bin_head(buf, o, length)
+        _copy(buf, o, src, 0, length)
+        o += length
+    return o
 
 
 def delta_kernel_warm() -> None:
