@@ -75,8 +75,9 @@ class _FixedType(types.StructRef):
 
 class Fixed(structref.StructRefProxy):
     """A kernel's fixed arguments (one tuple, ``fixed.args`` in the kernel) held by numba as one object. Every call
-    with arguments in tuples types them in Python and unboxes each array again: a delta session's 55 arrays took 50 us
-    a frame there, against about 15 for one of these (benchmarks/README.md, round fifteen)."""
+    with arguments in tuples types them in Python and unboxes each array again: entering and leaving the delta kernel
+    took 72-81 us p50 a frame with its 55 arrays in tuples, 37-42 with them in one of these called through
+    :class:`Bound` (benchmarks/README.md, round fifteen)."""
 
     def __new__(cls, args: tuple) -> Fixed:
         return _new_fixed(args)
@@ -103,9 +104,8 @@ def _fixed_args(fixed):
 class Bound:
     """``kernel(fixed)`` with every argument in ``fixed`` (a tuple, held as one :class:`Fixed`). The first call goes
     through numba's dispatcher (compiling or loading the kernel); later ones go straight to the compiled function it
-    chose (``Dispatcher.get_overload``), which skips the dispatcher's typing of the argument: 10 us a frame of the
-    delta kernel (benchmarks/README.md, round fifteen). ``fixed`` never changes type, so that is safe: the compiled
-    function itself checks nothing."""
+    chose (``Dispatcher.get_overload``), which skips the dispatcher's typing of the argument (about 18 us on a cold
+    CPU). ``fixed`` never changes type, so that is safe: the compiled function itself checks nothing."""
 
     def __init__(self, kernel: Any, fixed: tuple) -> None:
         self.kernel, self.fixed, self.call = kernel, Fixed(fixed), None

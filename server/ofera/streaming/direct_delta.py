@@ -354,8 +354,8 @@ class DirectDelta:
         self.scratch = (*(np.zeros((self.threads, rows, c), np.float32) for c in (3, 4, 3)),
                         e._work[3:].view(np.float32).reshape(-1), np.zeros((9, block_u[-1]), np.float32),
                         np.zeros((K.FACE_COLS, block_u[-1]), np.float32))
-        # the kernels' arguments held by numba, the head's buffer among them: their 55 arrays in tuples took 40 us a
-        # frame to type and unbox (jit.Bound)
+        # the kernels' arguments held by numba, the head's buffer among them: their 55 arrays in tuples took 35-40 us
+        # more a frame to type and unbox (jit.Fixed)
         self.head = np.zeros((fast.lbs.count, 3)) if head is None else head
         if self.head.shape != (fast.lbs.count, 3) or self.head.dtype != np.float64 or not self.head.flags.c_contiguous:
             raise ValueError(f"the head's buffer must be ({fast.lbs.count}, 3) float64 C-contiguous")
