@@ -331,6 +331,16 @@ def moving(rng, n, frames, candidates):
     return out
 
 
+def moving_session(enc, seed, n, candidates, frames):
+    """A delta session of n Gaussians in encoding ``enc`` whose ``candidates`` (that many, drawn) move for ``frames``
+    frames (:func:`moving`): (candidate ids, frames, FrameFormat)."""
+    rng = np.random.default_rng(seed)
+    cand = np.sort(rng.choice(n, candidates, replace=False)).astype(np.int64)
+    states = moving(rng, n, frames, cand)
+    quant = make_quant(states[0][0], states[0][2])
+    return cand, states, FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+
+
 @pytest.mark.parametrize("enc", ["f16", "q13"])
 @pytest.mark.parametrize("coords", ["flame", "unity"])
 @pytest.mark.parametrize("gathered", [False, True])
@@ -404,12 +414,7 @@ def test_delta_frame_messages_are_their_maps_packed(kernels, enc) -> None:
     included (one copy); a message still held keeps its bytes while the next ones are written."""
     from ofera_protocol.codec import pack_map
 
-    rng = np.random.default_rng(9)
-    n = 3000
-    cand = np.sort(rng.choice(n, 2500, replace=False)).astype(np.int64)
-    frames = moving(rng, n, 8, cand)
-    quant = make_quant(frames[0][0], frames[0][2])
-    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    cand, frames, fmt = moving_session(enc, 9, 3000, 2500, 8)
     for encoder in (DeltaEncoder(fmt, candidates=cand, stamp_encode=True),
                     delta_encoder(fmt, candidates=cand, stamp_encode=True)):
         encoder.encode(0, 0, {}, *frames[0])
@@ -429,12 +434,9 @@ def test_delta_client_error_is_bounded_whatever_is_dropped(kernels, enc) -> None
     """Closed loop: after any number of frames and any drops (frames never handed to the socket are never
     encoded), the client's state is within max(tolerance, the encoding's error) of the exact state, and a
     resync (key frame) gives exactly the dense frame's values."""
-    rng = np.random.default_rng(6)
     n = 3000
-    cand = np.sort(rng.choice(n, 2000, replace=False)).astype(np.int64)
-    frames = moving(rng, n, 40, cand)
-    quant = make_quant(frames[0][0], frames[0][2])
-    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    cand, frames, fmt = moving_session(enc, 6, n, 2000, 40)
+    quant = fmt.quant
     tol = DeltaTolerance()
     enc_ = delta_encoder(fmt, "unity", None, cand, tolerance=tol, key_interval=0)
     client = ClientConnection()
@@ -483,12 +485,7 @@ def test_fast_delta_decoder_equals_the_reference(kernels, enc, parallel) -> None
     or on numba's threads (five blocks of DECODE_BLOCK Gaussians, the last partial)."""
     from ofera.client.fast_decode import DECODE_BLOCK, FastFrameDecoder
 
-    rng = np.random.default_rng(9)
-    n = 6000
-    cand = np.sort(rng.choice(n, 5000, replace=False)).astype(np.int64)
-    frames = moving(rng, n, 15, cand)
-    quant = make_quant(frames[0][0], frames[0][2])
-    fmt = FrameFormat(enc, n, False, quant if enc == "q13" else None, delta=True)
+    cand, frames, fmt = moving_session(enc, 9, 6000, 5000, 15)
     encoder = delta_encoder(fmt, "unity", None, cand, key_interval=6)
     ref, fast = DeltaDecoder(fmt), FastFrameDecoder(fmt, parallel=parallel)
     sizes = []
