@@ -46,7 +46,7 @@ import numpy as np
 from .codec import MessagePacker, pack_bits, pack_map, unpack_bits  # noqa: F401 - unpack_bits: re-exported
 from .encodings import POS_LEVELS, ROT_LEVELS, SCALE_LEVELS, FrameFormat
 from .errors import BAD_FIELD, NON_FINITE, NOT_READY, ProtocolError
-from .fast_encodings import BufferPool
+from .fast_encodings import HEADER_ROOM, BufferPool
 from .messages import DeltaFrame, Frame
 
 DELTA_ENCODINGS: tuple[str, ...] = ("f16", "q13")
@@ -452,27 +452,23 @@ class DeltaEncoder:
         self.since_key += 1
         # The bin fields first, after room for the header, which is written last, ending where they begin, once the
         # encode time it may carry is known (as fast_encodings.FrameWriter does)
-        size = _HEAD_ROOM + delta_body_size(self.format.count, n, n_p, w, n_r, n_s, self._row_bytes)
+        size = HEADER_ROOM + delta_body_size(self.format.count, n, n_p, w, n_r, n_s, self._row_bytes)
         buf = self._messages.get(size)
-        end = self.kernels.delta_body(buf, _HEAD_ROOM, self.format.count, self.id_runs, self._flags, self._moved,
+        end = self.kernels.delta_body(buf, HEADER_ROOM, self.format.count, self.id_runs, self._flags, self._moved,
                                       self._wide, n, n_p, w, n_r, n_s, *self._flat, *self._row_bytes)
         timing = self._stamped(timing, start_ns)
         head = self._head.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n)})
-        begin = _HEAD_ROOM - len(head)
+        begin = HEADER_ROOM - len(head)
         mv = memoryview(buf)
         if begin < 0:  # (a header longer than the room: one copy of the message)
-            return memoryview(b"\x8f" + head[1:] + bytes(mv[_HEAD_ROOM:end]))
-        mv[begin:_HEAD_ROOM] = head
+            return memoryview(b"\x8f" + head[1:] + bytes(mv[HEADER_ROOM:end]))
+        mv[begin:HEADER_ROOM] = head
         mv[begin] = 0x8F  # a map of the header's 6 entries and the 9 bin fields
         return mv[begin:end]
 
 
 def _bytes_array(nbytes: int) -> np.ndarray:
     return np.empty(nbytes, np.uint8)
-
-
-_HEAD_ROOM = 512
-"""Room before a delta frame's bin fields for its header (bytes): a frame's header is under 300."""
 
 
 # ----------------------------------------------------------------------------- decoder (client)

@@ -401,9 +401,9 @@ class FrameWriter:
         if self.format.encoding != "f16" or self.gather is not None:
             raise ValueError(f"a draft is a dense f16 frame, this writer makes {self.format.encoding} "
                              f"{'sparse' if self.gather is not None else 'dense'} frames")
-        buf, slot, fresh = self.pool.get_slot(_DRAFT_SLACK + self._fields_bytes)
+        buf, slot, fresh = self.pool.get_slot(HEADER_ROOM + self._fields_bytes)
         held = None if fresh or slot is None else self._held.pop(slot, None)
-        slack = held[0] if held is not None and held[1] is varying else _DRAFT_SLACK
+        slack = held[0] if held is not None and held[1] is varying else HEADER_ROOM
         mv = memoryview(buf)
         off = slack
         fields = []
@@ -437,8 +437,8 @@ class FrameWriter:
         return mv[begin:draft.total]
 
 
-_DRAFT_SLACK = 512
-"""Header room of a draft's buffer (bytes): a frame's header is under 300."""
+HEADER_ROOM = 512
+"""Room for a frame's header before fields written first (a draft's, a delta frame's; bytes): a header is under 300."""
 
 _SLACK_STEP = 64
 """Header room is a multiple of this (bytes): headers of one stream differ by a few bytes."""

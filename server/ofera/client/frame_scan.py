@@ -22,6 +22,7 @@ from typing import Any
 import numba as nb
 import numpy as np
 from ofera_protocol.constants import MAX_CONTAINER_LEN, MAX_STR_LEN
+from ofera_protocol.delta import DELTA_BINS
 
 from ..jit import NB as _NB
 
@@ -129,8 +130,7 @@ def scan_frame(data: bytes | bytearray | memoryview, max_size: int) -> dict[str,
 
 # ----------------------------------------------------------------------------- a delta frame's fields, in numba
 
-DELTA_FIELDS = ("type", "seq", "t", "timing", "key", "n", "member", "changed", "moved_position", "moved_rotation",
-                "moved_scale", "wide", "position_delta", "position", "rotation", "scale")
+DELTA_FIELDS = ("type", "seq", "t", "timing", "key", "n", "member", *DELTA_BINS)
 """The keys of a delta frame's map (``member`` optional), in the rows of :func:`scan_delta_frame`'s ``fields``."""
 SEQ, T, N, MEMBER, BINS = 1, 2, 5, 6, 7  # rows of fields: the integers' values; member's and the bins' (start, length)
 _TYPE, _TIMING, _KEY = 0, 3, 4

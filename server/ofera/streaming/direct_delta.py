@@ -39,6 +39,7 @@ from .encode_fast import (
     NO_LUT,
     NO_TABLE,
     compact_range,
+    copy_rows,
     encode_positions,
     encode_rotations_f16,
     encode_rotations_q13,
@@ -259,21 +260,13 @@ def _place_block(base, at, counts, src, dst):
     flat views (a row assignment costs tens of ns in numba)."""
     n, n_p, w, n_r, n_s = at
     cn, cp, cw, cr, cs = counts[0], counts[1], counts[2], counts[3], counts[4]
-    _copy(src[0], dst[0], 1, base, n, cn)
-    _copy(src[1], dst[1], 1, base, n, cn)
-    _copy(src[2], dst[2], 1, base, n_p, cp)
-    _copy(src[3].reshape(-1), dst[3].reshape(-1), 3, base, n_p - w, cp - cw)
-    _copy(src[4].reshape(-1), dst[4].reshape(-1), 3, base, w, cw)
-    _copy(src[5].reshape(-1), dst[5].reshape(-1), dst[5].size // dst[5].shape[0], base, n_r, cr)
-    _copy(src[6].reshape(-1), dst[6].reshape(-1), 3, base, n_s, cs)
-
-
-@nb.njit(inline="always", **_NB)
-def _copy(src, dst, k, first, to, count):
-    """Rows first.. of a flat (rows k,) array to rows to.. of another (unsigned indices: no wrap-around checks)."""
-    a, b = np.uint64(k * first), np.uint64(k * to)
-    for i in range(np.uint64(k * count)):
-        dst[b + i] = src[a + i]
+    copy_rows(src[0], dst[0], 1, base, n, cn)
+    copy_rows(src[1], dst[1], 1, base, n, cn)
+    copy_rows(src[2], dst[2], 1, base, n_p, cp)
+    copy_rows(src[3].reshape(-1), dst[3].reshape(-1), 3, base, n_p - w, cp - cw)
+    copy_rows(src[4].reshape(-1), dst[4].reshape(-1), 3, base, w, cw)
+    copy_rows(src[5].reshape(-1), dst[5].reshape(-1), dst[5].size // dst[5].shape[0], base, n_r, cr)
+    copy_rows(src[6].reshape(-1), dst[6].reshape(-1), 3, base, n_s, cs)
 
 
 @nb.njit(**_NB)
