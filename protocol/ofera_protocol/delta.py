@@ -155,13 +155,12 @@ def _moved(pos, rot, scale, rows, psign, rsign, tol, dec) -> np.ndarray:
     return out
 
 
-def _select(moved, flags, out_sel, out_moved):
-    """Write the flags and the selection; returns (sel, n, and the candidate positions of the moved positions,
+def _select(moved, flags, out_moved):
+    """Write the flags and the selection's; returns (sel, n, and the candidate positions of the moved positions,
     rotations, scales)."""
     flags[:] = moved[:, 0] | (moved[:, 1].astype(np.uint8) << 1) | (moved[:, 2].astype(np.uint8) << 2)
     sel = np.flatnonzero(moved.any(axis=1))
     n = sel.size
-    out_sel[:n] = sel
     out_moved[:n] = flags[sel]
     p_sel, r_sel, s_sel = (sel[moved[sel, c]] for c in range(3))
     return sel, n, p_sel, r_sel, s_sel
@@ -182,17 +181,17 @@ def _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos) -> tuple[i
 
 def delta_q13_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, thresholds, scale_lut,
                         rot_lut, tol, held_p, held_r, held_s, dec, flags, work,
-                        out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
+                        out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
     """q13 delta kernel (reference). For the K candidates (session ids ``ids``, state rows ``rows``, their runs
     :func:`row_runs`) with held codes ``held_*`` (indexed by session id) and their decodings ``dec`` (10, K)
     float32 (:data:`HELD_POSITION` ...): find what moved (``flags`` (K,) uint8: bit 0, 1, 2 = position, rotation,
-    scale), encode it with ``kern`` (the frame kernels), write the selection (candidate positions ``out_sel[:n]``,
-    their flags ``out_moved[:n]``), ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide
+    scale), encode it with ``kern`` (the frame kernels), write the flags of the selection (the n candidates that
+    moved, in order) ``out_moved[:n]``, ``out_wide[:n_p]``, the narrow changes ``out_res[:n_p - w]``, the wide
     position codes ``out_pos[:w]``, rotation codes ``out_rot[:n_r]``, scale codes ``out_scale[:n_s]``, update the
     held codes and decodings, and return (n, n_p, w, n_r, n_s). ``runs`` and ``work`` (7, K) int32 serve the numba
     kernels (contiguous reads, the lists of what moved, a float32 scratch); the reference needs neither."""
     moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec)
-    sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_sel, out_moved)
+    sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_moved)
     new_p = np.empty((p_sel.size, 3), np.uint16)
     kern.q13_position(pos, rows[p_sel], psign, lo, k, new_p.reshape(-1))
     n_p, w = _positions(p_sel, ids, new_p, held_p, out_wide, out_res, out_pos)
@@ -208,12 +207,12 @@ def delta_q13_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsig
 
 
 def delta_f16_reference(kern: Any, pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p, held_r, held_s,
-                        dec, flags, work, out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale
+                        dec, flags, work, out_moved, out_wide, out_res, out_pos, out_rot, out_scale
                         ) -> tuple[int, ...]:
     """f16 delta kernel (reference): :func:`delta_q13_reference` with f16 bit patterns as codes. Returns
     (n, n_p, w, n_r, n_s); ValueError if a value sent is beyond the half range."""
     moved = _moved(pos, rot, scale, rows, psign, rsign, tol, dec)
-    sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_sel, out_moved)
+    sel, n, p_sel, r_sel, s_sel = _select(moved, flags, out_moved)
     n_r, n_s = r_sel.size, s_sel.size
     new_p = np.empty((p_sel.size, 3), np.uint16)
     ok = kern.f16(pos, rows[p_sel], psign, new_p.reshape(-1))
@@ -356,7 +355,6 @@ class DeltaEncoder:
         self.dec = np.zeros((10, m), np.float32)  # decodings of the held codes (HELD_POSITION ...)
         self._flags = np.zeros(m, np.uint8)
         self._work = np.zeros((7, m), np.int32)  # the numba kernels' lists and scratch
-        self._sel = np.zeros(m, np.int64)
         self._moved = np.zeros(m, np.uint8)  # the flags of the selection (delta_masks)
         self._wide = np.zeros(m, bool)
         self._res = np.zeros((m, 3), np.int8)
@@ -428,7 +426,7 @@ class DeltaEncoder:
             self.key_frames += 1
             return data
         args = (position, rotation, scale, self.rows, self.runs, self.ids, self.psign, self.rsign)
-        out = (self._sel, self._moved, self._wide, self._res, self._pos, self._rot, self._scale)
+        out = (self._moved, self._wide, self._res, self._pos, self._rot, self._scale)
         if self.format.encoding == "q13":
             counts = self.kernels.delta_q13(
                 *args, self.lo, self.k, self.step, self.thresholds, self.lut, ROT_FIELD64, self.tol,

@@ -104,14 +104,14 @@ def _deform_block(q0, q1, face, run_face, run_m, run_len, local, signs, sp, sr, 
 
 
 @nb.njit(**_NB)
-def _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, lists, out_sel, out_moved):
+def _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, lists, out_moved):
     """Flags of candidates ja..jb-1 (their values in the scratch rows 0..) and their compaction, appended to the
     selection and the lists (``counts`` so far -> after), as encode_fast._select does for a state."""
     c = jb - ja
     flag_run(sp.reshape(-1)[:3 * c], sr.reshape(-1)[:4 * c], ss.reshape(-1)[:3 * c], dec[0, ja:jb], dec[1, ja:jb],
              dec[2, ja:jb], dec[3, ja:jb], dec[4, ja:jb], dec[5, ja:jb], dec[6, ja:jb], dec[7, ja:jb],
              dec[8, ja:jb], dec[9, ja:jb], flags[ja:jb], ones3, ones4, tol)
-    return compact_range(flags, word, ja, jb, counts, lists, out_sel, out_moved)
+    return compact_range(flags, word, ja, jb, counts, lists, out_moved)
 
 
 @nb.njit(**_NBC)
@@ -125,14 +125,14 @@ def _delta_block(q13, b, t, base, counts, w, verts, geo, codes, held, out, scrat
     block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
     lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
     ids, held_p, held_r, held_s, dec, flags, work = held
-    out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
+    out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
     sp, sr, ss, gathered, edges, face = scratch[0][t], scratch[1][t], scratch[2][t], scratch[3], scratch[4], scratch[5]
     K.face_frames_range(block_u[b], block_u[b + 1], verts, face_vids, edges, face, False)
     ja = block_j[b]
     jb = ja + _deform_block(blocks[b], blocks[b + 1], face, run_face, run_m, run_len, local, signs, sp, sr, ss)
     word = flags[: (flags.shape[0] >> 3) << 3].view(np.uint64)
     n0, p0, r0, s0 = counts
-    n, n_p, n_r, n_s = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work, out_sel,
+    n, n_p, n_r, n_s = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work,
                                      out_moved)
     wb, ok = encode_positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
                               out_wide[p0:], out_res[p0 - w:], out_pos[base + w:])
@@ -221,8 +221,8 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
     s0, s1, s2, s3, s4, s5, s6 = signs
     lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
     ids, held_p, held_r, held_s, dec, flags, work = held
-    out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
-    sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale = spare
+    out_moved, out_wide, out_res, out_pos, out_rot, out_scale = out
+    sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale = spare
     sp, sr, ss, gathered, edges, face = scratch
     count = blocks.shape[0] - 1
     claims[0] = 0
@@ -233,13 +233,13 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
         x = (sp, sr, ss, gathered, edges, face)
         if t == 0:
             n, n_p, w, n_r, n_s, ok, done = _front(q13, count, verts, g, c, h,
-                                                   (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale),
+                                                   (out_moved, out_wide, out_res, out_pos, out_rot, out_scale),
                                                    x, claims)
             res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4], res[count, 5] = (
                 n, n_p, w, n_r, n_s, ok)
             res[count, 6] = done
         else:
-            _back(q13, t, count, verts, g, c, h, (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale), x,
+            _back(q13, t, count, verts, g, c, h, (sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale), x,
                   claims, res)
     first = res[count, 6]  # the first block a back thread did
     for t in nb.prange(1, threads):
@@ -247,8 +247,8 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
         for b in range(first, count):  # (where each back block goes: after the front's and the back blocks before it)
             if res[b, 6] == t:
                 _place_block(block_j[b], (n, n_p, w, n_r, n_s), res[b],
-                             (sp_sel, sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
-                             (out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
+                             (sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
+                             (out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
             n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
     return _totals(res, first, count)
 
@@ -261,12 +261,11 @@ def _place_block(base, at, counts, src, dst):
     n, n_p, w, n_r, n_s = at
     cn, cp, cw, cr, cs = counts[0], counts[1], counts[2], counts[3], counts[4]
     copy_rows(src[0], dst[0], 1, base, n, cn)
-    copy_rows(src[1], dst[1], 1, base, n, cn)
-    copy_rows(src[2], dst[2], 1, base, n_p, cp)
-    copy_rows(src[3].reshape(-1), dst[3].reshape(-1), 3, base, n_p - w, cp - cw)
-    copy_rows(src[4].reshape(-1), dst[4].reshape(-1), 3, base, w, cw)
-    copy_rows(src[5].reshape(-1), dst[5].reshape(-1), dst[5].size // dst[5].shape[0], base, n_r, cr)
-    copy_rows(src[6].reshape(-1), dst[6].reshape(-1), 3, base, n_s, cs)
+    copy_rows(src[1], dst[1], 1, base, n_p, cp)
+    copy_rows(src[2].reshape(-1), dst[2].reshape(-1), 3, base, n_p - w, cp - cw)
+    copy_rows(src[3].reshape(-1), dst[3].reshape(-1), 3, base, w, cw)
+    copy_rows(src[4].reshape(-1), dst[4].reshape(-1), dst[4].size // dst[4].shape[0], base, n_r, cr)
+    copy_rows(src[5].reshape(-1), dst[5].reshape(-1), 3, base, n_s, cs)
 
 
 @nb.njit(**_NB)
@@ -338,7 +337,7 @@ class DirectDelta:
         if not self.q13:  # f16: each rotation's four half bit patterns as one uint64 (encode_rotations_f16)
             held_r, out_rot = rotations_u64(held_r), rotations_u64(out_rot)
         self.held = (e.ids, e.held_p, held_r, e.held_s, e.dec, e._flags, e._work)
-        self.out = (e._sel, e._moved, e._wide, e._res, e._pos, out_rot, e._scale)
+        self.out = (e._moved, e._wide, e._res, e._pos, out_rot, e._scale)
         # the blocks threads 1.. take are written here, then placed (one thread never does: the outputs stand in)
         self.spare = tuple(np.zeros_like(a) for a in self.out) if self.threads > 1 else self.out
         self.claims = np.zeros(1, np.int64)

@@ -459,7 +459,7 @@ class NumbaKernels:
     def delta_f16(self, *args) -> tuple[int, ...]:
         """ofera_protocol.delta.delta_f16_reference in one numba pass."""
         args = list(args)
-        args[10], args[20] = rotations_u64(args[10]), rotations_u64(args[20])  # held_r, out_rot
+        args[10], args[19] = rotations_u64(args[10]), rotations_u64(args[19])  # held_r, out_rot
         *out, ok = delta_f16_kernel(*args)
         if not ok:
             raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
@@ -554,9 +554,9 @@ def flag_run(p, q, s, hp0, hp1, hp2, hr0, hr1, hr2, hr3, hs0, hs1, hs2, flags, p
 
 
 @nb.njit(**_NB)
-def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel, out_moved):
+def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_moved):
     """What moved: the flags of every candidate (:func:`flag_run` per run of rows), then, branch-free, the
-    selection (out_sel[:n], out_moved[:n]) and the lists (candidate positions) of the moved positions, rotations and
+    selection's flags (out_moved[:n]) and the lists (candidate positions) of the moved positions, rotations and
     scales (lists[0, :n_p], [1, :n_r], [2, :n_s]). Returns (n, n_p, n_r, n_s)."""
     pf, rf, sf = pos.reshape(-1), rot.reshape(-1), scale.reshape(-1)
     for x in range(runs.shape[0]):
@@ -566,25 +566,25 @@ def _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, lists, out_sel
                   dec[3, j:e], dec[4, j:e], dec[5, j:e], dec[6, j:e], dec[7, j:e], dec[8, j:e], dec[9, j:e],
                   flags[j:e], psign, rsign, tol)
     word = flags[: (flags.shape[0] >> 3) << 3].view(np.uint64)
-    return compact_range(flags, word, 0, flags.shape[0], (0, 0, 0, 0), lists, out_sel, out_moved)
+    return compact_range(flags, word, 0, flags.shape[0], (0, 0, 0, 0), lists, out_moved)
 
 
 @nb.njit(inline="always", **_NB)
-def compact_range(flags, word, lo, hi, counts, lists, out_sel, out_moved):
+def compact_range(flags, word, lo, hi, counts, lists, out_moved):
     """:func:`compact_flags` of flags lo..hi-1, a word of 8 flags at a time where whole words of ``word`` (the flags
     viewed as uint64) lie inside: a word of zeros (nothing moved) is skipped whole."""
     wa, wb = (lo + 7) >> 3, hi >> 3
     if wa >= wb:
-        return compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved)
-    counts = compact_flags(flags, lo, wa << 3, counts, lists, out_sel, out_moved)
+        return compact_flags(flags, lo, hi, counts, lists, out_moved)
+    counts = compact_flags(flags, lo, wa << 3, counts, lists, out_moved)
     for b in range(np.uint64(wa), np.uint64(wb)):
         if word[b] != 0:
-            counts = compact_flags(flags, 8 * b, 8 * b + 8, counts, lists, out_sel, out_moved)
-    return compact_flags(flags, wb << 3, hi, counts, lists, out_sel, out_moved)
+            counts = compact_flags(flags, 8 * b, 8 * b + 8, counts, lists, out_moved)
+    return compact_flags(flags, wb << 3, hi, counts, lists, out_moved)
 
 
 @nb.njit(inline="always", **_NB)
-def compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved):
+def compact_flags(flags, lo, hi, counts, lists, out_moved):
     """Flags lo..hi-1 into the selection and the lists, branch-free: each write lands on the next free slot; the
     count moves only if it belongs. counts: (n, n_p, n_r, n_s) so far -> after (int64; unsigned inside: a signed
     slot is checked for wrap-around at every store, 6-40 % of the pass, measured 5 December 2026)."""
@@ -592,7 +592,6 @@ def compact_flags(flags, lo, hi, counts, lists, out_sel, out_moved):
     n, n_p, n_r, n_s = np.uint64(counts[0]), np.uint64(counts[1]), np.uint64(counts[2]), np.uint64(counts[3])
     for j in range(np.uint64(lo), np.uint64(hi)):
         f = np.uint64(flags[j])
-        out_sel[n] = j
         out_moved[n] = np.uint8(f)
         n += np.uint64(f != 0)
         lists[0, n_p] = j
@@ -681,11 +680,11 @@ def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec
 
 @nb.njit(**_NB)
 def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step, table, scale_lut, rot_lut, tol,
-                     held_p, held_r, held_s, dec, flags, work, out_sel, out_moved, out_wide, out_res, out_pos,
+                     held_p, held_r, held_s, dec, flags, work, out_moved, out_wide, out_res, out_pos,
                      out_rot, out_scale, gathered):
     """ofera_protocol.delta.delta_q13_reference: :func:`_select`, then one pass per attribute over what moved
     (gathered: (4 K) float32 scratch). Returns (n, n_p, w, n_r, n_s)."""
-    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
+    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_moved)
     w, _ = encode_positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
                       out_pos)
     encode_rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot)
@@ -741,10 +740,10 @@ def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot
 
 @nb.njit(**_NB)
 def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p, held_r, held_s, dec, flags, work,
-                     out_sel, out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
+                     out_moved, out_wide, out_res, out_pos, out_rot, out_scale):
     """ofera_protocol.delta.delta_f16_reference: :func:`_select`, then one pass per attribute. Returns (n, n_p, w,
     n_r, n_s, ok); ok False if a value sent is NaN, infinite or beyond +-65504."""
-    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_sel, out_moved)
+    n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_moved)
     # f16: lo, k, step unused (psign stands in)
     w, ok = encode_positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
                        out_res, out_pos)
