@@ -10,8 +10,8 @@ thousand of the head's vertices. :class:`SubsetLBS` precomputes, for a fixed ver
 
 Per frame, one numba kernel (no Python per element, no allocation) computes the joints, the 5 rigid
 skinning transforms, ``v_po = v_id + B c`` four coefficients per pass (zero ones skipped), and for every
-vertex of S ``v = (sum_k W_k A_k) v_po``, in float64 (``parallel``: the same in vertex blocks on numba's threads,
-the same bits). It is :func:`ofera.head.lbs.lbs` restricted to S;
+vertex of S ``v = (sum_k W_k A_k) v_po``, in float64 with fused multiply-adds (``parallel``: the same in vertex
+blocks on numba's threads, the same bits). It is :func:`ofera.head.lbs.lbs` restricted to S;
 :func:`subset_lbs_reference` is the plain reference (the full numpy LBS, then indexing) that tests
 compare it with. The basis is stored as float32 (half the memory traffic); the relative error that adds
 is below 1e-7 of each displacement (nanometres), far inside float32 output precision.
@@ -25,6 +25,12 @@ import numpy as np
 from ..jit import NB as _NB
 from ..jit import atomic_add
 from .lbs import HeadSubject, lbs
+
+_NBC = {**_NB, "fastmath": {"contract"}}
+"""The head's kernels: a product and the sum it joins fused (one rounding, FMA), nothing reassociated. Both the
+serial and the threaded head compile so, the same bits; the blend's products fused took the parallel head 285 -> 265
+us p50 on a cold CPU (175 -> 152 warm) on the capture at 100k, alternating in one process, outputs within 3e-17 m of
+unfused (benchmarks/README.md, round sixteen)."""
 
 
 @nb.njit(inline="always", **_NB)
@@ -90,7 +96,8 @@ def _blend_skin(lo, hi, coef, v_id, basis_t, weights, a, acc, nz, count, out):
     parallel twin's bits)."""
     # Blend shapes: acc[r] = v_id[r] + sum_j coef[j] B[j, r] over the non-zero coefficients in ascending order,
     # four per pass over acc (one load and store of acc per four products: the passes were bound by those stores,
-    # 1.5x, measured), each product added in turn (no sum reassociated: the bits of one axpy per coefficient).
+    # 1.5x, measured), each product added in turn, fused with its add (_NBC; no sum reassociated: the bits of one
+    # fused axpy per coefficient).
     # Unsigned indices: numba then emits no negative-index wrap-around, which kept LLVM from vectorising the
     # loops (the head took 1.5x as long, measured).
     r0 = np.uint64(3 * lo)
@@ -154,7 +161,7 @@ def _skin5(lo, hi, weights, a, acc, out):
             out[s, i] = t0 * acc[r] + t1 * acc[r + np.uint64(1)] + t2 * acc[r + np.uint64(2)] + t3
 
 
-@nb.njit(**_NB)
+@nb.njit(**_NBC)
 def _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz,
                 out):
     """expr (n,) f32/f64, rot (K, 3, 3) -> out (S, 3) float64. v_id (3S,) flat; basis_t (C, 3S); weights (5, S).
@@ -182,7 +189,7 @@ def _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, 
                     out)
 
 
-@nb.njit(parallel=True, **_NB)
+@nb.njit(parallel=True, **_NBC)
 def _subset_lbs_parallel(threads, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints,
                          a, acc, nz, out, claims):
     """:func:`_subset_lbs` with the vertices in blocks shared by ``threads`` of numba's threads (the same bits). It
@@ -196,7 +203,7 @@ def _subset_lbs_parallel(threads, expr, rot, coef, v_id, basis_t, pose_rows, j_i
         _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
-@nb.njit(**_NB)
+@nb.njit(**_NBC)
 def flame_subset_lbs(y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz,
                      out):
     """:func:`flame_values_kernel` (y (68,) -> expr (50,), rot (5, 3, 3)) then :func:`_subset_lbs` of them, in one
@@ -205,7 +212,7 @@ def flame_subset_lbs(y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr,
     _subset_lbs(expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz, out)
 
 
-@nb.njit(parallel=True, **_NB)
+@nb.njit(parallel=True, **_NBC)
 def flame_subset_lbs_parallel(threads, y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights,
                               joints, a, acc, nz, out, claims):
     """:func:`flame_subset_lbs` with the blocks of :func:`_subset_lbs_parallel` (a parallel loop of its own: a
