@@ -156,8 +156,8 @@ def _moved(pos, rot, scale, rows, psign, rsign, tol, dec) -> np.ndarray:
 
 
 def _select(moved, flags, out_moved):
-    """Write the flags and the selection's; returns (sel, n, and the candidate positions of the moved positions,
-    rotations, scales)."""
+    """Write the flags of every candidate and of the selection (the n that moved, ``out_moved[:n]``); returns (sel,
+    n, and the candidate positions of the moved positions, rotations, scales)."""
     flags[:] = moved[:, 0] | (moved[:, 1].astype(np.uint8) << 1) | (moved[:, 2].astype(np.uint8) << 2)
     sel = np.flatnonzero(moved.any(axis=1))
     n = sel.size
