@@ -6,6 +6,7 @@ the fast path streams them, its key frames from the state."""
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 import numpy as np
@@ -138,16 +139,23 @@ def test_blocks_cover_the_candidates_once_with_their_own_faces(fast: FastAvatar)
 def test_a_delta_session_streams_frames_the_deformation_wrote(observed: Any) -> None:  # noqa: F811
     """v1 q13 delta on the fast path: `Source.direct` writes the delta frames (no state), the key frame comes from the
     state; the server holds the codes an offline encoder holds after the same values through the state, and the
-    client's Gaussians are those codes."""
+    client's Gaussians are those codes. The frames' encoding reaches /metrics (observed once each is delivered)."""
     got = []
+
+    def encoded(source: Any) -> float:
+        return source.metrics.registry.get_sample_value("ofera_stage_seconds_count", {"stage": "encode"}) or 0.0
 
     async def main() -> None:
         c = await connect(main_server().url, avatar=SMALL, encoding="q13", delta=True, track=True)
         for k in range(5):
             await c.send_bs(np.full(52, 0.2 * k, np.float32), seq=k)
             await c.recv_frame(timeout=WAIT)
+            if k == 0:
+                (source,) = observed.sources
+                before = encoded(source)
         got.extend((c.gaussians.position.copy(), c.gaussians.rotation.copy(), c.gaussians.scale.copy()))
-        (source,) = observed.sources
+        await asyncio.sleep(0.05)  # (the server's loop observes a frame's stages after delivering it)
+        assert encoded(source) - before == 4  # the four delta frames the deformation wrote
         assert isinstance(source.direct, DirectDeltaFrames)
         direct.append(source.direct)
         await c.close()

@@ -94,6 +94,7 @@ class ComputedFrame:
     values: np.ndarray | None = None  # the avatar's expression values (68 FLAME values; arkit51: 51 weights)
     member: str | None = None  # rooms: whose avatar (frame.member)
     restate: Callable[[], GaussianState] | None = None  # a frame written with no state (Source.direct): deforms it
+    encode_ns: int = 0  # Source.direct: the writer's encoding, observed with the other stages once delivered
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -204,7 +205,7 @@ class Source:
             data, spent_ns = self.direct.finish(written, frame)
             frame.store(self.direct.key, data)
             frame.restate = lambda: self.pipeline.deform_values(values)[0]
-            self.metrics.stage_of("encode").observe((spent_ns + time.perf_counter_ns() - t0) * 1e-9)
+            frame.encode_ns = spent_ns + time.perf_counter_ns() - t0
         elif state is not None:
             self._encode_eagerly(frame)
         return frame
@@ -247,12 +248,14 @@ class Source:
             for deliver in list(self.subscribers):
                 deliver(frame)
             # The metrics after the viewers' tasks (woken above) have written the frame: on a cold CPU the
-            # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py).
-            loop.call_soon(self._account, frame.timing)
+            # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py), 17 us an observation.
+            loop.call_soon(self._account, frame)
 
-    def _account(self, timing: dict[str, int]) -> None:
+    def _account(self, frame: ComputedFrame) -> None:
         self.metrics.frames_computed.inc()
-        self.metrics.observe_timings(timing)
+        self.metrics.observe_timings(frame.timing)
+        if frame.encode_ns:
+            self.metrics.stage_of("encode").observe(frame.encode_ns * 1e-9)
 
 
 class FrameEncoder(Protocol):
