@@ -324,6 +324,14 @@ def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch:
     c._start()
     c._end(0)  # a frame with no work (an avatar nothing moves) is recorded too
     assert len(c.choice.times[False]) == 5
+    later: list = []  # the server's Source: recorded once the frame is delivered
+    c.defer = lambda fn, *args: later.append((fn, args))
+    c._start()
+    c._end(7)
+    assert len(c.choice.times[False]) == 5 and len(later) == 1
+    fn, args = later.pop()
+    fn(*args)
+    assert len(c.choice.times[False]) == 6
 
 
 def test_the_kernel_threads_setting_reaches_every_session(monkeypatch: pytest.MonkeyPatch) -> None:

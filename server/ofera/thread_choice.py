@@ -85,8 +85,9 @@ class ThreadChoice:
     A delta frame's work grows with what moved (a heavy frame costs twice a median one): per unit of work, a probe
     that lands on a heavy frame does not count against its mode. The choice is made when a frame is recorded, with
     pure-Python medians of ``window`` values (numpy's took 0.16 ms a frame on a cold CPU, on the frame's path: round
-    eleven); probes are rare (each runs a frame in the slower mode: at 1 in 60, 1.7 % of frames, more than a p99
-    allows, and in step with a looped 180-frame capture)."""
+    eleven; the server records once the frame is delivered, ``FastSession.defer``); probes are rare (each runs a
+    frame in the slower mode: at 1 in 60, 1.7 % of frames, more than a p99 allows, and in step with a looped
+    180-frame capture)."""
 
     def __init__(self, window: int = 15, probe: int = 240, give_up: float = 2.0) -> None:
         self.times: dict[bool, deque[float]] = {False: deque(maxlen=window), True: deque(maxlen=window)}

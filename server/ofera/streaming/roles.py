@@ -23,6 +23,7 @@ import asyncio
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass, field
@@ -163,6 +164,11 @@ class Source:
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
+        # Work a frame does not wait for, run once it is delivered (_account): the fast session's thread-choice record
+        self._after: deque[tuple[Callable[..., Any], tuple]] = deque()
+        fast = getattr(pipeline, "fast", None)
+        if fast is not None and hasattr(fast, "defer"):
+            fast.defer = self._defer
 
     def wake(self) -> None:
         self._wake.set()
@@ -251,11 +257,18 @@ class Source:
             # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py), 17 us an observation.
             loop.call_soon(self._account, frame)
 
+    def _defer(self, fn: Callable[..., Any], *args: Any) -> None:
+        """fn(*args) once the frame under way is delivered (from the compute thread; deque appends are atomic)."""
+        self._after.append((fn, args))
+
     def _account(self, frame: ComputedFrame) -> None:
         self.metrics.frames_computed.inc()
         self.metrics.observe_timings(frame.timing)
         if frame.encode_ns:
             self.metrics.stage_of("encode").observe(frame.encode_ns * 1e-9)
+        while self._after:
+            fn, args = self._after.popleft()
+            fn(*args)
 
 
 class FrameEncoder(Protocol):
