@@ -325,7 +325,7 @@ def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch:
     c._end(0)  # a frame with no work (an avatar nothing moves) is recorded too
     assert len(c.choice.times[False]) == 5
     later: list = []  # the server's Source: recorded once the frame is delivered
-    c.defer = lambda fn, *args: later.append((fn, args))
+    c.defer = later.append
     c._start()
     c._end(7)
     assert len(c.choice.times[False]) == 5 and len(later) == 1

@@ -156,7 +156,7 @@ def test_a_delta_session_streams_frames_the_deformation_wrote(observed: Any) -> 
         got.extend((c.gaussians.position.copy(), c.gaussians.rotation.copy(), c.gaussians.scale.copy()))
         await asyncio.sleep(0.05)  # (the server's loop observes a frame's stages after delivering it)
         assert encoded(source) - before == 4  # the four delta frames the deformation wrote
-        assert source.pipeline.fast.defer == source._defer and not source._after  # thread-choice records: run
+        assert source.pipeline.fast.defer == source._after.append and not source._after  # thread-choice records: run
         assert isinstance(source.direct, DirectDeltaFrames)
         direct.append(source.direct)
         await c.close()

@@ -54,6 +54,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import SimpleNamespace
+from typing import Any
 
 import numba
 import numpy as np
@@ -269,9 +270,10 @@ class FastSession:
         # claim their work), only not faster.
         self.threads = numba.get_num_threads()
         self._frame: tuple[bool, int] | None = None  # the frame under way: (its thread choice, its start in ns)
-        # Where an automatic frame's time goes to the thread choice: None, at once; else defer(fn, *args), which runs
-        # fn(*args) later (the server's Source: once the frame is delivered; a cold record took 16 us p50)
-        self.defer: Callable[..., None] | None = None
+        # Where an automatic frame's time goes to the thread choice: None, at once; else defer((fn, args)), whose taker
+        # runs fn(*args) later (the server's Source: once the frame is delivered; a cold record took 16 us p50). A
+        # queue's append, not the taker's own method: that would be a reference cycle (Source -> pipeline -> here)
+        self.defer: Callable[[tuple[Callable[..., Any], tuple]], None] | None = None
         self.lbs = fast.lbs.clone()
         cols = K.FACE_COLS_BARY if fast.binding_type == "barycentric" else K.FACE_COLS
         self.face = np.zeros((cols, fast.used_faces.size), np.float32)  # face frames, one row per column
@@ -347,7 +349,7 @@ class FastSession:
             if self.defer is None:
                 self.choice.record(*sample)
             else:
-                self.defer(self.choice.record, *sample)
+                self.defer((self.choice.record, sample))
 
     def _verts(self, verts: np.ndarray) -> np.ndarray:
         verts = _f64(verts)

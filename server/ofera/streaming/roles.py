@@ -164,11 +164,12 @@ class Source:
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
-        # Work a frame does not wait for, run once it is delivered (_account): the fast session's thread-choice record
+        # Work a frame does not wait for, (fn, args) run once it is delivered (_account): the fast session's
+        # thread-choice record, appended from the compute thread (deque appends are atomic)
         self._after: deque[tuple[Callable[..., Any], tuple]] = deque()
         fast = getattr(pipeline, "fast", None)
         if fast is not None and hasattr(fast, "defer"):
-            fast.defer = self._defer
+            fast.defer = self._after.append
 
     def wake(self) -> None:
         self._wake.set()
@@ -256,10 +257,6 @@ class Source:
             # The metrics after the viewers' tasks (woken above) have written the frame: on a cold CPU the
             # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py), 17 us an observation.
             loop.call_soon(self._account, frame)
-
-    def _defer(self, fn: Callable[..., Any], *args: Any) -> None:
-        """fn(*args) once the frame under way is delivered (from the compute thread; deque appends are atomic)."""
-        self._after.append((fn, args))
 
     def _account(self, frame: ComputedFrame) -> None:
         self.metrics.frames_computed.inc()
