@@ -456,11 +456,13 @@ class NumbaKernels:
         """ofera_protocol.delta.delta_body_reference by :func:`delta_body_kernel` (same bytes)."""
         return delta_body_kernel(buf, at, DELTA_KEYS, *args)
 
-    def delta_f16(self, *args) -> tuple[int, ...]:
-        """ofera_protocol.delta.delta_f16_reference in one numba pass."""
-        args = list(args)
-        args[10], args[19] = rotations_u64(args[10]), rotations_u64(args[19])  # held_r, out_rot
-        *out, ok = delta_f16_kernel(*args)
+    def delta_f16(self, pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p, held_r, held_s, dec, flags,
+                  work, out_moved, out_wide, out_res, out_pos, out_rot, out_scale) -> tuple[int, ...]:
+        """ofera_protocol.delta.delta_f16_reference in one numba pass (same signature, same bytes); the rotations'
+        codes held and written as one uint64 each (:func:`rotations_u64`)."""
+        *out, ok = delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p, rotations_u64(held_r),
+                                    held_s, dec, flags, work, out_moved, out_wide, out_res, out_pos,
+                                    rotations_u64(out_rot), out_scale)
         if not ok:
             raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
         return tuple(int(x) for x in out)

@@ -95,7 +95,6 @@ class ComputedFrame:
     values: np.ndarray | None = None  # the avatar's expression values (68 FLAME values; arkit51: 51 weights)
     member: str | None = None  # rooms: whose avatar (frame.member)
     restate: Callable[[], GaussianState] | None = None  # a frame written with no state (Source.direct): deforms it
-    encode_ns: int = 0  # Source.direct: the writer's encoding, observed with the other stages once delivered
     _encoded: dict[tuple, bytes] = field(default_factory=dict, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -164,8 +163,9 @@ class Source:
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
-        # Work a frame does not wait for, (fn, args) run once it is delivered (_account): the fast session's
-        # thread-choice record, appended from the compute thread (deque appends are atomic)
+        # Work a frame does not wait for, (fn, args) run once it is delivered (_account): a direct frame's encode
+        # histogram, the fast session's thread-choice record; appended from the compute thread (deque appends are
+        # atomic). A cold histogram observation took 17 us p50, a record 8.5-16 (benchmarks/README.md, round sixteen)
         self._after: deque[tuple[Callable[..., Any], tuple]] = deque()
         fast = getattr(pipeline, "fast", None)
         if fast is not None and hasattr(fast, "defer"):
@@ -212,7 +212,8 @@ class Source:
             data, spent_ns = self.direct.finish(written, frame)
             frame.store(self.direct.key, data)
             frame.restate = lambda: self.pipeline.deform_values(values)[0]
-            frame.encode_ns = spent_ns + time.perf_counter_ns() - t0
+            seconds = (spent_ns + time.perf_counter_ns() - t0) * 1e-9
+            self._after.append((self.metrics.stage_of("encode").observe, (seconds,)))
         elif state is not None:
             self._encode_eagerly(frame)
         return frame
@@ -255,14 +256,12 @@ class Source:
             for deliver in list(self.subscribers):
                 deliver(frame)
             # The metrics after the viewers' tasks (woken above) have written the frame: on a cold CPU the
-            # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py), 17 us an observation.
-            loop.call_soon(self._account, frame)
+            # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py).
+            loop.call_soon(self._account, frame.timing)
 
-    def _account(self, frame: ComputedFrame) -> None:
+    def _account(self, timing: dict[str, int]) -> None:
         self.metrics.frames_computed.inc()
-        self.metrics.observe_timings(frame.timing)
-        if frame.encode_ns:
-            self.metrics.stage_of("encode").observe(frame.encode_ns * 1e-9)
+        self.metrics.observe_timings(timing)
         while self._after:
             fn, args = self._after.popleft()
             fn(*args)
