@@ -285,6 +285,13 @@ def test_parallel_kernels_match_serial(head, subject, kind) -> None:
     np.testing.assert_array_equal(a.scale, b.scale)
 
 
+class _ThreadsAsked:
+    """What FastSession.flame_delta asks of a DirectDelta, answering with the thread choice it was given."""
+
+    def head_select(self, y: np.ndarray, parallel: bool) -> tuple[tuple[int, bool], float]:
+        return (0, parallel), 0.5
+
+
 def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch: pytest.MonkeyPatch) -> None:
     """Automatic sessions: a frame's kernels (dense or a delta frame's select) on threads while the session is alone
     and its threaded frames were faster, the same bits; two sessions computing: one thread each; a session whose
@@ -303,16 +310,17 @@ def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch:
         a.choice.record(True, 1)
         a.choice.record(False, 10)
     expr, rot = random_flame(rng)
-    verts = a.head(expr, rot).copy()
     ref = fast.session(parallel=False).run(expr, rot)
     state = a.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert a.threaded  # alone, threads faster: a dense frame on threads, the same bits
-    assert a.deform_delta(verts, lambda v, par: (0, par))[1] and a.threaded  # and a delta frame's kernel
+    y = np.zeros(68, np.float32)
+    y[50:] = [1, 0, 0, 0, 1, 0] * 3
+    assert a.flame_delta(y, _ThreadsAsked())[0][1] and a.threaded  # and a delta frame's kernel
     state = b.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert not b.threaded
-    assert not a.deform_delta(verts, lambda v, par: (0, par))[1]  # b computed a frame within the window: one thread
+    assert not a.flame_delta(y, _ThreadsAsked())[0][1]  # b computed a frame within the window: one thread
     c = fast.session(parallel=None)
     c.activity = Activity(window_s=60.0)
     for _ in range(3):

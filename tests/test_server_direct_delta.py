@@ -68,7 +68,7 @@ def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coo
     ref = delta_encoder(fmt, coords, gather, ids, rows, key_interval=4)
     mine = delta_encoder(fmt, coords, gather, ids, rows, key_interval=4)
     a, b = fast.session(), fast.session(parallel=parallel)
-    direct = DirectDelta(fast, mine, threads=threads, head=b.lbs.out)
+    direct = DirectDelta(fast, mine, threads=threads, head=b.head_args())
     assert direct.threads == threads and direct.blocks >= rows.size // (2 * block)
     direct_frames = narrow = wide = 0
     for k, y in enumerate(flame_values(np.random.default_rng(7), 7)):
@@ -77,11 +77,14 @@ def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coo
         want = bytes(ref.encode(k, k, {"total": k}, state.position, state.rotation, state.scale))
         if mine.next_is_key:
             got = bytes(mine.encode(k, k, {"total": k}, state.position, state.rotation, state.scale))
-        else:  # the head's buffer (the kernels bound to it) on odd frames, a copy (numba's dispatch) on even ones
-            head = b.flame_head(y) if k % 2 else verts
-            assert (head is direct.head) == bool(k % 2)
-            got = bytes(mine.encode_selected(k, k, {"total": k}, b.deform_delta(head, direct.select), 0))
-            assert b.threaded is parallel
+        else:  # the head run by the kernel (the session's call) on odd frames, vertices given on even ones
+            if k % 2:
+                counts, share = b.flame_delta(y, direct)
+                assert b.threaded is parallel and 0 < share < 1  # (the head's share, by the kernel's clock)
+                np.testing.assert_array_equal(b.lbs.out, verts)  # the head's vertices, in its buffer
+            else:
+                counts = direct.select(verts, parallel)
+            got = bytes(mine.encode_selected(k, k, {"total": k}, counts, 0))
             direct_frames += 1
             m = decode_server_message(got, fmt)
             narrow, wide = narrow + len(m.position_delta), wide + len(m.position)
@@ -99,6 +102,11 @@ def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) 
         DirectDelta(fast, delta_encoder(fmt, candidates=np.array([still], np.int64)))
     with pytest.raises(ValueError, match="numba kernel set"):
         DirectDelta(fast, DeltaEncoder(fmt, candidates=fast.arrays.ids))
+    encoder = delta_encoder(fmt, candidates=fast.arrays.ids)
+    with pytest.raises(ValueError, match="head_args"):
+        DirectDelta(fast, encoder, head=fast.lbs.flame_args(*(np.zeros(k, np.float32) for k in (68, 50, 45))))
+    with pytest.raises(ValueError, match="without the session's head"):
+        DirectDelta(fast, encoder).head_select(np.zeros(68, np.float32))
 
 
 def test_no_candidates_select_nothing_on_either_kernel(fast: FastAvatar) -> None:

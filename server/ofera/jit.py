@@ -65,6 +65,19 @@ def atomic_add(typingctx, array, index, value):
     return types.int64(array, index, value), codegen
 
 
+@intrinsic
+def cycle_counter(typingctx):
+    """The processor's cycle counter (LLVM readcyclecounter: rdtsc on x86-64; 0 where a target has none), uint64. For
+    splitting a kernel's time between its parts by the kernel's own clock; compiled into the kernel, so cacheable
+    (a ctypes clock_gettime is not)."""
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.readcyclecounter", fnty=ir.FunctionType(ir.IntType(64), []))
+        return builder.call(fn, [])
+
+    return types.uint64(), codegen
+
+
 @structref.register
 class _FixedType(types.StructRef):
     """numba type of :class:`Fixed`."""

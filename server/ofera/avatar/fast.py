@@ -283,6 +283,8 @@ class FastSession:
         self._rot = np.zeros((5, 3, 3), np.float32)
         self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
         self._claims = np.zeros(1, np.int64)  # the threaded kernels' shared block counter
+        self._head_values = np.zeros(68, np.float32)  # FLAME values for a kernel that runs the head (head_args)
+        self._head_claims = np.zeros(2, np.int64)  # its vertex blocks claimed and done
 
     def flame_head(self, y: np.ndarray) -> np.ndarray:
         """:meth:`head` of :meth:`flame` (y (68,) FLAME values -> (S, 3) float64), the same values in one numba call
@@ -357,14 +359,21 @@ class FastSession:
             raise ValueError(f"vertices have shape {verts.shape}, the subset has ({self.fast.lbs.count}, 3)")
         return verts
 
-    def deform_delta(self, verts: np.ndarray, select) -> tuple[int, ...]:
-        """``select(verts, parallel)`` with this frame's thread choice (as :meth:`deform`, timed for the automatic
-        choice) for subset vertices (S, 3): a kernel that deforms from them and writes a delta frame
-        (``ofera.streaming.direct_delta.DirectDelta.select``); returns what it returns."""
-        verts = self._verts(verts)
-        out = select(verts, self._begin())
-        self._end(self.fast.arrays.ids.shape[0] + 2 * out[0])  # what changed is encoded: about twice a deform
-        return out
+    def head_args(self) -> tuple:
+        """The arguments of this session's head (``SubsetLBS.flame_args`` of its buffers, its vertex block counters)
+        for a kernel that runs the head itself before what it does with the vertices
+        (``ofera.streaming.direct_delta.DirectDelta``, made with them: :meth:`flame_delta`)."""
+        return (*self.lbs.flame_args(self._head_values, self._expr, self._rot), self._head_claims)
+
+    def flame_delta(self, y: np.ndarray, direct) -> tuple[tuple[int, ...], float]:
+        """:meth:`flame_head` of FLAME values y (68,) and a delta frame's selection from its vertices in one kernel call
+        with this frame's thread choice (as :meth:`deform`, timed for the automatic choice): ``direct`` a
+        ``DirectDelta`` made with :meth:`head_args`. Returns what its ``head_select`` returns: (the counts, the head's
+        share of the kernel's time)."""
+        y = self._values(y)
+        counts, share = direct.head_select(y, self._start())
+        self._end(self.fast.arrays.ids.shape[0] + 2 * counts[0])  # what changed is encoded: about twice a deform
+        return counts, share
 
     def deform(self, verts: np.ndarray) -> GaussianState:
         """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""

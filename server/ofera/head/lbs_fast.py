@@ -175,18 +175,38 @@ VERTEX_BLOCK = 512
 
 
 @nb.njit(inline="always", **_NB)
-def _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out):
-    """:func:`_blend_skin` of blocks of :data:`VERTEX_BLOCK` vertices, each claimed through ``claims`` ((1,) int64,
-    0 at the start, shared by the threads of one parallel loop): whichever thread is free takes the next, so one that
-    wakes late takes fewer (a fixed half each made the first wait for the second at the loop's end)."""
+def blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out):
+    """:func:`_blend_skin` of blocks of :data:`VERTEX_BLOCK` vertices, each claimed through ``claims`` ((2,) int64,
+    0 at the start, shared by the threads of one parallel loop: [0] blocks claimed, [1] blocks done): whichever thread
+    is free takes the next, so one that wakes late takes fewer (a fixed half each made the first wait for the second
+    at the loop's end). Returns the number of blocks (all claimed, not all done: see :func:`wait_blend`)."""
     s = out.shape[0]
     parts = (s + VERTEX_BLOCK - 1) // VERTEX_BLOCK
     while True:
         b = atomic_add(claims, 0, 1)
         if b >= parts:
-            return
+            return parts
         _blend_skin(b * VERTEX_BLOCK, min(s, (b + 1) * VERTEX_BLOCK), coef, v_id, basis_t, weights, a, acc, nz, count,
                     out)
+        atomic_add(claims, 1, 1)
+
+
+@nb.njit(inline="always", **_NB)
+def wait_blend(claims, parts):
+    """Spin until all ``parts`` blocks of :func:`blend_skin_shared` are done: the vertices are all written (by the
+    threads that claimed the last blocks, which are running them: no wait for a thread that never came)."""
+    while atomic_add(claims, 1, 0) < parts:
+        pass
+
+
+@nb.njit(**_NBC)
+def flame_transforms(y, expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, nz, n_basis):
+    """:func:`flame_values_kernel` (y (68,) -> expr (50,), rot (5, 3, 3)), then one frame's blend coefficients and
+    skinning transforms (``n_basis`` rows of the basis): what precedes the vertex blocks. Returns the count of
+    non-zero coefficients (their rows in nz)."""
+    flame_values_kernel(y, expr.shape[0], expr, rot)
+    _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, n_basis - pose_rows.shape[0])
+    return _nonzero(coef, nz)
 
 
 @nb.njit(parallel=True, **_NBC)
@@ -195,12 +215,12 @@ def _subset_lbs_parallel(threads, expr, rot, coef, v_id, basis_t, pose_rows, j_i
     """:func:`_subset_lbs` with the vertices in blocks shared by ``threads`` of numba's threads (the same bits). It
     wakes the worker for the frame's threaded deformation, whose first region then starts sooner (benchmarks/README.md,
     round eleven); with the blocks claimed as the threads go, a late worker no longer holds up the first thread
-    (round thirteen). claims: (1,) int64 scratch."""
+    (round thirteen). claims: (2,) int64 scratch."""
     _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
     count = _nonzero(coef, nz)
-    claims[0] = 0
+    claims[0] = claims[1] = 0
     for _t in nb.prange(threads):
-        _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
+        blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
 @nb.njit(**_NBC)
@@ -217,12 +237,10 @@ def flame_subset_lbs_parallel(threads, y, expr, rot, coef, v_id, basis_t, pose_r
                               joints, a, acc, nz, out, claims):
     """:func:`flame_subset_lbs` with the blocks of :func:`_subset_lbs_parallel` (a parallel loop of its own: a
     parallel function called from another runs serially)."""
-    flame_values_kernel(y, expr.shape[0], expr, rot)
-    _transforms(expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, basis_t.shape[0] - pose_rows.shape[0])
-    count = _nonzero(coef, nz)
-    claims[0] = 0
+    count = flame_transforms(y, expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, nz, basis_t.shape[0])
+    claims[0] = claims[1] = 0
     for _t in nb.prange(threads):
-        _blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
+        blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, out)
 
 
 @nb.njit(**_NB)
@@ -320,7 +338,7 @@ class SubsetLBS:
         self._joints = np.zeros((k, 3), np.float64)
         self._a = np.zeros((k, 3, 4), np.float64)
         self.out = np.zeros((self.vertex_ids.size, 3), np.float64)
-        self._claims = np.zeros(1, np.int64)  # the parallel kernels' shared block counter
+        self._claims = np.zeros(2, np.int64)  # the parallel kernels' shared block counters (claimed, done)
         self.threads = nb.get_num_threads()  # read once (a slow call on a cold CPU: see FastSession.threads)
 
     def clone(self) -> SubsetLBS:
@@ -340,13 +358,19 @@ class SubsetLBS:
         ``parallel``: as :meth:`forward`."""
         if self.n_expr < expr.shape[0]:
             raise ValueError(f"{expr.shape[0]} expression coefficients, this subset LBS uses {self.n_expr}")
-        args = (y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
-                self.weights, self._joints, self._a, self._acc, self._nz, self.out)
+        args = self.flame_args(y, expr, rot)
         if parallel:
             flame_subset_lbs_parallel(self.threads, *args, self._claims)
         else:
             flame_subset_lbs(*args)
         return self.out
+
+    def flame_args(self, y: np.ndarray, expr: np.ndarray, rot: np.ndarray) -> tuple:
+        """The arguments of :func:`flame_subset_lbs` for FLAME values y (68,) float32 and split buffers expr (50,),
+        rot (5, 3, 3) float32: (y, expr, rot, coefficients, template, basis, pose rows, joint regressors, parents,
+        weights, its scratch, out); a kernel that runs the head itself takes them (ofera.streaming.direct_delta)."""
+        return (y, expr, rot, self._coef, self.v_id, self.basis_t, self.pose_rows, self.j_id, self.j_expr, self.parents,
+                self.weights, self._joints, self._a, self._acc, self._nz, self.out)
 
     def forward(self, expr: np.ndarray, rotations: np.ndarray, parallel: bool = False) -> np.ndarray:
         """expr (n,) with n <= n_expr, rotations (K, 3, 3) (root, neck, jaw, eyes) -> vertices (S, 3). ``parallel``:

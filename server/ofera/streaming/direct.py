@@ -67,7 +67,7 @@ class DirectDeltaFrames:
         self.key, self.encoder = key, encoder
         # one chunk when the session never runs threads (no gather of chunks), else one a thread
         self.direct = DirectDelta(session.fast, encoder, threads=1 if session.parallel is False else None,
-                                  head=session.lbs.out)
+                                  head=session.head_args())
 
     def ready(self) -> bool:
         return not self.encoder.next_is_key

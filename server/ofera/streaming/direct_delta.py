@@ -10,10 +10,10 @@ back (5 MB a frame at 100k Gaussians). On the 2-core Zen 1 VM of December 2026 t
 is bound by arithmetic there, not memory); what it buys is the second core: see below (benchmarks/README.md, round
 eight).
 
-    direct = DirectDelta(fast_avatar, encoder)          # once per session: candidate runs, blocks, face lists
+    direct = DirectDelta(fast_avatar, encoder, head=session.head_args())  # once per session: runs, blocks, faces
     if not encoder.next_is_key:                         # key frames (join, resync, key_interval) take the state
-        counts = session.deform_delta(verts, direct.select)          # FastSession: its thread choice
-        data = encoder.encode_selected(seq, t, timing, counts, start_ns)
+        counts, head_share = session.flame_delta(y, direct)          # FastSession: its thread choice; the head
+        data = encoder.encode_selected(seq, t, timing, counts, start_ns)  # runs in the same kernel call
 
 Both cores: every block has its own list of faces (:func:`block_faces`) and its own rows of every scratch, so a block
 on another core reads nothing another block writes. The serial kernel runs the blocks in order into the outputs in
@@ -33,8 +33,9 @@ import numpy as np
 from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
 
 from ..avatar import kernels as K
+from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms, wait_blend
 from ..jit import NB as _NB
-from ..jit import Bound, atomic_add
+from ..jit import Bound, atomic_add, cycle_counter
 from .encode_fast import (
     NO_LUT,
     NO_TABLE,
@@ -196,18 +197,29 @@ def _back(q13, t, blocks, verts, geo, codes, held, spare, scratch, claims, res):
 
 
 @nb.njit(**_NBC)
-def deform_delta_kernel(q13, verts, geo, codes, held, out, scratch):
+def deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, ticks):
     """encode_fast's delta kernels (``q13``: delta_q13_kernel, else delta_f16_kernel) on the candidates deformed from
-    the subset vertices ``verts`` (S, 3) float64, single-threaded: block after block into the outputs in place.
-    Returns (n, n_p, w, n_r, n_s, ok)."""
+    the subset vertices ``verts`` (S, 3) float64, single-threaded: block after block into the outputs in place. First
+    the head, if ``head`` holds its arguments (``SubsetLBS.flame_args``, writing ``verts``, and a (2,) int64 scratch;
+    with a y of size 0 the vertices are given). ``ticks`` (3,) uint64: the cycle counter at the start, once the
+    vertices are written and at the end. Returns (n, n_p, w, n_r, n_s, ok)."""
+    ticks[0] = cycle_counter()
+    if head[0].shape[0]:
+        flame_subset_lbs(*head[:16])
+    ticks[1] = cycle_counter()
     n, n_p, w, n_r, n_s, ok, _ = _front(q13, geo[6].shape[0] - 1, verts, geo, codes, held, out, scratch,
                                         np.zeros(0, np.int64))
+    ticks[2] = cycle_counter()
     return n, n_p, w, n_r, n_s, ok
 
 
 @nb.njit(parallel=True, **_NBC)
-def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res):
-    """:func:`deform_delta_kernel` on ``threads`` of numba's threads, which share the blocks as they go: thread 0 takes
+def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, claims, res, ticks):
+    """:func:`deform_delta_kernel` on ``threads`` of numba's threads. The head's vertices first (if ``head`` holds its
+    arguments), in blocks the threads claim (``ofera.head.lbs_fast``); each then waits for the last block to be done
+    and goes on to the delta blocks: one parallel region, where a head called before took one of its own and the
+    Python between (head + delta p50 1288 -> 1259 and 1282 -> 1255 us in process, round seventeen). The threads share
+    the delta blocks as they go: thread 0 takes
     them from the first on and writes in place (as the serial kernel), the others from the last down, each block into
     ``spare`` (arrays shaped as ``out``); the back blocks are then copied to where the front's outputs end, in block
     order, a loop per back thread (with two threads one iteration, which numba runs on the calling thread: the copies
@@ -217,6 +229,16 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
     the first: it wakes later, and where the face moves most, more of its Gaussians are encoded. ``claims`` (1,) and
     ``res`` (B + 1, 7) int64 scratch. (A parallel loop takes arrays and scalars only: the groups are taken apart here
     and rebuilt in the loop.)"""
+    ticks[0] = cycle_counter()
+    y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz, _, hclaims = head
+    parts = nonzero = 0
+    if y.shape[0]:
+        nonzero = flame_transforms(y, expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, nz,
+                                   basis_t.shape[0])
+        parts = (verts.shape[0] + VERTEX_BLOCK - 1) // VERTEX_BLOCK
+        hclaims[0] = hclaims[1] = 0
+    else:
+        ticks[1] = cycle_counter()
     block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, signs = geo
     s0, s1, s2, s3, s4, s5, s6 = signs
     lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4 = codes
@@ -227,6 +249,11 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
     count = blocks.shape[0] - 1
     claims[0] = 0
     for t in nb.prange(threads):
+        if parts:
+            blend_skin_shared(hclaims, coef, v_id, basis_t, weights, a, acc, nz, nonzero, verts)
+            wait_blend(hclaims, parts)
+            if t == 0:
+                ticks[1] = cycle_counter()
         g = (block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, (s0, s1, s2, s3, s4, s5, s6))
         c = (lo, k, step, table, scale_lut, rot_lut, tol, ones3, ones4)
         h = (ids, held_p, held_r, held_s, dec, flags, work)
@@ -250,6 +277,7 @@ def deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spa
                              (sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
                              (out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
             n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
+    ticks[2] = cycle_counter()
     return _totals(res, first, count)
 
 
@@ -300,11 +328,10 @@ class DirectDelta:
     """One delta session's frames written by the deformation (see the module docstring): ``fast`` a FastAvatar
     (triangle binding), ``encoder`` the session's DeltaEncoder (the numba kernel set) whose candidates the fast
     path deforms; ``threads``: the threads a threaded frame shares its blocks among (numba's thread count by default);
-    ``head``: the (S, 3) float64 buffer the session's head writes (``FastSession.lbs.out``), whose frames skip
-    numba's dispatch. ValueError when it cannot (another binding, a candidate the fast path keeps neutral)."""
+    ``head``: the session's head arguments (``FastSession.head_args``), which the kernel then runs itself first
+    (:meth:`head_select`). ValueError when it cannot (another binding, a candidate the fast path keeps neutral)."""
 
-    def __init__(self, fast, encoder: DeltaEncoder, threads: int | None = None,
-                 head: np.ndarray | None = None) -> None:
+    def __init__(self, fast, encoder: DeltaEncoder, threads: int | None = None, head: tuple | None = None) -> None:
         from .encode_fast import NumbaKernels
 
         if getattr(fast, "binding_type", None) != "triangle":
@@ -346,15 +373,22 @@ class DirectDelta:
         self.scratch = (*(np.zeros((self.threads, rows, c), np.float32) for c in (3, 4, 3)),
                         e._work[3:].view(np.float32).reshape(-1), np.zeros((9, block_u[-1]), np.float32),
                         np.zeros((K.FACE_COLS, block_u[-1]), np.float32))
-        # the kernels' arguments held by numba, the head's buffer among them: their 55 arrays in tuples took 35-40 us
-        # more a frame to type and unbox (jit.Fixed)
-        self.head = np.zeros((fast.lbs.count, 3)) if head is None else head
-        if self.head.shape != (fast.lbs.count, 3) or self.head.dtype != np.float64 or not self.head.flags.c_contiguous:
-            raise ValueError(f"the head's buffer must be ({fast.lbs.count}, 3) float64 C-contiguous")
-        self._serial = Bound(_serial_bound, (self.q13, self.head, self.geo, self.codes, self.held, self.out,
-                                             self.scratch))
-        self._parallel = Bound(_parallel_bound, (self.q13, self.threads, self.head, self.geo, self.codes, self.held,
-                                                 self.out, self.spare, self.scratch, self.claims, self.res))
+        self.ticks = np.zeros(3, np.uint64)  # the kernel's cycle counter: start, vertices written, end
+        # no head (select): arrays of the head's types, y empty (one compiled kernel for both)
+        like = fast.lbs.flame_args(np.zeros(68, np.float32), np.zeros(50, np.float32), np.zeros((5, 3, 3), np.float32))
+        self._no_head = (*(np.zeros((0,) * x.ndim, x.dtype) for x in like), np.zeros(2, np.int64))
+        self.head = head
+        if head is None:
+            return
+        if len(head) != len(self._no_head) or head[0].shape != (68,) or head[15].shape != (fast.lbs.count, 3):
+            raise ValueError("head must be the session's FastSession.head_args()")
+        # the kernels' arguments held by numba: their 55 arrays in tuples took 35-40 us more a frame to type and unbox
+        # (jit.Fixed)
+        self._serial = Bound(_serial_bound, (self.q13, head, head[15], self.geo, self.codes, self.held, self.out,
+                                             self.scratch, self.ticks))
+        self._parallel = Bound(_parallel_bound, (self.q13, self.threads, head, head[15], self.geo, self.codes,
+                                                 self.held, self.out, self.spare, self.scratch, self.claims, self.res,
+                                                 self.ticks))
 
     @property
     def blocks(self) -> int:
@@ -362,34 +396,50 @@ class DirectDelta:
         return int(self.geo[6].size - 1)
 
     def select(self, verts: np.ndarray, parallel: bool = False) -> tuple[int, ...]:
-        """Fill the encoder's selection and outputs for subset vertices ``verts`` (S, 3) float64 C-contiguous (the
-        fast session's head output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r,
-        n_s). ValueError if an f16 value sent is NaN, infinite or beyond +-65504. The head's own buffer (``head``)
-        goes to the kernels bound to it; any other array through numba's dispatcher (the same kernels)."""
-        if verts is self.head:
-            *counts, ok = (self._parallel if parallel else self._serial)()
-        elif parallel:
-            *counts, ok = deform_delta_kernel_parallel(self.q13, self.threads, verts, self.geo, self.codes, self.held,
-                                                       self.out, self.spare, self.scratch, self.claims, self.res)
+        """Fill the encoder's selection and outputs for subset vertices ``verts`` (S, 3) float64 C-contiguous (a
+        head's output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r, n_s).
+        ValueError if an f16 value sent is NaN, infinite or beyond +-65504. Through numba's dispatcher (the kernels
+        of :meth:`head_select`, which sessions run)."""
+        if parallel:
+            *counts, ok = deform_delta_kernel_parallel(self.q13, self.threads, self._no_head, verts, self.geo,
+                                                       self.codes, self.held, self.out, self.spare, self.scratch,
+                                                       self.claims, self.res, self.ticks)
         else:
-            *counts, ok = deform_delta_kernel(self.q13, verts, self.geo, self.codes, self.held, self.out, self.scratch)
-        if not ok:
-            raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
-        return tuple(counts)
+            *counts, ok = deform_delta_kernel(self.q13, self._no_head, verts, self.geo, self.codes, self.held,
+                                              self.out, self.scratch, self.ticks)
+        return _checked(counts, ok)
+
+    def head_select(self, y: np.ndarray, parallel: bool = False) -> tuple[tuple[int, ...], float]:
+        """:meth:`select` of the head's vertices for FLAME values y (68,) float32, the head run by the same kernel
+        call (``head`` given): (the counts, the share of the kernel's time until the vertices were written, by its
+        cycle counter; 0 on a target without one). The vertices are left in the head's buffer."""
+        if self.head is None:
+            raise ValueError("this DirectDelta was made without the session's head")
+        self.head[0][:] = y
+        *counts, ok = (self._parallel if parallel else self._serial)()
+        start, vertices, end = self.ticks.tolist()
+        return _checked(counts, ok), ((vertices - start) / (end - start) if end > start else 0.0)
+
+
+def _checked(counts: list[int], ok: bool) -> tuple[int, ...]:
+    if not ok:
+        raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
+    return tuple(counts)
 
 
 @nb.njit(**_NBC)
 def _serial_bound(fixed):
     """:func:`deform_delta_kernel` with DirectDelta's arguments (jit.Bound)."""
-    q13, verts, geo, codes, held, out, scratch = fixed.args
-    return deform_delta_kernel(q13, verts, geo, codes, held, out, scratch)
+    q13, head, verts, geo, codes, held, out, scratch, ticks = fixed.args
+    return deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, ticks)
 
 
 @nb.njit(**_NBC)
 def _parallel_bound(fixed):
     """:func:`deform_delta_kernel_parallel` with DirectDelta's arguments (jit.Bound)."""
-    q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res = fixed.args
-    return deform_delta_kernel_parallel(q13, threads, verts, geo, codes, held, out, spare, scratch, claims, res)
+    q13, threads, head, verts, geo, codes, held, out, spare, scratch, claims, res, ticks = fixed.args
+    return deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, claims, res,
+                                        ticks)
 
 
 def warm_up(fast, threads: bool = False) -> None:
@@ -401,12 +451,13 @@ def warm_up(fast, threads: bool = False) -> None:
 
     n = fast.neutral
     session = fast.session(pool_size=1)
-    verts = session.lbs.forward(np.zeros(session.lbs.n_expr), np.broadcast_to(np.eye(3), (5, 3, 3)))
+    y = np.zeros(68, np.float32)
+    y[50:] = [1, 0, 0, 0, 1, 0] * 3  # the identity rotations' 6D
     for encoding in ("q13", "f16"):
         quant = make_quant(n.position, n.scale) if encoding == "q13" else None
         encoder = delta_encoder(FrameFormat(encoding, fast.count, False, quant, delta=True),
                                 candidates=fast.arrays.ids)
         encoder.encode(0, 0, {}, n.position, n.rotation, n.scale)
-        direct = DirectDelta(fast, encoder, head=verts)  # (the kernels bound to the head's buffer, as sessions')
+        direct = DirectDelta(fast, encoder, head=session.head_args())  # (the kernels bound to a head, as sessions')
         for parallel in (False, True) if threads else (False,):
-            direct.select(verts, parallel)
+            direct.head_select(y, parallel)
