@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import gc
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -288,8 +289,8 @@ def test_parallel_kernels_match_serial(head, subject, kind) -> None:
 class _ThreadsAsked:
     """What FastSession.flame_delta asks of a DirectDelta, answering with the thread choice it was given."""
 
-    def head_select(self, y: np.ndarray, parallel: bool) -> tuple[tuple[int, bool], float]:
-        return (0, parallel), 0.5
+    def head_select(self, y: np.ndarray, parallel: bool) -> SimpleNamespace:
+        return SimpleNamespace(counts=(0, parallel))
 
 
 def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -316,11 +317,11 @@ def test_auto_sessions_thread_while_alone_and_faster(head, subject, monkeypatch:
     assert a.threaded  # alone, threads faster: a dense frame on threads, the same bits
     y = np.zeros(68, np.float32)
     y[50:] = [1, 0, 0, 0, 1, 0] * 3
-    assert a.flame_delta(y, _ThreadsAsked())[0][1] and a.threaded  # and a delta frame's kernel
+    assert a.flame_delta(y, _ThreadsAsked()).counts[1] and a.threaded  # and a delta frame's kernel
     state = b.run(expr, rot)
     np.testing.assert_array_equal(state.position, ref.position)
     assert not b.threaded
-    assert not a.flame_delta(y, _ThreadsAsked())[0][1]  # b computed a frame within the window: one thread
+    assert not a.flame_delta(y, _ThreadsAsked()).counts[1]  # b computed a frame within the window: one thread
     c = fast.session(parallel=None)
     c.activity = Activity(window_s=60.0)
     for _ in range(3):

@@ -78,13 +78,13 @@ def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coo
         if mine.next_is_key:
             got = bytes(mine.encode(k, k, {"total": k}, state.position, state.rotation, state.scale))
         else:  # the head run by the kernel (the session's call) on odd frames, vertices given on even ones
-            if k % 2:
-                counts, share = b.flame_delta(y, direct)
-                assert b.threaded is parallel and 0 < share < 1  # (the head's share, by the kernel's clock)
+            if k % 2:  # the message body written by the kernel too
+                written = b.flame_delta(y, direct)
+                assert b.threaded is parallel and 0 < written.head_share < 1  # (by the kernel's clock)
                 np.testing.assert_array_equal(b.lbs.out, verts)  # the head's vertices, in its buffer
+                got = bytes(mine.encode_written(k, k, {"total": k}, written.counts[0], written.buf, written.end, 0))
             else:
-                counts = direct.select(verts, parallel)
-            got = bytes(mine.encode_selected(k, k, {"total": k}, counts, 0))
+                got = bytes(mine.encode_selected(k, k, {"total": k}, direct.select(verts, parallel), 0))
             direct_frames += 1
             m = decode_server_message(got, fmt)
             narrow, wide = narrow + len(m.position_delta), wide + len(m.position)

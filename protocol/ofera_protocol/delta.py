@@ -443,17 +443,37 @@ class DeltaEncoder:
         server's deformation may run its own: ``ofera.streaming.direct_delta``). ``start_ns``: when the frame's
         encoding began (perf_counter_ns), for the "encode" stamp. Only where :attr:`next_is_key` was False before the
         kernel ran (a resync asked since then applies to the next frame)."""
-        if not self.has_key:
-            raise RuntimeError("no key frame was sent yet: encode() the first frame from the state")
         n, n_p, w, n_r, n_s = counts
-        self.frames += 1
-        self.since_key += 1
         # The bin fields first, after room for the header, which is written last, ending where they begin, once the
         # encode time it may carry is known (as fast_encodings.FrameWriter does)
         size = HEADER_ROOM + delta_body_size(self.format.count, n, n_p, w, n_r, n_s, self._row_bytes)
         buf = self._messages.get(size)
-        end = self.kernels.delta_body(buf, HEADER_ROOM, self.format.count, self.id_runs, self._flags, self._moved,
-                                      self._wide, n, n_p, w, n_r, n_s, *self._flat, *self._row_bytes)
+        end = self.kernels.delta_body(buf, HEADER_ROOM, *self.body_args(counts))
+        return self.encode_written(seq, t, timing, n, buf, end, start_ns)
+
+    def body_args(self, counts: tuple[int, ...]) -> tuple:
+        """The arguments of ``delta_body`` after (buf, at) for a selection's ``counts`` (n, n_p, w, n_r, n_s) in this
+        encoder's buffers: (count, id_runs, flags, moved, wide, n, n_p, w, n_r, n_s, the outputs as flat uint8 (res,
+        pos, rot, scale), their row bytes (r3, r6, rr, rs))."""
+        return (self.format.count, self.id_runs, self._flags, self._moved, self._wide, *counts, *self._flat,
+                *self._row_bytes)
+
+    def body_buffer(self) -> np.ndarray:
+        """A message buffer (uint8, from this encoder's pool) with room for the header and any delta frame's body, for
+        a kernel that writes the body itself at ``HEADER_ROOM`` (what ``delta_body`` writes) before
+        :meth:`encode_written`."""
+        k = self.ids.size
+        return self._messages.get(HEADER_ROOM + delta_body_size(self.format.count, k, k, k, k, k, self._row_bytes))
+
+    def encode_written(self, seq: int, t: int, timing: dict[str, int], n: int, buf: np.ndarray, end: int,
+                       start_ns: int) -> memoryview:
+        """The delta frame message whose body a kernel wrote in ``buf[HEADER_ROOM:end]`` (the bytes of ``delta_body``
+        for the selection of ``n`` moved Gaussians it made in this encoder's buffers and held state): its header is
+        written in front. Only where :attr:`next_is_key` was False before the kernel ran."""
+        if not self.has_key:
+            raise RuntimeError("no key frame was sent yet: encode() the first frame from the state")
+        self.frames += 1
+        self.since_key += 1
         timing = self._stamped(timing, start_ns)
         head = self._head.pack({"type": "frame", "seq": seq, "t": t, "timing": timing, "key": False, "n": int(n)})
         begin = HEADER_ROOM - len(head)

@@ -115,7 +115,8 @@ def _fixed_args(fixed):
 
 
 class Bound:
-    """``kernel(fixed)`` with every argument in ``fixed`` (a tuple, held as one :class:`Fixed`). The first call goes
+    """``kernel(fixed, *args)`` with every argument but a few per call in ``fixed`` (a tuple, held as one
+    :class:`Fixed`). The first call goes
     through numba's dispatcher (compiling or loading the kernel); later ones go straight to the compiled function it
     chose (``Dispatcher.get_overload``), which skips the dispatcher's typing of the argument (about 18 us on a cold
     CPU). ``fixed`` never changes type, so that is safe: the compiled function itself checks nothing."""
@@ -123,9 +124,11 @@ class Bound:
     def __init__(self, kernel: Any, fixed: tuple) -> None:
         self.kernel, self.fixed, self.call = kernel, Fixed(fixed), None
 
-    def __call__(self) -> Any:
+    def __call__(self, *args: Any) -> Any:
+        """``kernel(fixed, *args)``; ``args`` (per call: a message buffer, say) must keep their types from call to
+        call, as ``fixed`` does."""
         if self.call is not None:
-            return self.call(self.fixed)
-        result = self.kernel(self.fixed)
-        self.call = self.kernel.get_overload((typeof(self.fixed, Purpose.argument),))
+            return self.call(self.fixed, *args)
+        result = self.kernel(self.fixed, *args)
+        self.call = self.kernel.get_overload(tuple(typeof(a, Purpose.argument) for a in (self.fixed, *args)))
         return result

@@ -365,15 +365,13 @@ class FastSession:
         (``ofera.streaming.direct_delta.DirectDelta``, made with them: :meth:`flame_delta`)."""
         return (*self.lbs.flame_args(self._head_values, self._expr, self._rot), self._head_claims)
 
-    def flame_delta(self, y: np.ndarray, direct) -> tuple[tuple[int, ...], float]:
-        """:meth:`flame_head` of FLAME values y (68,) and a delta frame's selection from its vertices in one kernel call
-        with this frame's thread choice (as :meth:`deform`, timed for the automatic choice): ``direct`` a
-        ``DirectDelta`` made with :meth:`head_args`. Returns what its ``head_select`` returns: (the counts, the head's
-        share of the kernel's time)."""
-        y = self._values(y)
-        counts, share = direct.head_select(y, self._start())
-        self._end(self.fast.arrays.ids.shape[0] + 2 * counts[0])  # what changed is encoded: about twice a deform
-        return counts, share
+    def flame_delta(self, y: np.ndarray, direct) -> Any:
+        """:meth:`flame_head` of FLAME values y (68,) and a delta frame from its vertices in one kernel call with this
+        frame's thread choice (as :meth:`deform`, timed for the automatic choice): ``direct`` a ``DirectDelta`` made
+        with :meth:`head_args`. Returns what its ``head_select`` returns (a ``direct_delta.Written``)."""
+        written = direct.head_select(self._values(y), self._start())
+        self._end(self.fast.arrays.ids.shape[0] + 2 * written.counts[0])  # what changed is encoded: twice a deform
+        return written
 
     def deform(self, verts: np.ndarray) -> GaussianState:
         """Subset vertices (S, 3) -> full GaussianState (float32, read-only, pooled)."""

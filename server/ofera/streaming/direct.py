@@ -4,8 +4,9 @@ viewer (a v1 session and its own viewer): no float32 state in between, no encodi
 - :class:`DirectF16`: a dense f16 session; the deformation writes the frame's half bits into the message buffer
   (``FrameWriter.draft``, ``Pipeline.deform_values_f16``).
 - :class:`DirectDeltaFrames`: a delta session (PROTOCOL.md 7.1); the deformation runs the delta encoder's selection
-  and encoding passes on what it computes (``direct_delta.DirectDelta``, ``Pipeline.deform_values_delta``). Its key
-  frames (join, resync, key interval) take the state path: ``ready()`` is False for them.
+  and encoding passes on what it computes and writes the message body (``direct_delta.DirectDelta``,
+  ``Pipeline.deform_values_delta``). Its key frames (join, resync, key interval) take the state path: ``ready()`` is
+  False for them.
 
 Each gives the bytes the state path gives (tested); :func:`direct_writer` picks one for a session, or None.
 """
@@ -75,8 +76,10 @@ class DirectDeltaFrames:
     def deform(self, pipeline: Pipeline, values: Any) -> tuple[Any, dict[str, int]]:
         return pipeline.deform_values_delta(values, self.direct)
 
-    def finish(self, counts: Any, frame: Any) -> tuple[Any, int]:
-        return self.encoder.encode_selected(frame.seq, frame.t, frame.timing, counts, time.perf_counter_ns()), 0
+    def finish(self, written: Any, frame: Any) -> tuple[Any, int]:
+        """The message whose body the kernel wrote (a ``direct_delta.Written``): its header in front."""
+        return self.encoder.encode_written(frame.seq, frame.t, frame.timing, written.counts[0], written.buf,
+                                           written.end, time.perf_counter_ns()), 0
 
 
 def direct_writer(key: tuple, writer: Any, pipeline: Any) -> DirectWriter | None:

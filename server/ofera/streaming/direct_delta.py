@@ -12,8 +12,8 @@ eight).
 
     direct = DirectDelta(fast_avatar, encoder, head=session.head_args())  # once per session: runs, blocks, faces
     if not encoder.next_is_key:                         # key frames (join, resync, key_interval) take the state
-        counts, head_share = session.flame_delta(y, direct)          # FastSession: its thread choice; the head
-        data = encoder.encode_selected(seq, t, timing, counts, start_ns)  # runs in the same kernel call
+        written = session.flame_delta(y, direct)  # FastSession: its thread choice; head, frame and body in one call
+        data = encoder.encode_written(seq, t, timing, written.counts[0], written.buf, written.end, start_ns)
 
 Both cores: every block has its own list of faces (:func:`block_faces`) and its own rows of every scratch, so a block
 on another core reads nothing another block writes. The serial kernel runs the blocks in order into the outputs in
@@ -27,10 +27,13 @@ Triangle binding only (the barycentric binding's positions are float64 sums of v
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numba as nb
 import numpy as np
-from ofera_protocol.delta import ROT_FIELD64, DeltaEncoder
+from ofera_protocol.delta import DELTA_KEYS, ROT_FIELD64, DeltaEncoder
+from ofera_protocol.fast_encodings import HEADER_ROOM
 
 from ..avatar import kernels as K
 from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms, wait_blend
@@ -41,12 +44,14 @@ from .encode_fast import (
     NO_TABLE,
     compact_range,
     copy_rows,
+    delta_body_kernel,
     encode_positions,
     encode_rotations_f16,
     encode_rotations_q13,
     encode_scales,
     flag_run,
     rotations_u64,
+    write_body,
 )
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # as the deformation kernels: the same fused multiply-adds, the same bits
@@ -197,24 +202,52 @@ def _back(q13, t, blocks, verts, geo, codes, held, spare, scratch, claims, res):
 
 
 @nb.njit(**_NBC)
-def deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, ticks):
+def deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, body, buf, ticks):
     """encode_fast's delta kernels (``q13``: delta_q13_kernel, else delta_f16_kernel) on the candidates deformed from
     the subset vertices ``verts`` (S, 3) float64, single-threaded: block after block into the outputs in place. First
     the head, if ``head`` holds its arguments (``SubsetLBS.flame_args``, writing ``verts``, and a (2,) int64 scratch;
-    with a y of size 0 the vertices are given). ``ticks`` (3,) uint64: the cycle counter at the start, once the
-    vertices are written and at the end. Returns (n, n_p, w, n_r, n_s, ok)."""
+    with a y of size 0 the vertices are given). Last the message body, if ``buf`` is not empty: the bytes of
+    ``delta_body`` (``body``: its arguments but the buffer and the counts) at ``HEADER_ROOM``. ``ticks`` (3,) uint64:
+    the cycle counter at the start, once the vertices are written and at the end. Returns (n, n_p, w, n_r, n_s, ok,
+    where the body ends)."""
     ticks[0] = cycle_counter()
     if head[0].shape[0]:
         flame_subset_lbs(*head[:16])
     ticks[1] = cycle_counter()
     n, n_p, w, n_r, n_s, ok, _ = _front(q13, geo[6].shape[0] - 1, verts, geo, codes, held, out, scratch,
                                         np.zeros(0, np.int64))
+    end = _body(body, buf, n, n_p, w, n_r, n_s)
     ticks[2] = cycle_counter()
-    return n, n_p, w, n_r, n_s, ok
+    return n, n_p, w, n_r, n_s, ok, end
+
+
+@nb.njit(inline="always", **_NB)
+def _body(body, buf, n, n_p, w, n_r, n_s):
+    """The message body (delta_body_kernel) into buf, or nothing if buf is empty; returns where it ends."""
+    if buf.shape[0] == 0:
+        return 0
+    keys, count, id_runs, flags, moved, wide, res, pos, rot, scl, r3, r6, rr, rs, _ = body
+    return delta_body_kernel(buf, HEADER_ROOM, keys, count, id_runs, flags, moved, wide, n, n_p, w, n_r, n_s, res,
+                             pos, rot, scl, r3, r6, rr, rs)
+
+
+@nb.njit(inline="always", **_NB)
+def _body_end(body, n, n_p, w, n_r, n_s):
+    """Where write_body's body ends in the message buffer for these totals (its keys, bin heads and fields)."""
+    keys, count, r3, r6, rr, rs = body[0], body[1], body[10], body[11], body[12], body[13]
+    sizes = ((count + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n_p + 7) >> 3, r3 * (n_p - w), r6 * w,
+             rr * n_r, rs * n_s)
+    o, k = HEADER_ROOM, 0
+    for f in range(9):
+        length = 1 + (keys[k] & 0x1F)
+        k += length
+        o += length + (2 if sizes[f] < 0x100 else 3 if sizes[f] < 0x10000 else 5) + sizes[f]
+    return o
 
 
 @nb.njit(parallel=True, **_NBC)
-def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, claims, res, ticks):
+def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, body, buf, claims,
+                                 res, ticks):
     """:func:`deform_delta_kernel` on ``threads`` of numba's threads. The head's vertices first (if ``head`` holds its
     arguments), in blocks the threads claim (``ofera.head.lbs_fast``); each then waits for the last block to be done
     and goes on to the delta blocks: one parallel region, where a head called before took one of its own and the
@@ -269,6 +302,19 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
             _back(q13, t, count, verts, g, c, h, (sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale), x,
                   claims, res)
     first = res[count, 6]  # the first block a back thread did
+    if buf.shape[0]:  # the message body from the outputs where they are, on two threads (no placement)
+        n, n_p, w, n_r, n_s, ok = _totals(res, first, count)
+        keys, ids_count, id_runs, flags_b, moved_b, wide_b, res_b, pos_b, rot_b, scl_b, r3, r6, rr, rs, back = body
+        bk_moved, bk_wide, bk_res, bk_pos, bk_rot, bk_scl = back
+        for part in nb.prange(2):
+            write_body(part, buf, HEADER_ROOM, keys, ids_count, id_runs, flags_b, (n, n_p, w, n_r, n_s),
+                       (res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]),
+                       (moved_b, wide_b, res_b, pos_b, rot_b, scl_b), (bk_moved, bk_wide, bk_res, bk_pos, bk_rot,
+                                                                       bk_scl),
+                       (res, first, count, block_j), (r3, r6, rr, rs))
+        end = _body_end(body, n, n_p, w, n_r, n_s)
+        ticks[2] = cycle_counter()
+        return n, n_p, w, n_r, n_s, ok, end
     for t in nb.prange(1, threads):
         n, n_p, w, n_r, n_s = res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]
         for b in range(first, count):  # (where each back block goes: after the front's and the back blocks before it)
@@ -277,8 +323,9 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
                              (sp_moved, sp_wide, sp_res, sp_pos, sp_rot, sp_scale),
                              (out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
             n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
+    n, n_p, w, n_r, n_s, ok = _totals(res, first, count)
     ticks[2] = cycle_counter()
-    return _totals(res, first, count)
+    return n, n_p, w, n_r, n_s, ok, 0
 
 
 @nb.njit(inline="always", **_NB)
@@ -374,6 +421,12 @@ class DirectDelta:
                         e._work[3:].view(np.float32).reshape(-1), np.zeros((9, block_u[-1]), np.float32),
                         np.zeros((K.FACE_COLS, block_u[-1]), np.float32))
         self.ticks = np.zeros(3, np.uint64)  # the kernel's cycle counter: start, vertices written, end
+        # the message body's arguments (head_select; select writes none): the encoder's, and the spare outputs as
+        # flat uint8 (what the threaded kernel's other threads wrote, which the body takes from where they are)
+        args = encoder.body_args((0, 0, 0, 0, 0))
+        back = (self.spare[0], self.spare[1].view(np.uint8), *(a.reshape(-1).view(np.uint8) for a in self.spare[2:]))
+        self.body = (DELTA_KEYS, *args[:4], args[4].view(np.uint8), *args[10:], back)
+        self._no_buf = np.zeros(0, np.uint8)
         # no head (select): arrays of the head's types, y empty (one compiled kernel for both)
         like = fast.lbs.flame_args(np.zeros(68, np.float32), np.zeros(50, np.float32), np.zeros((5, 3, 3), np.float32))
         self._no_head = (*(np.zeros((0,) * x.ndim, x.dtype) for x in like), np.zeros(2, np.int64))
@@ -385,10 +438,10 @@ class DirectDelta:
         # the kernels' arguments held by numba: their 55 arrays in tuples took 35-40 us more a frame to type and unbox
         # (jit.Fixed)
         self._serial = Bound(_serial_bound, (self.q13, head, head[15], self.geo, self.codes, self.held, self.out,
-                                             self.scratch, self.ticks))
+                                             self.scratch, self.body, self.ticks))
         self._parallel = Bound(_parallel_bound, (self.q13, self.threads, head, head[15], self.geo, self.codes,
-                                                 self.held, self.out, self.spare, self.scratch, self.claims, self.res,
-                                                 self.ticks))
+                                                 self.held, self.out, self.spare, self.scratch, self.body, self.claims,
+                                                 self.res, self.ticks))
 
     @property
     def blocks(self) -> int:
@@ -401,24 +454,36 @@ class DirectDelta:
         ValueError if an f16 value sent is NaN, infinite or beyond +-65504. Through numba's dispatcher (the kernels
         of :meth:`head_select`, which sessions run)."""
         if parallel:
-            *counts, ok = deform_delta_kernel_parallel(self.q13, self.threads, self._no_head, verts, self.geo,
-                                                       self.codes, self.held, self.out, self.spare, self.scratch,
-                                                       self.claims, self.res, self.ticks)
+            *counts, ok, _ = deform_delta_kernel_parallel(self.q13, self.threads, self._no_head, verts, self.geo,
+                                                          self.codes, self.held, self.out, self.spare, self.scratch,
+                                                          self.body, self._no_buf, self.claims, self.res, self.ticks)
         else:
-            *counts, ok = deform_delta_kernel(self.q13, self._no_head, verts, self.geo, self.codes, self.held,
-                                              self.out, self.scratch, self.ticks)
+            *counts, ok, _ = deform_delta_kernel(self.q13, self._no_head, verts, self.geo, self.codes, self.held,
+                                                 self.out, self.scratch, self.body, self._no_buf, self.ticks)
         return _checked(counts, ok)
 
-    def head_select(self, y: np.ndarray, parallel: bool = False) -> tuple[tuple[int, ...], float]:
-        """:meth:`select` of the head's vertices for FLAME values y (68,) float32, the head run by the same kernel
-        call (``head`` given): (the counts, the share of the kernel's time until the vertices were written, by its
-        cycle counter; 0 on a target without one). The vertices are left in the head's buffer."""
+    def head_select(self, y: np.ndarray, parallel: bool = False) -> Written:
+        """:meth:`select` of the head's vertices for FLAME values y (68,) float32, the head run first and the
+        message body written last by the same kernel call (``head`` given), into a buffer of the encoder's
+        (``body_buffer``), for its ``encode_written``. The vertices are left in the head's buffer."""
         if self.head is None:
             raise ValueError("this DirectDelta was made without the session's head")
         self.head[0][:] = y
-        *counts, ok = (self._parallel if parallel else self._serial)()
-        start, vertices, end = self.ticks.tolist()
-        return _checked(counts, ok), ((vertices - start) / (end - start) if end > start else 0.0)
+        buf = self.encoder.body_buffer()
+        *counts, ok, end = (self._parallel if parallel else self._serial)(buf)
+        start, vertices, done = self.ticks.tolist()
+        return Written(_checked(counts, ok), buf, end, (vertices - start) / (done - start) if done > start else 0.0)
+
+
+class Written(NamedTuple):
+    """A delta frame :meth:`DirectDelta.head_select` wrote: its selection's ``counts`` (n, n_p, w, n_r, n_s), its
+    message buffer ``buf`` with the body in ``HEADER_ROOM..end``, and ``head_share``, the part of the kernel's time
+    until the head's vertices were written (its cycle counter; 0 on a target without one)."""
+
+    counts: tuple[int, ...]
+    buf: np.ndarray
+    end: int
+    head_share: float
 
 
 def _checked(counts: list[int], ok: bool) -> tuple[int, ...]:
@@ -428,18 +493,18 @@ def _checked(counts: list[int], ok: bool) -> tuple[int, ...]:
 
 
 @nb.njit(**_NBC)
-def _serial_bound(fixed):
+def _serial_bound(fixed, buf):
     """:func:`deform_delta_kernel` with DirectDelta's arguments (jit.Bound)."""
-    q13, head, verts, geo, codes, held, out, scratch, ticks = fixed.args
-    return deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, ticks)
+    q13, head, verts, geo, codes, held, out, scratch, body, ticks = fixed.args
+    return deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, body, buf, ticks)
 
 
 @nb.njit(**_NBC)
-def _parallel_bound(fixed):
+def _parallel_bound(fixed, buf):
     """:func:`deform_delta_kernel_parallel` with DirectDelta's arguments (jit.Bound)."""
-    q13, threads, head, verts, geo, codes, held, out, spare, scratch, claims, res, ticks = fixed.args
-    return deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, claims, res,
-                                        ticks)
+    q13, threads, head, verts, geo, codes, held, out, spare, scratch, body, claims, res, ticks = fixed.args
+    return deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, body, buf,
+                                        claims, res, ticks)
 
 
 def warm_up(fast, threads: bool = False) -> None:

@@ -775,22 +775,6 @@ def _gather8(x):
 
 
 @nb.njit(inline="always", **_NB)
-def _pack_bit(flags, bit, count, out):
-    """Bit ``bit`` of flags[0..count-1] (uint8) into out (ceil(count / 8) uint8, LSB first), 8 flags a word. The
-    selection's bools as (n, 3) columns, gathered a bit at a time, took 45 us a frame on a cold CPU (round twelve)."""
-    bit = np.uint64(bit)
-    full = np.uint64(count) >> np.uint64(3)
-    for b in range(full):
-        out[b] = _gather8((_word8(flags, np.uint64(8) * b) >> bit) & _LOW_BITS)
-    rest = np.uint64(count) & np.uint64(7)
-    if rest:
-        byte = np.uint8(0)
-        for t in range(rest):
-            byte |= ((flags[np.uint64(8) * full + t] >> np.uint8(bit)) & np.uint8(1)) << np.uint8(t)
-        out[full] = byte
-
-
-@nb.njit(inline="always", **_NB)
 def _flag_bits(flags, first, i0, i1, changed):
     """Bits i0..i1-1 of ``changed`` (within one byte or the edges of a run) OR-ed from flags[first..] != 0."""
     for i in range(i0, i1):
@@ -850,31 +834,84 @@ def _key(buf, o, keys, k):
 def delta_body_kernel(buf, at, keys, count, id_runs, flags, moved, wide, n, n_p, w, n_r, n_s, res, pos, rot, scl, r3,
                       r6, rr, rs):
     """ofera_protocol.delta.delta_body_reference (same bytes): a delta frame's bin fields as msgpack entries into
-    buf[at..], the masks written in place. The changed bits come from the candidates' flags run by run (the
-    candidates are a few hundred runs of consecutive ids): a scatter of the selection's ids into the mask took 77 us a
-    frame on a cold CPU, its read-modify-writes chained through memory (benchmarks/README.md, round twelve). Returns
-    where the fields end."""
+    buf[at..], the masks written in place (:func:`write_body` of one stream of outputs). Returns where they end."""
+    counts = (n, n_p, w, n_r, n_s)
+    front = (moved, wide.view(np.uint8), res, pos, rot, scl)
+    none = (np.zeros((1, 7), np.int64), 0, 0, np.zeros(1, np.int64))
+    rows = (r3, r6, rr, rs)
+    write_body(0, buf, at, keys, count, id_runs, flags, counts, counts, front, front, none, rows)
+    return write_body(1, buf, at, keys, count, id_runs, flags, counts, counts, front, front, none, rows)
+
+
+@nb.njit(inline="always", **_NB)
+def write_body(part, buf, at, keys, count, id_runs, flags, totals, front_counts, front, back, blocks, rows):
+    """Part of a delta frame's body (delta_body_reference's bytes) into buf[at..]: ``part`` 0 the five masks, 1 the
+    four data fields (each part writes its own keys and bin heads; the two can run on two threads). The selection's
+    outputs are one stream in ``front`` (moved, wide as uint8, res, pos, rot, scl as flat uint8) with
+    ``front_counts`` (n, n_p, w, n_r, n_s), then the streams of ``blocks`` = (table, first, last, block_j): blocks b
+    in first..last-1, table[b] their counts, their rows from block_j[b] in ``back`` (direct_delta's threaded kernel:
+    what its other threads wrote). ``totals``: the counts of all. ``rows``: the data fields' row bytes (r3, r6, rr,
+    rs). The changed mask comes from the candidates' flags run by run (a scatter of the selection's ids into the mask
+    took 77 us a frame on a cold CPU, its read-modify-writes chained through memory; round twelve). Returns where the
+    body ends."""
+    n, n_p, w, n_r, n_s = totals
+    table, first, last, block_j = blocks
+    sizes = ((count + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n_p + 7) >> 3,
+             rows[0] * (n_p - w), rows[1] * w, rows[2] * n_r, rows[3] * n_s)
     o, k = at, 0
-    sizes = ((count + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n_p + 7) >> 3)
-    for f in range(5):  # the masks: changed, moved_position, moved_rotation, moved_scale, wide
+    for f in range(9):  # changed, moved_position, moved_rotation, moved_scale, wide, then the data
+        if (f < 5) != (part == 0):  # the other part's entry: only where it ends
+            length = 1 + (keys[k] & 0x1F)
+            k += length
+            o += length + (2 if sizes[f] < 0x100 else 3 if sizes[f] < 0x10000 else 5) + sizes[f]
+            continue
         o, k = _key(buf, o, keys, k)
         o = _bin_head(buf, o, sizes[f])
-        out = buf[o:o + sizes[f]]
         if f == 0:
+            out = buf[o:o + sizes[0]]
             out[:] = 0
             for r in range(id_runs.shape[0]):
                 _changed_run(flags, id_runs[r, 0], id_runs[r, 1], id_runs[r, 2], out)
-        elif f < 4:
-            _pack_bit(moved, f - 1, n, out)  # moved: the selection's flags
+        elif f < 5:
+            out = buf[o:o + sizes[f]]
+            out[:] = 0
+            src, back_src, col = (front[0], back[0], 0) if f < 4 else (front[1], back[1], 1)
+            bit = f - 1 if f < 4 else 0
+            at_bit = front_counts[col]
+            pack_bits_at(src, 0, at_bit, bit, out, 0)
+            for b in range(first, last):
+                pack_bits_at(back_src, block_j[b], table[b, col], bit, out, at_bit)
+                at_bit += table[b, col]
         else:
-            _pack_bit(wide.view(np.uint8), 0, n_p, out)
+            d = f - 5
+            rb = rows[d]
+            fr = front_counts[1] - front_counts[2] if d == 0 else front_counts[d + 1]
+            copy_rows(front[2 + d], buf, 1, 0, o, rb * fr)
+            to = o + rb * fr
+            for b in range(first, last):
+                m = table[b, 1] - table[b, 2] if d == 0 else table[b, d + 1]
+                copy_rows(back[2 + d], buf, 1, rb * block_j[b], to, rb * m)
+                to += rb * m
         o += sizes[f]
-    for src, length in ((res, r3 * (n_p - w)), (pos, r6 * w), (rot, rr * n_r), (scl, rs * n_s)):
-        o, k = _key(buf, o, keys, k)
-        o = _bin_head(buf, o, length)
-        copy_rows(src, buf, 1, 0, o, length)
-        o += length
     return o
+
+
+@nb.njit(inline="always", **_NB)
+def pack_bits_at(src, first, count, bit, out, at):
+    """Bit ``bit`` of src[first..first+count-1] (uint8) OR-ed into the bit string ``out`` (uint8, LSB first) from
+    bit ``at`` on, 8 flags a word; out's bits there must be 0. The selection's bools as (n, 3) columns, gathered a
+    bit at a time, took 45 us a frame on a cold CPU (round twelve)."""
+    bit, first, at = np.uint64(bit), np.uint64(first), np.uint64(at)
+    shift, byte = at & np.uint64(7), at >> np.uint64(3)
+    full = np.uint64(count) >> np.uint64(3)
+    for b in range(full):
+        v = np.uint64(_gather8((_word8(src, first + np.uint64(8) * b) >> bit) & _LOW_BITS))
+        out[byte + b] |= np.uint8((v << shift) & np.uint64(0xFF))
+        if shift:
+            out[byte + b + np.uint64(1)] |= np.uint8(v >> (np.uint64(8) - shift))
+    for t in range(np.uint64(8) * full, np.uint64(count)):
+        i = at + t
+        out[i >> np.uint64(3)] |= ((src[first + t] >> np.uint8(bit)) & np.uint8(1)) << np.uint8(i & np.uint64(7))
 
 
 def delta_kernel_warm() -> None:

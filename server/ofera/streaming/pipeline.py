@@ -286,18 +286,19 @@ class Pipeline:
         return ok, {"head": (t4 - t3) // 1000, "deform": (t5 - t4) // 1000}
 
     def deform_values_delta(self, values: np.ndarray, direct: Any) -> tuple[tuple[int, ...], dict[str, int]]:
-        """:meth:`deform_values` straight into a delta frame's selection (``direct``: a ``direct_delta.DirectDelta`` of
-        this pipeline's fast path and the session's encoder, which it updates, made with the fast session's
-        ``head_args``): (its counts, for the encoder's ``encode_selected``; the head and deform durations in us:
-        "deform" is the deformation with the selection and the encoding passes it runs on the way). No state is made.
-        One kernel call runs the head and the rest: the call's time is split between the two by the kernel's own clock
-        (its cycle counter where the vertices were all written; the call's entry and return go with it)."""
+        """:meth:`deform_values` straight into a delta frame (``direct``: a ``direct_delta.DirectDelta`` of this
+        pipeline's fast path and the session's encoder, which it updates, made with the fast session's ``head_args``):
+        (what it wrote, a ``direct_delta.Written`` for the encoder's ``encode_written``; the head and deform durations
+        in us: "deform" is the deformation with the selection, the encoding passes it runs on the way and the message
+        body). No state is made. One kernel call runs the head and the rest: the call's time is split between the two
+        by the kernel's own clock (its cycle counter where the vertices were all written; the call's entry and return
+        go with it)."""
         clock = time.perf_counter_ns
         t3 = clock()
-        counts, share = self.fast.flame_delta(values, direct)
+        written = self.fast.flame_delta(values, direct)
         spent = clock() - t3
-        head = int(spent * share)
-        return counts, {"head": head // 1000, "deform": (spent - head) // 1000}
+        head = int(spent * written.head_share)
+        return written, {"head": head // 1000, "deform": (spent - head) // 1000}
 
     def run(self, weights: np.ndarray, conf: np.ndarray | None = None) -> tuple[GaussianState, dict[str, int]]:
         """`map` then `deform_values`: weights (L,) [and conf (2,)] -> (GaussianState in FLAME space, the STAGES'
