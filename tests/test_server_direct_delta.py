@@ -180,6 +180,7 @@ def test_a_delta_session_streams_frames_the_deformation_wrote(observed: Any) -> 
         offline.encode(k, 0, {}, state.position, state.rotation, state.scale)
     for name in ("held_p", "held_r", "held_s", "dec"):
         np.testing.assert_array_equal(getattr(offline, name), getattr(writer, name))
+    assert writer._messages.unpooled == 0  # each body the kernel wrote went into a pooled buffer, reused once sent
     want = _decode_codes(writer.format, offline.held_p, offline.held_r, offline.held_s)
     for a, b in zip(want, got):
         np.testing.assert_array_equal(np.asarray(a).reshape(b.shape), b)

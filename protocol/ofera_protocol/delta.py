@@ -448,15 +448,9 @@ class DeltaEncoder:
         # encode time it may carry is known (as fast_encodings.FrameWriter does)
         size = HEADER_ROOM + delta_body_size(self.format.count, n, n_p, w, n_r, n_s, self._row_bytes)
         buf = self._messages.get(size)
-        end = self.kernels.delta_body(buf, HEADER_ROOM, *self.body_args(counts))
+        end = self.kernels.delta_body(buf, HEADER_ROOM, self.format.count, self.id_runs, self._flags, self._moved,
+                                      self._wide, n, n_p, w, n_r, n_s, *self._flat, *self._row_bytes)
         return self.encode_written(seq, t, timing, n, buf, end, start_ns)
-
-    def body_args(self, counts: tuple[int, ...]) -> tuple:
-        """The arguments of ``delta_body`` after (buf, at) for a selection's ``counts`` (n, n_p, w, n_r, n_s) in this
-        encoder's buffers: (count, id_runs, flags, moved, wide, n, n_p, w, n_r, n_s, the outputs as flat uint8 (res,
-        pos, rot, scale), their row bytes (r3, r6, rr, rs))."""
-        return (self.format.count, self.id_runs, self._flags, self._moved, self._wide, *counts, *self._flat,
-                *self._row_bytes)
 
     def body_buffer(self) -> np.ndarray:
         """A message buffer (uint8, from this encoder's pool) with room for the header and any delta frame's body, for

@@ -231,20 +231,6 @@ def _body(body, buf, n, n_p, w, n_r, n_s):
                              pos, rot, scl, r3, r6, rr, rs)
 
 
-@nb.njit(inline="always", **_NB)
-def _body_end(body, n, n_p, w, n_r, n_s):
-    """Where write_body's body ends in the message buffer for these totals (its keys, bin heads and fields)."""
-    keys, count, r3, r6, rr, rs = body[0], body[1], body[10], body[11], body[12], body[13]
-    sizes = ((count + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n_p + 7) >> 3, r3 * (n_p - w), r6 * w,
-             rr * n_r, rs * n_s)
-    o, k = HEADER_ROOM, 0
-    for f in range(9):
-        length = 1 + (keys[k] & 0x1F)
-        k += length
-        o += length + (2 if sizes[f] < 0x100 else 3 if sizes[f] < 0x10000 else 5) + sizes[f]
-    return o
-
-
 @nb.njit(parallel=True, **_NBC)
 def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, out, spare, scratch, body, buf, claims,
                                  res, ticks):
@@ -252,12 +238,13 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
     arguments), in blocks the threads claim (``ofera.head.lbs_fast``); each then waits for the last block to be done
     and goes on to the delta blocks: one parallel region, where a head called before took one of its own and the
     Python between (head + delta p50 1288 -> 1259 and 1282 -> 1255 us in process, round seventeen). The threads share
-    the delta blocks as they go: thread 0 takes
-    them from the first on and writes in place (as the serial kernel), the others from the last down, each block into
-    ``spare`` (arrays shaped as ``out``); the back blocks are then copied to where the front's outputs end, in block
-    order, a loop per back thread (with two threads one iteration, which numba runs on the calling thread: the copies
-    done by the thread that wrote them, after a spin-wait for the front's end, measured the same, round thirteen).
-    Every value is computed by the same code either way: the same bytes. A split
+    the delta blocks as they go: thread 0 takes them from the first on and writes in place (as the serial kernel), the
+    others from the last down, each block into ``spare`` (arrays shaped as ``out``). Then, with a message buffer, two
+    threads write the body from the outputs where they are (``encode_fast.write_body``: one the masks, the other the
+    data fields); without one, the back blocks are copied to where the front's outputs end, in block order, a loop
+    per back thread (with two threads one iteration, which numba runs on the calling thread: the copies done by the
+    thread that wrote them, after a spin-wait for the front's end, measured the same, round thirteen). Every value
+    is computed by the same code either way: the same bytes. A split
     fixed in advance (two chunks of equal candidate counts, round eleven) left the second thread 0.30 ms p50 behind
     the first: it wakes later, and where the face moves most, more of its Gaussians are encoded. ``claims`` (1,) and
     ``res`` (B + 1, 7) int64 scratch. (A parallel loop takes arrays and scalars only: the groups are taken apart here
@@ -309,10 +296,12 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
         for part in nb.prange(2):
             write_body(part, buf, HEADER_ROOM, keys, ids_count, id_runs, flags_b, (n, n_p, w, n_r, n_s),
                        (res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]),
-                       (moved_b, wide_b, res_b, pos_b, rot_b, scl_b), (bk_moved, bk_wide, bk_res, bk_pos, bk_rot,
-                                                                       bk_scl),
-                       (res, first, count, block_j), (r3, r6, rr, rs))
-        end = _body_end(body, n, n_p, w, n_r, n_s)
+                       (moved_b, wide_b, res_b, pos_b, rot_b, scl_b),
+                       (bk_moved, bk_wide, bk_res, bk_pos, bk_rot, bk_scl), (res, first, count, block_j),
+                       (r3, r6, rr, rs))
+        totals, outputs = (n, n_p, w, n_r, n_s), (moved_b, wide_b, res_b, pos_b, rot_b, scl_b)
+        end = write_body(2, buf, HEADER_ROOM, keys, ids_count, id_runs, flags_b, totals, totals, outputs, outputs,
+                         (res, first, first, block_j), (r3, r6, rr, rs))  # (part 2 writes nothing: where it ends)
         ticks[2] = cycle_counter()
         return n, n_p, w, n_r, n_s, ok, end
     for t in nb.prange(1, threads):
@@ -423,9 +412,9 @@ class DirectDelta:
         self.ticks = np.zeros(3, np.uint64)  # the kernel's cycle counter: start, vertices written, end
         # the message body's arguments (head_select; select writes none): the encoder's, and the spare outputs as
         # flat uint8 (what the threaded kernel's other threads wrote, which the body takes from where they are)
-        args = encoder.body_args((0, 0, 0, 0, 0))
         back = (self.spare[0], self.spare[1].view(np.uint8), *(a.reshape(-1).view(np.uint8) for a in self.spare[2:]))
-        self.body = (DELTA_KEYS, *args[:4], args[4].view(np.uint8), *args[10:], back)
+        self.body = (DELTA_KEYS, e.format.count, e.id_runs, e._flags, e._moved, e._wide.view(np.uint8), *e._flat,
+                     *e._row_bytes, back)
         self._no_buf = np.zeros(0, np.uint8)
         # no head (select): arrays of the head's types, y empty (one compiled kernel for both)
         like = fast.lbs.flame_args(np.zeros(68, np.float32), np.zeros(50, np.float32), np.zeros((5, 3, 3), np.float32))
