@@ -116,10 +116,10 @@ def _fixed_args(fixed):
 
 class Bound:
     """``kernel(fixed, *args)`` with every argument but a few per call in ``fixed`` (a tuple, held as one
-    :class:`Fixed`). The first call goes
-    through numba's dispatcher (compiling or loading the kernel); later ones go straight to the compiled function it
-    chose (``Dispatcher.get_overload``), which skips the dispatcher's typing of the argument (about 18 us on a cold
-    CPU). ``fixed`` never changes type, so that is safe: the compiled function itself checks nothing."""
+    :class:`Fixed`). The first call goes through numba's dispatcher (compiling or loading the kernel); later ones go
+    straight to the compiled function it chose (``Dispatcher.get_overload``), which skips the dispatcher's typing of
+    the arguments (about 18 us on a cold CPU). ``fixed`` never changes type, nor may ``args``: the compiled function
+    itself checks nothing."""
 
     def __init__(self, kernel: Any, fixed: tuple) -> None:
         self.kernel, self.fixed, self.call = kernel, Fixed(fixed), None

@@ -799,6 +799,12 @@ def _changed_run(flags, first_id, first, length, changed):
 
 
 @nb.njit(inline="always", **_NB)
+def _bin_head_size(size):
+    """The bytes of :func:`_bin_head` for a bin of ``size`` bytes."""
+    return 2 if size < 0x100 else 3 if size < 0x10000 else 5
+
+
+@nb.njit(inline="always", **_NB)
 def _bin_head(buf, o, size):
     """msgpack's header of a bin of ``size`` bytes at buf[o..] (the shortest: bin 8, 16 or 32); returns its end."""
     if size < 0x100:
@@ -837,24 +843,26 @@ def delta_body_kernel(buf, at, keys, count, id_runs, flags, moved, wide, n, n_p,
     buf[at..], the masks written in place (:func:`write_body` of one stream of outputs). Returns where they end."""
     counts = (n, n_p, w, n_r, n_s)
     front = (moved, wide.view(np.uint8), res, pos, rot, scl)
-    none = (np.zeros((1, 7), np.int64), 0, 0, np.zeros(1, np.int64))
+    none = (_NO_BLOCKS, 0, 0, _NO_BLOCKS[0])
     rows = (r3, r6, rr, rs)
     write_body(0, buf, at, keys, count, id_runs, flags, counts, counts, front, front, none, rows)
     return write_body(1, buf, at, keys, count, id_runs, flags, counts, counts, front, front, none, rows)
+
+
+_NO_BLOCKS = np.zeros((1, 7), np.int64)  # write_body's table of no other streams (a constant in the kernel)
 
 
 @nb.njit(inline="always", **_NB)
 def write_body(part, buf, at, keys, count, id_runs, flags, totals, front_counts, front, back, blocks, rows):
     """Part of a delta frame's body (delta_body_reference's bytes) into buf[at..]: ``part`` 0 the five masks, 1 the
     four data fields (each part writes its own keys and bin heads; the two can run on two threads), another nothing
-    (only where the body ends). The selection's
-    outputs are one stream in ``front`` (moved, wide as uint8, res, pos, rot, scl as flat uint8) with
-    ``front_counts`` (n, n_p, w, n_r, n_s), then the streams of ``blocks`` = (table, first, last, block_j): blocks b
-    in first..last-1, table[b] their counts, their rows from block_j[b] in ``back`` (direct_delta's threaded kernel:
-    what its other threads wrote). ``totals``: the counts of all. ``rows``: the data fields' row bytes (r3, r6, rr,
-    rs). The changed mask comes from the candidates' flags run by run (a scatter of the selection's ids into the mask
-    took 77 us a frame on a cold CPU, its read-modify-writes chained through memory; round twelve). Returns where the
-    body ends."""
+    (only where the body ends). The selection's outputs are one stream in ``front`` (moved, wide as uint8, res, pos,
+    rot, scl as flat uint8) with ``front_counts`` (n, n_p, w, n_r, n_s), then the streams of ``blocks`` = (table,
+    first, last, block_j): blocks b in first..last-1, table[b] their counts, their rows from block_j[b] in ``back``
+    (direct_delta's threaded kernel: what its other threads wrote). ``totals``: the counts of all. ``rows``: the data
+    fields' row bytes (r3, r6, rr, rs). The changed mask comes from the candidates' flags run by run (a scatter of the
+    selection's ids into the mask took 77 us a frame on a cold CPU, its read-modify-writes chained through memory;
+    round twelve). Returns where the body ends."""
     n, n_p, w, n_r, n_s = totals
     table, first, last, block_j = blocks
     sizes = ((count + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n + 7) >> 3, (n_p + 7) >> 3,
@@ -864,7 +872,7 @@ def write_body(part, buf, at, keys, count, id_runs, flags, totals, front_counts,
         if part != (0 if f < 5 else 1):  # another part's entry: only where it ends
             length = 1 + (keys[k] & 0x1F)
             k += length
-            o += length + (2 if sizes[f] < 0x100 else 3 if sizes[f] < 0x10000 else 5) + sizes[f]
+            o += length + _bin_head_size(sizes[f]) + sizes[f]
             continue
         o, k = _key(buf, o, keys, k)
         o = _bin_head(buf, o, sizes[f])
