@@ -109,6 +109,39 @@ def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) 
         DirectDelta(fast, encoder).head_select(np.zeros(68, np.float32))
 
 
+def test_a_threaded_frame_on_one_thread_does_not_wait_for_itself(fast: FastAvatar) -> None:
+    """numba limited to one thread (``set_num_threads(1)``): every iteration of the threaded kernel's regions runs on
+    the calling thread, one after another, so none may wait for another's work (the head's last vertex block, the
+    back blocks). The frame completes, with the serial kernel's bytes."""
+    import threading
+
+    import numba
+
+    fmt, gather, ids, rows = session_of(fast, "q13", "flame", False)
+    a, b = fast.session(parallel=False), fast.session(parallel=True)
+    mine, ref = (delta_encoder(fmt, "flame", gather, ids, rows) for _ in range(2))
+    serial = DirectDelta(fast, ref, head=a.head_args())
+    threaded = DirectDelta(fast, mine, threads=2, head=b.head_args())
+    neutral = fast.neutral
+    for e in (mine, ref):
+        e.encode(0, 0, {}, neutral.position, neutral.rotation, neutral.scale)
+    y = flame_values(np.random.default_rng(3), 2)[1]
+    got: list = []
+
+    def one_thread() -> None:
+        numba.set_num_threads(1)  # (per calling thread)
+        got.append(b.flame_delta(y, threaded))
+
+    worker = threading.Thread(target=one_thread, daemon=True)
+    worker.start()
+    worker.join(WAIT)
+    assert got, "the threaded kernel on one thread did not finish"
+    want = a.flame_delta(y, serial)
+    assert b.threaded and got[0].counts == want.counts and want.counts[0] > 0
+    frames = [bytes(e.encode_written(1, 1, {}, w.counts[0], w.buf, w.end, 0)) for e, w in ((mine, got[0]), (ref, want))]
+    assert frames[0] == frames[1]
+
+
 def test_no_candidates_select_nothing_on_either_kernel(fast: FastAvatar) -> None:
     """An encoder without candidates (an avatar nothing moves): no block, and both kernels select nothing."""
     n = fast.neutral
