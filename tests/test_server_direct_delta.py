@@ -107,6 +107,8 @@ def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) 
         DirectDelta(fast, encoder, head=fast.lbs.flame_args(*(np.zeros(k, np.float32) for k in (68, 50, 45))))
     with pytest.raises(ValueError, match="without the session's head"):
         DirectDelta(fast, encoder).head_select(np.zeros(68, np.float32))
+    with pytest.raises(ValueError, match="68 entries, got shape \\(67,\\)"):
+        DirectDelta(fast, encoder, head=fast.session().head_args()).head_select(np.zeros(67, np.float32))
 
 
 def test_a_threaded_frame_on_one_thread_does_not_wait_for_itself(fast: FastAvatar) -> None:

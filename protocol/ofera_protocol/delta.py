@@ -367,6 +367,7 @@ class DeltaEncoder:
         self._flat = tuple(a.reshape(-1).view(np.uint8) for a in outputs)
         self._row_bytes = tuple(a.nbytes // m if m else 0 for a in outputs)
         self._messages = BufferPool(4, make=_bytes_array)
+        self._most = HEADER_ROOM + delta_body_size(n, m, m, m, m, m, self._row_bytes)  # any delta frame's message
         self._head = msgpack.Packer(use_bin_type=True)  # (msgpack.packb makes a Packer, a 1 MB buffer, per call)
         self.has_key = False
         self._key_asked = True
@@ -456,8 +457,7 @@ class DeltaEncoder:
         """A message buffer (uint8, from this encoder's pool) with room for the header and any delta frame's body, for
         a kernel that writes the body itself at ``HEADER_ROOM`` (what ``delta_body`` writes) before
         :meth:`encode_written`."""
-        k = self.ids.size
-        return self._messages.get(HEADER_ROOM + delta_body_size(self.format.count, k, k, k, k, k, self._row_bytes))
+        return self._messages.get(self._most)
 
     def encode_written(self, seq: int, t: int, timing: dict[str, int], n: int, buf: np.ndarray, end: int,
                        start_ns: int) -> memoryview:

@@ -369,7 +369,7 @@ class FastSession:
         """:meth:`flame_head` of FLAME values y (68,) and a delta frame from its vertices in one kernel call with this
         frame's thread choice (as :meth:`deform`, timed for the automatic choice): ``direct`` a ``DirectDelta`` made
         with :meth:`head_args`. Returns what its ``head_select`` returns (a ``direct_delta.Written``)."""
-        written = direct.head_select(self._values(y), self._start())
+        written = direct.head_select(y, self._start())  # (which checks and copies y)
         self._end(self.fast.arrays.ids.shape[0] + 2 * written.counts[0])  # what changed is encoded: twice a deform
         return written
 

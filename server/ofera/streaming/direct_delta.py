@@ -209,7 +209,7 @@ def deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, body, 
     with a y of size 0 the vertices are given). Last the message body, if ``buf`` is not empty: the bytes of
     ``delta_body`` (``body``: its arguments but the buffer and the counts) at ``HEADER_ROOM``. ``ticks`` (3,) uint64:
     the cycle counter at the start, once the vertices are written and at the end. Returns (n, n_p, w, n_r, n_s, ok,
-    where the body ends)."""
+    where the body ends, the head's share of the kernel's time by those ticks)."""
     ticks[0] = cycle_counter()
     if head[0].shape[0]:
         flame_subset_lbs(*head[:16])
@@ -217,8 +217,14 @@ def deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, body, 
     n, n_p, w, n_r, n_s, ok, _ = _front(q13, geo[6].shape[0] - 1, verts, geo, codes, held, out, scratch,
                                         np.zeros(0, np.int64))
     end = _body(body, buf, n, n_p, w, n_r, n_s)
+    return n, n_p, w, n_r, n_s, ok, end, _head_share(ticks)
+
+
+@nb.njit(inline="always", **_NB)
+def _head_share(ticks):
+    """The kernel ends: ticks[2] = now; (vertices - start) / (end - start) of ticks, 0 without a cycle counter."""
     ticks[2] = cycle_counter()
-    return n, n_p, w, n_r, n_s, ok, end
+    return (ticks[1] - ticks[0]) / (ticks[2] - ticks[0]) if ticks[2] > ticks[0] else 0.0
 
 
 @nb.njit(inline="always", **_NB)
@@ -302,8 +308,7 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
         totals, outputs = (n, n_p, w, n_r, n_s), (moved_b, wide_b, res_b, pos_b, rot_b, scl_b)
         end = write_body(2, buf, HEADER_ROOM, keys, ids_count, id_runs, flags_b, totals, totals, outputs, outputs,
                          (res, first, first, block_j), (r3, r6, rr, rs))  # (part 2 writes nothing: where it ends)
-        ticks[2] = cycle_counter()
-        return n, n_p, w, n_r, n_s, ok, end
+        return n, n_p, w, n_r, n_s, ok, end, _head_share(ticks)
     for t in nb.prange(1, threads):
         n, n_p, w, n_r, n_s = res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]
         for b in range(first, count):  # (where each back block goes: after the front's and the back blocks before it)
@@ -313,8 +318,7 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
                              (out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
             n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
     n, n_p, w, n_r, n_s, ok = _totals(res, first, count)
-    ticks[2] = cycle_counter()
-    return n, n_p, w, n_r, n_s, ok, 0
+    return n, n_p, w, n_r, n_s, ok, 0, _head_share(ticks)
 
 
 @nb.njit(inline="always", **_NB)
@@ -443,12 +447,13 @@ class DirectDelta:
         ValueError if an f16 value sent is NaN, infinite or beyond +-65504. Through numba's dispatcher (the kernels
         of :meth:`head_select`, which sessions run)."""
         if parallel:
-            *counts, ok, _ = deform_delta_kernel_parallel(self.q13, self.threads, self._no_head, verts, self.geo,
-                                                          self.codes, self.held, self.out, self.spare, self.scratch,
-                                                          self.body, self._no_buf, self.claims, self.res, self.ticks)
+            *counts, ok, _, _ = deform_delta_kernel_parallel(self.q13, self.threads, self._no_head, verts, self.geo,
+                                                             self.codes, self.held, self.out, self.spare, self.scratch,
+                                                             self.body, self._no_buf, self.claims, self.res,
+                                                             self.ticks)
         else:
-            *counts, ok, _ = deform_delta_kernel(self.q13, self._no_head, verts, self.geo, self.codes, self.held,
-                                                 self.out, self.scratch, self.body, self._no_buf, self.ticks)
+            *counts, ok, _, _ = deform_delta_kernel(self.q13, self._no_head, verts, self.geo, self.codes, self.held,
+                                                    self.out, self.scratch, self.body, self._no_buf, self.ticks)
         return _checked(counts, ok)
 
     def head_select(self, y: np.ndarray, parallel: bool = False) -> Written:
@@ -457,11 +462,14 @@ class DirectDelta:
         (``body_buffer``), for its ``encode_written``. The vertices are left in the head's buffer."""
         if self.head is None:
             raise ValueError("this DirectDelta was made without the session's head")
-        self.head[0][:] = y
+        if np.shape(y) != (68,):
+            raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
+        self.head[0][:] = y  # (any numeric dtype, cast: the kernel reads its own buffer)
         buf = self.encoder.body_buffer()
-        *counts, ok, end = (self._parallel if parallel else self._serial)(buf)
-        start, vertices, done = self.ticks.tolist()
-        return Written(_checked(counts, ok), buf, end, (vertices - start) / (done - start) if done > start else 0.0)
+        n, n_p, w, n_r, n_s, ok, end, share = (self._parallel if parallel else self._serial)(buf)
+        if not ok:
+            raise ValueError(_OUT_OF_RANGE)
+        return Written((n, n_p, w, n_r, n_s), buf, end, share)
 
 
 class Written(NamedTuple):
@@ -475,9 +483,12 @@ class Written(NamedTuple):
     head_share: float
 
 
+_OUT_OF_RANGE = "a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)"
+
+
 def _checked(counts: list[int], ok: bool) -> tuple[int, ...]:
     if not ok:
-        raise ValueError("a moved Gaussian has NaN, infinity or values beyond +-65504 (f16)")
+        raise ValueError(_OUT_OF_RANGE)
     return tuple(counts)
 
 
