@@ -96,8 +96,9 @@ def test_a_frame_the_kernel_cannot_write_takes_the_state_path(monkeypatch: pytes
 
 @pytest.mark.parametrize("parallel", [False, True])
 def test_deform_f16_writes_the_bits_of_the_encoded_state(parallel: bool) -> None:
-    """The kernel (serial, or over numba's threads) against deform + FrameWriter.encode on the default avatar, for
-    both sign conventions, and a draft laid out for other varying rows is refused."""
+    """The kernel (serial, or over numba's threads), given the vertices or running the head itself (flame_f16),
+    against deform + FrameWriter.encode on the default avatar, for both sign conventions, and a draft laid out for
+    other varying rows is refused."""
     avatar = load_avatar("default")
     fast = FastAvatar(avatar, HeadSubject.create(avatar.head))
     session = fast.session(parallel=parallel)
@@ -116,6 +117,11 @@ def test_deform_f16_writes_the_bits_of_the_encoded_state(parallel: bool) -> None
             draft = writer.draft(fast.varying, (n.position, n.rotation, n.scale))
             assert session.deform_f16(verts, draft, writer.psign, writer.rsign)
             assert session.threaded is parallel
+            assert bytes(writer.finish(draft, k, k, {"total": k})) == want
+            draft = writer.draft(fast.varying, (n.position, n.rotation, n.scale))  # the head in the same call
+            ok, share = session.flame_f16(y, draft, writer.psign, writer.rsign)
+            assert ok and session.threaded is parallel and 0 < share < 1  # (the head's, by the kernel's clock)
+            np.testing.assert_array_equal(session.lbs.out, verts)
             assert bytes(writer.finish(draft, k, k, {"total": k})) == want
     other = FastAvatar(avatar, fast.subject, gaussians="all")
     n = other.neutral

@@ -65,6 +65,15 @@ def atomic_add(typingctx, array, index, value):
     return types.int64(array, index, value), codegen
 
 
+@njit(inline="always", **NB)
+def wait_done(claims, parts):
+    """Spin until claims[1] (work items done, counted by the threads of one parallel loop that claim them through
+    claims[0]) reaches ``parts``. A thread waits only for items other running threads claimed (it claimed what was
+    left first), so a loop whose iterations run one after another on one thread never waits for itself."""
+    while atomic_add(claims, 1, 0) < parts:
+        pass
+
+
 @intrinsic
 def cycle_counter(typingctx):
     """The processor's cycle counter (LLVM readcyclecounter: rdtsc on x86-64; 0 where a target has none), uint64. For

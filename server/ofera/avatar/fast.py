@@ -62,6 +62,7 @@ from ofera_protocol.fast_encodings import FrameDraft, VaryingRows
 
 from ..head.lbs import HeadSubject
 from ..head.lbs_fast import SubsetLBS, flame_values_kernel, root_neck_identity
+from ..jit import Bound
 from ..thread_choice import ACTIVITY, Activity, ThreadChoice, load_average, use_threads
 from . import kernels as K
 from .binding import BarycentricBinding, TriangleBinding, normalize_quaternions
@@ -245,6 +246,8 @@ class FastAvatar:
                                         scale=np.zeros(3 * self.count, np.uint16))
                 one = np.ones(4, np.float32)
                 s.deform_f16(s.head(expr[: self.lbs.n_expr], rot), draft, one[:3].copy(), one)
+                if self.lbs.n_expr >= 50:
+                    s.flame_f16(y, draft, one[:3].copy(), one)
             self._warm.add(parallel)
 
 
@@ -283,6 +286,9 @@ class FastSession:
         self._rot = np.zeros((5, 3, 3), np.float32)
         self._half_scratch: dict[bool, tuple[np.ndarray, ...]] | None = None  # deform_f16's, by threads
         self._claims = np.zeros(1, np.int64)  # the threaded kernels' shared block counter
+        self._face_claims = np.zeros(2, np.int64)  # the threaded face frames' chunks claimed and done
+        self._flame_f16: dict[tuple, Bound] = {}  # flame_f16's kernels bound to this session, by (threads, signs)
+        self._ticks = np.zeros(3, np.uint64)  # their cycle counter: start, vertices written, end
         self._head_values = np.zeros(68, np.float32)  # FLAME values for a kernel that runs the head (head_args)
         self._head_claims = np.zeros(2, np.int64)  # its vertex blocks claimed and done
 
@@ -395,7 +401,7 @@ class FastSession:
         a = self.fast.arrays
         if parallel:
             K.face_frames_kernel_parallel(verts, a.face_vids, self.edges, self.face, with_normal, self.threads,
-                                          self._claims)
+                                          self._face_claims)
         else:
             K.face_frames_kernel(verts, a.face_vids, self.edges, self.face, with_normal)
 
@@ -412,16 +418,9 @@ class FastSession:
         garbage: drop it). Triangle binding only (:attr:`writes_f16`); threads as :meth:`deform` (the same bits)."""
         a = self.fast.arrays
         verts = self._verts(verts)
-        if not self.writes_f16:
-            raise ValueError("deform_f16 needs the triangle binding")
-        if draft.varying is not self.fast.varying:
-            raise ValueError("the draft was not laid out for this avatar's varying rows")
-        if self._half_scratch is None:  # (threads, rows, 3 | 4 | 3) float32; the serial kernel takes thread 0's
-            shape = (numba.config.NUMBA_NUM_THREADS, K.F16_BLOCK + int(a.run_len.max(initial=0)))
-            per_thread = tuple(np.zeros((*shape, k), np.float32) for k in (3, 4, 3))
-            self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
+        self._check_draft(draft)
         par = self._begin()
-        args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._half_scratch[par],
+        args = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._f16_scratch(par),
                 draft.position, draft.rotation, draft.scale)
         self._face_frames(verts, par, False)
         if par:
@@ -431,8 +430,71 @@ class FastSession:
         self._end(a.ids.shape[0])
         return bool(ok)
 
+    def flame_f16(self, y: np.ndarray, draft: FrameDraft, psign: np.ndarray, rsign: np.ndarray) -> tuple[bool, float]:
+        """:meth:`flame_head` of FLAME values y (68,) and :meth:`deform_f16` of its vertices (the same bits) in one
+        kernel call, its threads sharing the head's vertex blocks, the face frames and the f16 blocks in one parallel
+        region (``kernels.flame_f16_kernel_parallel``). Returns (ok, the head's share of the call's time, by the
+        kernel's cycle counter). The kernels are bound to this session's buffers and the signs' values (psign (3,),
+        rsign (4,)); the draft's fields are passed each call (uint16, as ``FrameWriter.draft`` makes them)."""
+        self._check_draft(draft)
+        if np.shape(y) != (68,):
+            raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
+        self._head_values[:] = y  # (any numeric dtype, cast: the kernel reads its own buffer)
+        par = self._start()
+        psign, rsign = np.asarray(psign, np.float32), np.asarray(rsign, np.float32)
+        key = (par, psign.tobytes(), rsign.tobytes())
+        bound = self._flame_f16.get(key)
+        if bound is None:  # (two coordinate systems, threads or not: four keys at most)
+            bound = self._flame_f16[key] = self._bind_flame_f16(par, psign, rsign)
+        ok, share = bound(draft.position, draft.rotation, draft.scale)
+        self._end(self.fast.arrays.ids.shape[0])
+        return bool(ok), share
+
+    def _bind_flame_f16(self, parallel: bool, psign: np.ndarray, rsign: np.ndarray) -> Bound:
+        a = self.fast.arrays
+        psign, rsign = (np.ascontiguousarray(x, np.float32) for x in (psign, rsign))
+        runs = (a.run_face, a.run_m, a.run_len, a.run_row, a.local, psign, rsign, *self._f16_scratch(parallel))
+        if parallel:
+            return Bound(_flame_f16_parallel_bound, (self.head_args(), a.face_vids, self.edges, self.face,
+                                                     self.fast.f16_blocks, self.threads, self._face_claims,
+                                                     self._claims, *runs, self._ticks))
+        return Bound(_flame_f16_bound, (self.head_args(), a.face_vids, self.edges, self.face, *runs, self._ticks))
+
+    def _check_draft(self, draft: FrameDraft) -> None:
+        if not self.writes_f16:
+            raise ValueError("deform_f16 needs the triangle binding")
+        if draft.varying is not self.fast.varying:
+            raise ValueError("the draft was not laid out for this avatar's varying rows")
+
+    def _f16_scratch(self, parallel: bool) -> tuple[np.ndarray, ...]:
+        """The f16 kernels' float32 scratch: (threads, rows, 3 | 4 | 3), or thread 0's for the serial kernel."""
+        if self._half_scratch is None:
+            a = self.fast.arrays
+            shape = (numba.config.NUMBA_NUM_THREADS, K.F16_BLOCK + int(a.run_len.max(initial=0)))
+            per_thread = tuple(np.zeros((*shape, k), np.float32) for k in (3, 4, 3))
+            self._half_scratch = {True: per_thread, False: tuple(x[0] for x in per_thread)}
+        return self._half_scratch[parallel]
+
     def run(self, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:
         return self.deform(self.head(expr, rotations))
+
+
+@numba.njit(**K._NBC)
+def _flame_f16_bound(fixed, out_pos, out_rot, out_scale):
+    """:func:`kernels.flame_f16_kernel` with a session's arguments (jit.Bound) and a draft's fields."""
+    head, face_vids, edges, face, run_face, run_m, run_len, run_row, local, psign, rsign, sp, sr, ss, ticks = fixed.args
+    return K.flame_f16_kernel(head, face_vids, edges, face, run_face, run_m, run_len, run_row, local, psign, rsign, sp,
+                              sr, ss, out_pos, out_rot, out_scale, ticks)
+
+
+@numba.njit(**K._NBC)
+def _flame_f16_parallel_bound(fixed, out_pos, out_rot, out_scale):
+    """:func:`kernels.flame_f16_kernel_parallel` with a session's arguments (jit.Bound) and a draft's fields."""
+    (head, face_vids, edges, face, blocks, threads, face_claims, claims, run_face, run_m, run_len, run_row, local,
+     psign, rsign, sp, sr, ss, ticks) = fixed.args
+    return K.flame_f16_kernel_parallel(head, face_vids, edges, face, blocks, threads, face_claims, claims, run_face,
+                                       run_m, run_len, run_row, local, psign, rsign, sp, sr, ss, out_pos, out_rot,
+                                       out_scale, ticks)
 
 
 def reference_frame(avatar, subject: HeadSubject, expr: np.ndarray, rotations: np.ndarray) -> GaussianState:

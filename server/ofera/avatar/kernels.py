@@ -33,7 +33,8 @@ import math
 import numba as nb
 import numpy as np
 
-from ..jit import F16_MAX, atomic_add, f32_to_f16_bits
+from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms
+from ..jit import F16_MAX, atomic_add, cycle_counter, f32_to_f16_bits, wait_done
 from ..jit import NB as _NB
 
 _NBC = {**_NB, "fastmath": {"contract"}}  # fused multiply-add allowed (no reassociation)
@@ -64,15 +65,23 @@ FACE_CHUNKS = 16
 @nb.njit(parallel=True, **_NBC)
 def face_frames_kernel_parallel(verts, face_vids, edges, face, with_normal, threads, claims):
     """:func:`face_frames_kernel` over ``threads`` of numba's threads, which claim :data:`FACE_CHUNKS` chunks as they
-    go (``claims`` (1,) int64 scratch): a thread that wakes late takes fewer."""
+    go (``claims`` (2,) int64 scratch): a thread that wakes late takes fewer."""
+    claims[0] = claims[1] = 0
+    for _t in nb.prange(threads):
+        _face_chunks(verts, face_vids, edges, face, with_normal, claims)
+
+
+@nb.njit(inline="always", **_NBC)
+def _face_chunks(verts, face_vids, edges, face, with_normal, claims):
+    """The :data:`FACE_CHUNKS` chunks of faces this thread claims (claims[0]) while any is left, each counted in
+    claims[1] once done (``jit.wait_done``)."""
     n = face_vids.shape[0]
     step = (n + FACE_CHUNKS - 1) // FACE_CHUNKS
-    claims[0] = 0
-    for _t in nb.prange(threads):
+    b = atomic_add(claims, 0, 1)
+    while b < FACE_CHUNKS:
+        face_frames_range(min(n, b * step), min(n, (b + 1) * step), verts, face_vids, edges, face, with_normal)
+        atomic_add(claims, 1, 1)
         b = atomic_add(claims, 0, 1)
-        while b < FACE_CHUNKS:
-            face_frames_range(min(n, b * step), min(n, (b + 1) * step), verts, face_vids, edges, face, with_normal)
-            b = atomic_add(claims, 0, 1)
 
 
 @nb.njit(**_NBC)
@@ -290,25 +299,87 @@ def triangle_f16_kernel_parallel(face, blocks, threads, claims, run_face, run_m,
     :func:`f16_blocks`: disjoint rows) as they go (``claims`` (1,) int64 scratch; a fixed half each made the first
     thread wait for a worker that woke late), the scratch (>= threads, .., 3 | 4 | 3) one per thread. Same arguments,
     and ``blocks``, ``threads``, ``claims`` second to fourth."""
-    signs = (psign[0], psign[1], psign[2], rsign[0], rsign[1], rsign[2], rsign[3])
-    count_blocks = blocks.shape[0] - 1
+    s0, s1, s2, s3, s4, s5, s6 = psign[0], psign[1], psign[2], rsign[0], rsign[1], rsign[2], rsign[3]
     bad = 0
     claims[0] = 0
     for t in nb.prange(threads):
-        b = atomic_add(claims, 0, 1)
-        while b < count_blocks:
-            first = run_row[blocks[b]]
-            count = 0
-            for q in range(blocks[b], blocks[b + 1]):
-                signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos[t], scratch_rot[t],
-                           scratch_scale[t])
-                count += run_len[q]
-            ok = _to_half(count, first, scratch_pos[t], out_pos)
-            ok &= _to_half(count, first, scratch_rot[t], out_rot)
-            ok &= _to_half(count, first, scratch_scale[t], out_scale)
-            bad += 0 if ok else 1
-            b = atomic_add(claims, 0, 1)
+        bad += _f16_blocks(face, blocks, claims, run_face, run_m, run_len, run_row, local, (s0, s1, s2, s3, s4, s5, s6),
+                           scratch_pos[t], scratch_rot[t], scratch_scale[t], out_pos, out_rot, out_scale)
     return bad == 0
+
+
+@nb.njit(inline="always", **_NBC)
+def _f16_blocks(face, blocks, claims, run_face, run_m, run_len, run_row, local, signs, scratch_pos, scratch_rot,
+                scratch_scale, out_pos, out_rot, out_scale):
+    """The blocks of :func:`triangle_f16_kernel_parallel` this thread claims (claims[0]) while any is left, on its own
+    scratch; returns how many had a value out of the half range."""
+    bad = 0
+    b = atomic_add(claims, 0, 1)
+    while b < blocks.shape[0] - 1:
+        first = run_row[blocks[b]]
+        count = 0
+        for q in range(blocks[b], blocks[b + 1]):
+            signed_run(q, count, face, run_face, run_m, run_len, local, signs, scratch_pos, scratch_rot,
+                       scratch_scale)
+            count += run_len[q]
+        ok = _to_half(count, first, scratch_pos, out_pos)
+        ok &= _to_half(count, first, scratch_rot, out_rot)
+        ok &= _to_half(count, first, scratch_scale, out_scale)
+        bad += 0 if ok else 1
+        b = atomic_add(claims, 0, 1)
+    return bad
+
+
+@nb.njit(**_NBC)
+def flame_f16_kernel(head, face_vids, edges, face, run_face, run_m, run_len, run_row, local, psign, rsign,
+                     scratch_pos, scratch_rot, scratch_scale, out_pos, out_rot, out_scale, ticks):
+    """The head of FLAME values (``head``: ``FastSession.head_args``, its vertices into head[15]), the used faces'
+    frames, then :func:`triangle_f16_kernel` into a dense f16 frame's fields, in one call. ``ticks`` (3,) uint64 the
+    cycle counter at the start, once the vertices are written and at the end. Returns (ok, the head's share of the
+    call's time by those ticks)."""
+    ticks[0] = cycle_counter()
+    flame_subset_lbs(*head[:16])
+    ticks[1] = cycle_counter()
+    face_frames_range(0, face_vids.shape[0], head[15], face_vids, edges, face, False)
+    ok = triangle_f16_kernel(face, run_face, run_m, run_len, run_row, local, psign, rsign, scratch_pos, scratch_rot,
+                             scratch_scale, out_pos, out_rot, out_scale)
+    return ok, head_share(ticks)
+
+
+@nb.njit(parallel=True, **_NBC)
+def flame_f16_kernel_parallel(head, face_vids, edges, face, blocks, threads, face_claims, claims, run_face, run_m,
+                              run_len, run_row, local, psign, rsign, scratch_pos, scratch_rot, scratch_scale, out_pos,
+                              out_rot, out_scale, ticks):
+    """:func:`flame_f16_kernel` on ``threads`` of numba's threads, in one parallel region: the head's vertex blocks,
+    then the face chunks, then the f16 blocks, each claimed as the threads go, each stage started once the one before
+    is done (``jit.wait_done``: a thread waits only for work a running thread claimed). Where the head, the face
+    frames and the f16 kernel each took a region of their own, with Python and numba's dispatch between them.
+    ``face_claims`` (2,), ``claims`` (1,) int64 scratch. Returns (ok, the head's share)."""
+    ticks[0] = cycle_counter()
+    y, expr, rot, coef, v_id, basis_t, pose_rows, j_id, j_expr, parents, weights, joints, a, acc, nz, verts, hc = head
+    nonzero = flame_transforms(y, expr, rot, coef, pose_rows, j_id, j_expr, parents, joints, a, nz, basis_t.shape[0])
+    parts = (verts.shape[0] + VERTEX_BLOCK - 1) // VERTEX_BLOCK
+    hc[0] = hc[1] = face_claims[0] = face_claims[1] = claims[0] = 0
+    s0, s1, s2, s3, s4, s5, s6 = psign[0], psign[1], psign[2], rsign[0], rsign[1], rsign[2], rsign[3]
+    bad = 0
+    for t in nb.prange(threads):
+        blend_skin_shared(hc, coef, v_id, basis_t, weights, a, acc, nz, nonzero, verts)
+        wait_done(hc, parts)
+        if t == 0:
+            ticks[1] = cycle_counter()
+        _face_chunks(verts, face_vids, edges, face, False, face_claims)
+        wait_done(face_claims, FACE_CHUNKS)
+        bad += _f16_blocks(face, blocks, claims, run_face, run_m, run_len, run_row, local, (s0, s1, s2, s3, s4, s5, s6),
+                           scratch_pos[t], scratch_rot[t], scratch_scale[t], out_pos, out_rot, out_scale)
+    return bad == 0, head_share(ticks)
+
+
+@nb.njit(inline="always", **_NB)
+def head_share(ticks):
+    """A kernel that ran the head ends: ticks[2] = now; (vertices - start) / (end - start) of ticks (3,) uint64, 0
+    without a cycle counter."""
+    ticks[2] = cycle_counter()
+    return (ticks[1] - ticks[0]) / (ticks[2] - ticks[0]) if ticks[2] > ticks[0] else 0.0
 
 
 @nb.njit(inline="always", **_NBC)

@@ -179,7 +179,7 @@ def blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, o
     """:func:`_blend_skin` of blocks of :data:`VERTEX_BLOCK` vertices, each claimed through ``claims`` ((2,) int64,
     0 at the start, shared by the threads of one parallel loop: [0] blocks claimed, [1] blocks done): whichever thread
     is free takes the next, so one that wakes late takes fewer (a fixed half each made the first wait for the second
-    at the loop's end). Returns the number of blocks (all claimed, not all done: see :func:`wait_blend`)."""
+    at the loop's end). Returns the number of blocks (all claimed, not all done: see ``jit.wait_done``)."""
     s = out.shape[0]
     parts = (s + VERTEX_BLOCK - 1) // VERTEX_BLOCK
     while True:
@@ -189,14 +189,6 @@ def blend_skin_shared(claims, coef, v_id, basis_t, weights, a, acc, nz, count, o
         _blend_skin(b * VERTEX_BLOCK, min(s, (b + 1) * VERTEX_BLOCK), coef, v_id, basis_t, weights, a, acc, nz, count,
                     out)
         atomic_add(claims, 1, 1)
-
-
-@nb.njit(inline="always", **_NB)
-def wait_blend(claims, parts):
-    """Spin until all ``parts`` blocks of :func:`blend_skin_shared` are done: the vertices are all written (by the
-    threads that claimed the last blocks, which are running them: no wait for a thread that never came)."""
-    while atomic_add(claims, 1, 0) < parts:
-        pass
 
 
 @nb.njit(**_NBC)

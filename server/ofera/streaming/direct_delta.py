@@ -36,9 +36,9 @@ from ofera_protocol.delta import DELTA_KEYS, ROT_FIELD64, DeltaEncoder
 from ofera_protocol.fast_encodings import HEADER_ROOM
 
 from ..avatar import kernels as K
-from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms, wait_blend
+from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms
 from ..jit import NB as _NB
-from ..jit import Bound, atomic_add, cycle_counter
+from ..jit import Bound, atomic_add, cycle_counter, wait_done
 from .encode_fast import (
     NO_LUT,
     NO_TABLE,
@@ -217,14 +217,7 @@ def deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, body, 
     n, n_p, w, n_r, n_s, ok, _ = _front(q13, geo[6].shape[0] - 1, verts, geo, codes, held, out, scratch,
                                         np.zeros(0, np.int64))
     end = _body(body, buf, n, n_p, w, n_r, n_s)
-    return n, n_p, w, n_r, n_s, ok, end, _head_share(ticks)
-
-
-@nb.njit(inline="always", **_NB)
-def _head_share(ticks):
-    """The kernel ends: ticks[2] = now; (vertices - start) / (end - start) of ticks, 0 without a cycle counter."""
-    ticks[2] = cycle_counter()
-    return (ticks[1] - ticks[0]) / (ticks[2] - ticks[0]) if ticks[2] > ticks[0] else 0.0
+    return n, n_p, w, n_r, n_s, ok, end, K.head_share(ticks)
 
 
 @nb.njit(inline="always", **_NB)
@@ -242,8 +235,9 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
                                  res, ticks):
     """:func:`deform_delta_kernel` on ``threads`` of numba's threads. The head's vertices first (if ``head`` holds its
     arguments), in blocks the threads claim (``ofera.head.lbs_fast``); each then waits for the last block to be done
-    and goes on to the delta blocks: one parallel region, where a head called before took one of its own and the
-    Python between (head + delta p50 1288 -> 1259 and 1282 -> 1255 us in process, round seventeen). The threads share
+    (``jit.wait_done``) and goes on to the delta blocks: one parallel region, where a head called before took one of
+    its own and the Python between (head + delta p50 1288 -> 1259 and 1282 -> 1255 us in process, round seventeen).
+    The threads share
     the delta blocks as they go: thread 0 takes them from the first on and writes in place (as the serial kernel), the
     others from the last down, each block into ``spare`` (arrays shaped as ``out``). Then, with a message buffer, two
     threads write the body from the outputs where they are (``encode_fast.write_body``: one the masks, the other the
@@ -277,7 +271,7 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
     for t in nb.prange(threads):
         if parts:
             blend_skin_shared(hclaims, coef, v_id, basis_t, weights, a, acc, nz, nonzero, verts)
-            wait_blend(hclaims, parts)
+            wait_done(hclaims, parts)
             if t == 0:
                 ticks[1] = cycle_counter()
         g = (block_u, block_j, face_vids, run_face, run_m, run_len, blocks, local, brow, (s0, s1, s2, s3, s4, s5, s6))
@@ -308,7 +302,7 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
         totals, outputs = (n, n_p, w, n_r, n_s), (moved_b, wide_b, res_b, pos_b, rot_b, scl_b)
         end = write_body(2, buf, HEADER_ROOM, keys, ids_count, id_runs, flags_b, totals, totals, outputs, outputs,
                          (res, first, first, block_j), (r3, r6, rr, rs))  # (part 2 writes nothing: where it ends)
-        return n, n_p, w, n_r, n_s, ok, end, _head_share(ticks)
+        return n, n_p, w, n_r, n_s, ok, end, K.head_share(ticks)
     for t in nb.prange(1, threads):
         n, n_p, w, n_r, n_s = res[count, 0], res[count, 1], res[count, 2], res[count, 3], res[count, 4]
         for b in range(first, count):  # (where each back block goes: after the front's and the back blocks before it)
@@ -318,7 +312,7 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
                              (out_moved, out_wide, out_res, out_pos, out_rot, out_scale))
             n, n_p, w, n_r, n_s = n + res[b, 0], n_p + res[b, 1], w + res[b, 2], n_r + res[b, 3], n_s + res[b, 4]
     n, n_p, w, n_r, n_s, ok = _totals(res, first, count)
-    return n, n_p, w, n_r, n_s, ok, 0, _head_share(ticks)
+    return n, n_p, w, n_r, n_s, ok, 0, K.head_share(ticks)
 
 
 @nb.njit(inline="always", **_NB)
