@@ -128,6 +128,10 @@ def test_deform_f16_writes_the_bits_of_the_encoded_state(parallel: bool) -> None
     with pytest.raises(ValueError, match="varying rows"):
         session.deform_f16(verts, writer.draft(other.varying, (n.position, n.rotation, n.scale)), writer.psign,
                            writer.rsign)
+    draft = writer.draft(fast.varying, (fast.neutral.position, fast.neutral.rotation, fast.neutral.scale))
+    draft.scale = draft.scale[::2]  # (not what the bound kernels take)
+    with pytest.raises(ValueError, match="C-contiguous uint16"):
+        session.flame_f16(y, draft, writer.psign, writer.rsign)
 
 
 def test_f16_blocks_cover_the_runs_in_row_order() -> None:

@@ -437,6 +437,10 @@ class FastSession:
         kernel's cycle counter). The kernels are bound to this session's buffers and the signs' values (psign (3,),
         rsign (4,)); the draft's fields are passed each call (uint16, as ``FrameWriter.draft`` makes them)."""
         self._check_draft(draft)
+        fields = (draft.position, draft.rotation, draft.scale)
+        if not all(isinstance(f, np.ndarray) and f.dtype == np.uint16 and f.ndim == 1 and f.flags.c_contiguous
+                   and f.flags.writeable for f in fields):  # (what the bound kernels were compiled for: unchecked)
+            raise ValueError("the draft's fields must be writable C-contiguous uint16 vectors (FrameWriter.draft)")
         if np.shape(y) != (68,):
             raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
         self._head_values[:] = y  # (any numeric dtype, cast: the kernel reads its own buffer)
@@ -446,7 +450,7 @@ class FastSession:
         bound = self._flame_f16.get(key)
         if bound is None:  # (two coordinate systems, threads or not: four keys at most)
             bound = self._flame_f16[key] = self._bind_flame_f16(par, psign, rsign)
-        ok, share = bound(draft.position, draft.rotation, draft.scale)
+        ok, share = bound(*fields)
         self._end(self.fast.arrays.ids.shape[0])
         return bool(ok), share
 
