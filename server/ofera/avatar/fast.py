@@ -61,7 +61,7 @@ import numpy as np
 from ofera_protocol.fast_encodings import FrameDraft, VaryingRows
 
 from ..head.lbs import HeadSubject
-from ..head.lbs_fast import SubsetLBS, flame_values_kernel, root_neck_identity
+from ..head.lbs_fast import SubsetLBS, check_flame_values, flame_values_kernel, put_flame_values, root_neck_identity
 from ..jit import Bound
 from ..thread_choice import ACTIVITY, Activity, ThreadChoice, load_average, use_threads
 from . import kernels as K
@@ -307,8 +307,7 @@ class FastSession:
         first frame: a threaded one took the first 0.8 s of a room across two servers (clean-clone CI, round eleven)."""
         if not (isinstance(y, np.ndarray) and y.dtype == np.float32 and y.ndim == 1 and y.flags.writeable):
             y = np.array(y, np.float32).reshape(-1)
-        if y.shape != (68,):
-            raise ValueError(f"FLAME values must have 68 entries, got {y.shape}")
+        check_flame_values(y)
         return y
 
     def flame(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -441,9 +440,7 @@ class FastSession:
         if not all(isinstance(f, np.ndarray) and f.dtype == np.uint16 and f.ndim == 1 and f.flags.c_contiguous
                    and f.flags.writeable for f in fields):  # (what the bound kernels were compiled for: unchecked)
             raise ValueError("the draft's fields must be writable C-contiguous uint16 vectors (FrameWriter.draft)")
-        if np.shape(y) != (68,):
-            raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
-        self._head_values[:] = y  # (any numeric dtype, cast: the kernel reads its own buffer)
+        put_flame_values(self._head_values, y)
         par = self._start()
         psign, rsign = np.asarray(psign, np.float32), np.asarray(rsign, np.float32)
         key = (par, psign.tobytes(), rsign.tobytes())

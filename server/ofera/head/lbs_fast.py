@@ -289,6 +289,20 @@ def flame_values_kernel(y, n_expr, expr, rot):
         r[2, 2] = b1x * b2y - b1y * b2x
 
 
+def check_flame_values(y) -> None:
+    """ValueError naming the shape unless y holds one frame's 68 FLAME values (50 expression coefficients, then the
+    jaw's and the eyes' 6D rotations)."""
+    if np.shape(y) != (68,):
+        raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
+
+
+def put_flame_values(dst: np.ndarray, y) -> None:
+    """FLAME values y (68,), any numeric dtype (checked), into ``dst`` (68,) float32: the buffer of a kernel that
+    runs the head itself (``FastSession.head_args``)."""
+    check_flame_values(y)
+    dst[:] = y
+
+
 class SubsetLBS:
     """LBS of a fixed vertex subset of one subject (see the module docstring).
 

@@ -36,7 +36,7 @@ from ofera_protocol.delta import DELTA_KEYS, ROT_FIELD64, DeltaEncoder
 from ofera_protocol.fast_encodings import HEADER_ROOM
 
 from ..avatar import kernels as K
-from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms
+from ..head.lbs_fast import VERTEX_BLOCK, blend_skin_shared, flame_subset_lbs, flame_transforms, put_flame_values
 from ..jit import NB as _NB
 from ..jit import Bound, atomic_add, cycle_counter, wait_done
 from .encode_fast import (
@@ -456,9 +456,7 @@ class DirectDelta:
         (``body_buffer``), for its ``encode_written``. The vertices are left in the head's buffer."""
         if self.head is None:
             raise ValueError("this DirectDelta was made without the session's head")
-        if np.shape(y) != (68,):
-            raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
-        self.head[0][:] = y  # (any numeric dtype, cast: the kernel reads its own buffer)
+        put_flame_values(self.head[0], y)
         buf = self.encoder.body_buffer()
         n, n_p, w, n_r, n_s, ok, end, share = (self._parallel if parallel else self._serial)(buf)
         if not ok:
