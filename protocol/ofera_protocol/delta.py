@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -369,6 +370,10 @@ class DeltaEncoder:
         self._messages = BufferPool(4, make=_bytes_array)
         self._most = HEADER_ROOM + delta_body_size(n, m, m, m, m, m, self._row_bytes)  # any delta frame's message
         self._head = msgpack.Packer(use_bin_type=True)  # (msgpack.packb makes a Packer, a 1 MB buffer, per call)
+        # Work on the held state that a writer of this encoder's frames left for later (the server's direct delta
+        # frames leave the decodings of the codes they sent until the frame is on its way), run before this encoder
+        # reads that state again
+        self.pending: Callable[[], None] | None = None
         self.has_key = False
         self._key_asked = True
         self.since_key = 0
@@ -418,6 +423,8 @@ class DeltaEncoder:
         """The next frame message (key or delta; a memoryview of a reused buffer, see MessagePacker) for FLAME-space
         float32 state arrays (N, 3), (N, 4), (N, 3)."""
         start_ns = time.perf_counter_ns()
+        if self.pending is not None:
+            self.pending()
         if self.next_is_key:
             self.frames += 1
             self._key_asked = False

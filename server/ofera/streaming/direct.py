@@ -5,8 +5,8 @@ viewer (a v1 session and its own viewer): no float32 state in between, no encodi
   (``FrameWriter.draft``, ``Pipeline.deform_values_f16``).
 - :class:`DirectDeltaFrames`: a delta session (PROTOCOL.md 7.1); the deformation runs the delta encoder's selection
   and encoding passes on what it computes and writes the message body (``direct_delta.DirectDelta``,
-  ``Pipeline.deform_values_delta``). Its key frames (join, resync, key interval) take the state path: ``ready()`` is
-  False for them.
+  ``Pipeline.deform_values_delta``), and leaves the decodings of what it sent until the frame is delivered. Its key
+  frames (join, resync, key interval) take the state path: ``ready()`` is False for them.
 
 Each gives the bytes the state path gives (tested); :func:`direct_writer` picks one for a session, or None.
 """
@@ -74,7 +74,13 @@ class DirectDeltaFrames:
         return not self.encoder.next_is_key
 
     def deform(self, pipeline: Pipeline, values: Any) -> tuple[Any, dict[str, int]]:
-        return pipeline.deform_values_delta(values, self.direct)
+        """The frame's kernel call; the decodings of what it sent (``DirectDelta.settle``) go to the fast session's
+        ``defer`` (the source runs them once the frame is delivered, on the loop's thread), or to the next frame."""
+        written = pipeline.deform_values_delta(values, self.direct)
+        defer = pipeline.fast.defer
+        if defer is not None:
+            defer((self.direct.settle, ()))
+        return written
 
     def finish(self, written: Any, frame: Any) -> tuple[Any, int]:
         """The message whose body the kernel wrote (a ``direct_delta.Written``): its header in front."""

@@ -27,6 +27,7 @@ Triangle binding only (the barycentric binding's positions are float64 sums of v
 
 from __future__ import annotations
 
+import threading
 from typing import NamedTuple
 
 import numba
@@ -44,6 +45,7 @@ from .encode_fast import (
     NO_TABLE,
     compact_range,
     copy_rows,
+    decode_moved,
     delta_body_kernel,
     encode_positions,
     encode_rotations_f16,
@@ -140,14 +142,16 @@ def _delta_block(q13, b, t, base, counts, w, verts, geo, codes, held, out, scrat
     n0, p0, r0, s0 = counts
     n, n_p, n_r, n_s = _select_block(ja, jb, sp, sr, ss, ones3, ones4, tol, dec, flags, word, counts, work,
                                      out_moved)
+    # (the decodings of the codes sent are left to settle_kernel, after the frame)
     wb, ok = encode_positions(q13, sp, brow, ids, work[0, p0:], n_p - p0, ones3, lo, k, step, held_p, dec,
-                              out_wide[p0:], out_res[p0 - w:], out_pos[base + w:])
+                              out_wide[p0:], out_res[p0 - w:], out_pos[base + w:], False)
     if q13:  # (the rotations' gather scratch: the block's own rows, which no other block uses)
         encode_rotations_q13(sr, brow, ids, work[1, r0:], n_r - r0, ones4, rot_lut, held_r, dec, gathered[4 * ja:],
-                             out_rot[r0:])
+                             out_rot[r0:], False)
     else:
-        ok &= encode_rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, ones4, held_r, dec, out_rot[r0:])
-    ok &= encode_scales(q13, ss, brow, ids, work[2, s0:], n_s - s0, table, scale_lut, held_s, dec, out_scale[s0:])
+        ok &= encode_rotations_f16(sr, brow, ids, work[1, r0:], n_r - r0, ones4, held_r, dec, out_rot[r0:], False)
+    ok &= encode_scales(q13, ss, brow, ids, work[2, s0:], n_s - s0, table, scale_lut, held_s, dec, out_scale[s0:],
+                        False)
     return n, n_p, n_r, n_s, w + wb, ok
 
 
@@ -341,6 +345,24 @@ def _totals(res, first, count):
     return n, n_p, w, n_r, n_s, ok
 
 
+@nb.njit(**_NB)
+def settle_kernel(q13, parallel, counts, work, res, block_j, ids, held_p, held_r, held_s, lo, step, scale_lut, rot_lut,
+                  dec):
+    """The decodings of the codes the last kernel call sent (its encoding passes leave them: ``decode=False``), which
+    the next frame's selection compares with (encode_fast.decode_moved). Its lists of what moved are ``work``'s rows
+    0-2: from candidate 0 those of the serial kernel (``counts``: its (n_p, n_r, n_s)) or of the threaded kernel's
+    front thread (``parallel``: res[B]), then those of each back block from its first candidate (res[b] for b from
+    res[B, 6] on)."""
+    count = res.shape[0] - 1
+    front, first = counts, count
+    if parallel:
+        front, first = (res[count, 1], res[count, 3], res[count, 4]), res[count, 6]
+    decode_moved(q13, work[:, 0:], front, ids, held_p, held_r, held_s, lo, step, scale_lut, rot_lut, dec)
+    for b in range(first, count):
+        decode_moved(q13, work[:, block_j[b]:], (res[b, 1], res[b, 3], res[b, 4]), ids, held_p, held_r, held_s, lo,
+                     step, scale_lut, rot_lut, dec)
+
+
 def block_faces(run_face: np.ndarray, blocks: np.ndarray, face_vids: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each block's own list of faces: (run_face renumbered into the concatenated lists, block_u (B + 1,) the first
@@ -414,6 +436,13 @@ class DirectDelta:
         self.body = (DELTA_KEYS, e.format.count, e.id_runs, e._flags, e._moved, e._wide.view(np.uint8), *e._flat,
                      *e._row_bytes, back)
         self._no_buf = np.zeros(0, np.uint8)
+        # the decodings of what a frame sent, written after it (settle): the last call's lists, until settled
+        lo, _, step, _, scale_lut, rot_lut = self.codes[:6]
+        self._settle = Bound(_settle_bound, (self.q13, e._work, self.res, block_j, e.ids, e.held_p, held_r, e.held_s,
+                                             lo, step, scale_lut, rot_lut, e.dec))
+        self._settle_lock = threading.Lock()
+        self._unsettled: tuple[bool, tuple[int, int, int]] | None = None
+        encoder.pending = self.settle  # (before the encoder's own frames: key frames, the state path)
         # no head (select): arrays of the head's types, y empty (one compiled kernel for both)
         like = fast.lbs.flame_args(np.zeros(68, np.float32), np.zeros(50, np.float32), np.zeros((5, 3, 3), np.float32))
         self._no_head = (*(np.zeros((0,) * x.ndim, x.dtype) for x in like), np.zeros(2, np.int64))
@@ -435,11 +464,23 @@ class DirectDelta:
         """Blocks of candidates (:data:`BLOCK`)."""
         return int(self.geo[6].size - 1)
 
+    def settle(self) -> None:
+        """Write the decodings of the codes the last frame sent into the encoder's ``dec`` (``settle_kernel``), if
+        not yet done: the frame's kernel leaves them (about 0.1 ms of its time at 100k) for after the frame is on its
+        way, and the next frame's selection reads them. Every kernel call here and the encoder's own ``encode``
+        settle first, so a caller only chooses when the work runs (a session: once its frame is delivered, through
+        ``FastSession.defer``). Thread-safe: a settle running on another thread is waited for."""
+        with self._settle_lock:
+            pending, self._unsettled = self._unsettled, None
+            if pending is not None:
+                self._settle(*pending)
+
     def select(self, verts: np.ndarray, parallel: bool = False) -> tuple[int, ...]:
         """Fill the encoder's selection and outputs for subset vertices ``verts`` (S, 3) float64 C-contiguous (a
-        head's output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r, n_s).
-        ValueError if an f16 value sent is NaN, infinite or beyond +-65504. Through numba's dispatcher (the kernels
-        of :meth:`head_select`, which sessions run)."""
+        head's output), on numba's threads if ``parallel``, and update what it holds: (n, n_p, w, n_r, n_s), the
+        decodings owed (:meth:`settle`). ValueError if an f16 value sent is NaN, infinite or beyond +-65504. Through
+        numba's dispatcher (the kernels of :meth:`head_select`, which sessions run)."""
+        self.settle()
         if parallel:
             *counts, ok, _, _ = deform_delta_kernel_parallel(self.q13, self.threads, self._no_head, verts, self.geo,
                                                              self.codes, self.held, self.out, self.spare, self.scratch,
@@ -448,6 +489,7 @@ class DirectDelta:
         else:
             *counts, ok, _, _ = deform_delta_kernel(self.q13, self._no_head, verts, self.geo, self.codes, self.held,
                                                     self.out, self.scratch, self.body, self._no_buf, self.ticks)
+        self._unsettled = (parallel, (counts[1], counts[3], counts[4]))
         return _checked(counts, ok)
 
     def head_select(self, y: np.ndarray, parallel: bool = False) -> Written:
@@ -458,7 +500,9 @@ class DirectDelta:
             raise ValueError("this DirectDelta was made without the session's head")
         put_flame_values(self.head[0], y)
         buf = self.encoder.body_buffer()
+        self.settle()  # (nothing to do but take the lock, once a session's settle ran after the last frame)
         n, n_p, w, n_r, n_s, ok, end, share = (self._parallel if parallel else self._serial)(buf)
+        self._unsettled = (parallel, (n_p, n_r, n_s))
         if not ok:
             raise ValueError(_OUT_OF_RANGE)
         return Written((n, n_p, w, n_r, n_s), buf, end, share)
@@ -491,6 +535,14 @@ def _serial_bound(fixed, buf):
     return deform_delta_kernel(q13, head, verts, geo, codes, held, out, scratch, body, buf, ticks)
 
 
+@nb.njit(**_NB)
+def _settle_bound(fixed, parallel, counts):
+    """:func:`settle_kernel` with DirectDelta's arguments (jit.Bound)."""
+    q13, work, res, block_j, ids, held_p, held_r, held_s, lo, step, scale_lut, rot_lut, dec = fixed.args
+    settle_kernel(q13, parallel, counts, work, res, block_j, ids, held_p, held_r, held_s, lo, step, scale_lut,
+                  rot_lut, dec)
+
+
 @nb.njit(**_NBC)
 def _parallel_bound(fixed, buf):
     """:func:`deform_delta_kernel_parallel` with DirectDelta's arguments (jit.Bound)."""
@@ -518,3 +570,4 @@ def warm_up(fast, threads: bool = False) -> None:
         direct = DirectDelta(fast, encoder, head=session.head_args())  # (the kernels bound to a head, as sessions')
         for parallel in (False, True) if threads else (False,):
             direct.head_select(y, parallel)
+            direct.settle()

@@ -606,12 +606,14 @@ def compact_flags(flags, lo, hi, counts, lists, out_moved):
 
 
 @nb.njit(**_NB)
-def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos):
+def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos,
+                     decode=True):
     """The moved positions (candidates moved[:n_p]): their codes (q13, else f16 bits), split into int8 changes from
-    the held codes (out_res) and whole codes (out_wide set, out_pos); held codes and decodings updated. Returns (w,
-    the number sent whole; ok: False if an f16 value is NaN, infinite or beyond +-65504). The per-axis constants
-    are loaded once (array elements would be reloaded after every store, which might alias them) and the output
-    slots are unsigned (no wrap-around check per store)."""
+    the held codes (out_res) and whole codes (out_wide set, out_pos); held codes updated, and their decodings if
+    ``decode`` (False: :func:`decode_moved` writes them later). Returns (w, the number sent whole; ok: False if an
+    f16 value is NaN, infinite or beyond +-65504). The per-axis constants are loaded once (array elements would be
+    reloaded after every store, which might alias them) and the output slots are unsigned (no wrap-around check per
+    store)."""
     s0, s1, s2 = psign[0], psign[1], psign[2]
     l0, l1, l2 = lo[0], lo[1], lo[2]
     k0, k1, k2 = k[0], k[1], k[2]
@@ -625,13 +627,11 @@ def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p
         v0, v1, v2 = pos[r, 0] * s0, pos[r, 1] * s1, pos[r, 2] * s2
         if q13:
             c0, c1, c2 = _pos_code(v0, l0, k0), _pos_code(v1, l1, k1), _pos_code(v2, l2, k2)
-            dec[0, j] = np.float32(l0 + np.float64(c0) * t0)
-            dec[1, j] = np.float32(l1 + np.float64(c1) * t1)
-            dec[2, j] = np.float32(l2 + np.float64(c2) * t2)
         else:
             ok &= abs(v0) <= F16_MAX and abs(v1) <= F16_MAX and abs(v2) <= F16_MAX
             c0, c1, c2 = f32_to_f16_bits(v0), f32_to_f16_bits(v1), f32_to_f16_bits(v2)
-            dec[0, j], dec[1, j], dec[2, j] = f16_bits_to_f32(c0), f16_bits_to_f32(c1), f16_bits_to_f32(c2)
+        if decode:
+            _decode_position(q13, c0, c1, c2, j, l0, l1, l2, t0, t1, t2, dec)
         d0 = np.int32(c0) - np.int32(held_p[i, 0])
         d1 = np.int32(c1) - np.int32(held_p[i, 1])
         d2 = np.int32(c2) - np.int32(held_p[i, 2])
@@ -648,10 +648,11 @@ def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p
 
 
 @nb.njit(**_NB)
-def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot):
-    """The moved rotations (candidates moved[:n_r]): their q13 codes (out_rot), held codes and decodings updated.
-    Three loops: the rows gathered into `gathered` ((4 n_r) float32, signs applied), :func:`pack_rotation` over
-    them in SIMD lanes, then the scatter. Packing the rows where they lie ran scalar, 2x slower in all."""
+def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot, decode=True):
+    """The moved rotations (candidates moved[:n_r]): their q13 codes (out_rot), held codes updated, and their
+    decodings if ``decode`` (as :func:`encode_positions`). Three loops: the rows gathered into `gathered` ((4 n_r)
+    float32, signs applied), :func:`pack_rotation` over them in SIMD lanes, then the scatter. Packing the rows where
+    they lie ran scalar, 2x slower in all."""
     s0, s1, s2, s3 = rsign[0], rsign[1], rsign[2], rsign[3]
     for x in range(np.uint64(n_r)):
         r = np.uint64(rows[np.uint64(moved[x])])
@@ -661,23 +662,73 @@ def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec
         gathered[4 * x + 3] = rot[r, 3] * s3
     for x in range(np.uint64(n_r)):
         out_rot[x] = pack_rotation(gathered[4 * x], gathered[4 * x + 1], gathered[4 * x + 2], gathered[4 * x + 3])
-    one, two, three, four, five = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4), np.uint64(5)
     for x in range(np.uint64(n_r)):
         j = np.uint64(moved[x])
         v = out_rot[x]
         held_r[np.uint64(ids[j])] = v
-        a0 = rot_lut[(v >> 20) & 1023]  # the float64 decoding of ofera_protocol.delta.q13_decode_rotation64
-        a1 = rot_lut[(v >> 10) & 1023]
-        a2 = rot_lut[v & 1023]
-        d = 1.0 - a0 * a0
-        d = d - a1 * a1
-        d = d - a2 * a2
-        big = math.sqrt(max(d, 0.0))
-        drop = np.uint64(v >> 30)  # rows by computed slot (the three small ones around the largest, in order):
-        dec[three + np.uint64(drop < one), j] = np.float32(a0)  # selects on the index compile to branches here,
-        dec[four + np.uint64(drop <= one), j] = np.float32(a1)  # which mispredict (client.fast_decode, the same)
-        dec[five + np.uint64(drop <= two), j] = np.float32(a2)
-        dec[three + drop, j] = np.float32(big)
+        if decode:
+            _decode_rotation_q13(v, j, rot_lut, dec)
+
+
+@nb.njit(inline="always", **_NB)
+def _decode_rotation_q13(v, j, rot_lut, dec):
+    """dec[3:7, j] = the float64 decoding of q13 rotation code v (ofera_protocol.delta.q13_decode_rotation64), as
+    float32."""
+    one, two, three, four, five = np.uint64(1), np.uint64(2), np.uint64(3), np.uint64(4), np.uint64(5)
+    a0 = rot_lut[(v >> 20) & 1023]
+    a1 = rot_lut[(v >> 10) & 1023]
+    a2 = rot_lut[v & 1023]
+    d = 1.0 - a0 * a0
+    d = d - a1 * a1
+    d = d - a2 * a2
+    big = math.sqrt(max(d, 0.0))
+    drop = np.uint64(v >> 30)  # rows by computed slot (the three small ones around the largest, in order):
+    dec[three + np.uint64(drop < one), j] = np.float32(a0)  # selects on the index compile to branches here,
+    dec[four + np.uint64(drop <= one), j] = np.float32(a1)  # which mispredict (client.fast_decode, the same)
+    dec[five + np.uint64(drop <= two), j] = np.float32(a2)
+    dec[three + drop, j] = np.float32(big)
+
+
+@nb.njit(inline="always", **_NB)
+def _decode_position(q13, c0, c1, c2, j, l0, l1, l2, t0, t1, t2, dec):
+    """dec[0:3, j] = the decoding of position codes c0..c2: q13 (lo + code * step, in float64, as float32), else
+    f16 bits."""
+    if q13:
+        dec[0, j] = np.float32(l0 + np.float64(c0) * t0)
+        dec[1, j] = np.float32(l1 + np.float64(c1) * t1)
+        dec[2, j] = np.float32(l2 + np.float64(c2) * t2)
+    else:
+        dec[0, j], dec[1, j], dec[2, j] = f16_bits_to_f32(c0), f16_bits_to_f32(c1), f16_bits_to_f32(c2)
+
+
+@nb.njit(**_NB)
+def decode_moved(q13, moved, counts, ids, held_p, held_r, held_s, lo, step, scale_lut, rot_lut, dec):
+    """The decodings the encoding passes left out (``decode=False``): dec[:, j] from the held codes of the candidates
+    j in moved[0, :n_p] (positions), moved[1, :n_r] (rotations) and moved[2, :n_s] (scales), counts = (n_p, n_r,
+    n_s); q13, else f16 bits (held_r: each rotation's four as one uint64, :func:`rotations_u64`). The same values
+    the passes would have written."""
+    l0, l1, l2 = lo[0], lo[1], lo[2]
+    t0, t1, t2 = step[0], step[1], step[2]
+    for x in range(np.uint64(counts[0])):
+        j = np.uint64(moved[0, x])
+        i = np.uint64(ids[j])
+        _decode_position(q13, held_p[i, 0], held_p[i, 1], held_p[i, 2], j, l0, l1, l2, t0, t1, t2, dec)
+    for x in range(np.uint64(counts[1])):
+        j = np.uint64(moved[1, x])
+        v = held_r[np.uint64(ids[j])]
+        if q13:
+            _decode_rotation_q13(v, j, rot_lut, dec)
+        else:
+            for c in range(4):
+                dec[3 + c, j] = f16_bits_to_f32(np.uint16((v >> np.uint64(16 * c)) & np.uint64(0xFFFF)))
+    for x in range(np.uint64(counts[2])):
+        j = np.uint64(moved[2, x])
+        i = np.uint64(ids[j])
+        for c in range(np.uint64(3)):
+            if q13:
+                dec[7 + c, j] = np.float32(scale_lut[held_s[i, c]])
+            else:
+                dec[7 + c, j] = f16_bits_to_f32(np.uint16(held_s[i, c]))
 
 
 @nb.njit(**_NB)
@@ -695,10 +746,10 @@ def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step
 
 
 @nb.njit(**_NB)
-def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, dec, out_scale):
+def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, dec, out_scale, decode=True):
     """The moved scales (candidates moved[:n_s], values scale[rows[j]]): their q13 codes (``table``, ``scale_lut``),
-    else f16 bits (the q13 arguments stand-ins); held codes and decodings updated. False if an f16 value is NaN,
-    infinite or beyond +-65504."""
+    else f16 bits (the q13 arguments stand-ins); held codes updated, and their decodings if ``decode`` (as
+    :func:`encode_positions`). False if an f16 value is NaN, infinite or beyond +-65504."""
     ok = True
     for x in range(np.uint64(n_s)):
         j = np.uint64(moved[x])
@@ -709,21 +760,24 @@ def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, d
                 code = scale_code(v, table)
                 out_scale[x, c] = code
                 held_s[i, c] = code
-                dec[7 + c, j] = np.float32(scale_lut[code])
+                if decode:
+                    dec[7 + c, j] = np.float32(scale_lut[code])
             else:
                 ok &= abs(v) <= F16_MAX
                 h = f32_to_f16_bits(v)
                 out_scale[x, c] = h
                 held_s[i, c] = h
-                dec[7 + c, j] = f16_bits_to_f32(h)
+                if decode:
+                    dec[7 + c, j] = f16_bits_to_f32(h)
     return ok
 
 
 @nb.njit(**_NB)
-def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot):
+def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot, decode=True):
     """The moved rotations' f16 bits (candidates moved[:n_r], values rot[rows[j]] times rsign), each rotation's four
     as one uint64 (component c in bits 16 c: held_r and out_rot are the (.., 4) uint16 arrays viewed so); held codes
-    and decodings updated. False if one is NaN, infinite or beyond +-65504."""
+    updated, and their decodings if ``decode`` (as :func:`encode_positions`). False if one is NaN, infinite or beyond
+    +-65504."""
     ok = True
     for x in range(n_r):
         j = np.uint64(moved[x])
@@ -734,7 +788,8 @@ def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot
             ok &= abs(v) <= F16_MAX
             h = f32_to_f16_bits(v)
             code |= np.uint64(h) << np.uint64(16 * c)
-            dec[3 + c, j] = f16_bits_to_f32(h)
+            if decode:
+                dec[3 + c, j] = f16_bits_to_f32(h)
         out_rot[x] = code
         held_r[np.uint64(ids[j])] = code
     return ok
