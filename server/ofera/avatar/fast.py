@@ -61,7 +61,14 @@ import numpy as np
 from ofera_protocol.fast_encodings import FrameDraft, VaryingRows
 
 from ..head.lbs import HeadSubject
-from ..head.lbs_fast import SubsetLBS, check_flame_values, flame_values_kernel, put_flame_values, root_neck_identity
+from ..head.lbs_fast import (
+    SubsetLBS,
+    check_flame_values,
+    flame_values_arg,
+    flame_values_kernel,
+    load_flame_values,
+    root_neck_identity,
+)
 from ..jit import Bound
 from ..thread_choice import ACTIVITY, Activity, ThreadChoice, load_average, use_threads
 from . import kernels as K
@@ -440,14 +447,14 @@ class FastSession:
         if not all(isinstance(f, np.ndarray) and f.dtype == np.uint16 and f.ndim == 1 and f.flags.c_contiguous
                    and f.flags.writeable for f in fields):  # (what the bound kernels were compiled for: unchecked)
             raise ValueError("the draft's fields must be writable C-contiguous uint16 vectors (FrameWriter.draft)")
-        put_flame_values(self._head_values, y)
+        y = flame_values_arg(y)
         par = self._start()
         psign, rsign = np.asarray(psign, np.float32), np.asarray(rsign, np.float32)
         key = (par, psign.tobytes(), rsign.tobytes())
         bound = self._flame_f16.get(key)
         if bound is None:  # (two coordinate systems, threads or not: four keys at most)
             bound = self._flame_f16[key] = self._bind_flame_f16(par, psign, rsign)
-        ok, share = bound(*fields)
+        ok, share = bound(*fields, y)
         self._end(self.fast.arrays.ids.shape[0])
         return bool(ok), share
 
@@ -481,18 +488,22 @@ class FastSession:
 
 
 @numba.njit(**K._NBC)
-def _flame_f16_bound(fixed, out_pos, out_rot, out_scale):
-    """:func:`kernels.flame_f16_kernel` with a session's arguments (jit.Bound) and a draft's fields."""
+def _flame_f16_bound(fixed, out_pos, out_rot, out_scale, y):
+    """:func:`kernels.flame_f16_kernel` with a session's arguments (jit.Bound), a draft's fields and the frame's FLAME
+    values y (copied into the head's buffer first)."""
     head, face_vids, edges, face, run_face, run_m, run_len, run_row, local, psign, rsign, sp, sr, ss, ticks = fixed.args
+    load_flame_values(head, y)
     return K.flame_f16_kernel(head, face_vids, edges, face, run_face, run_m, run_len, run_row, local, psign, rsign, sp,
                               sr, ss, out_pos, out_rot, out_scale, ticks)
 
 
 @numba.njit(**K._NBC)
-def _flame_f16_parallel_bound(fixed, out_pos, out_rot, out_scale):
-    """:func:`kernels.flame_f16_kernel_parallel` with a session's arguments (jit.Bound) and a draft's fields."""
+def _flame_f16_parallel_bound(fixed, out_pos, out_rot, out_scale, y):
+    """:func:`kernels.flame_f16_kernel_parallel` with a session's arguments (jit.Bound), a draft's fields and the
+    frame's FLAME values y (copied into the head's buffer first)."""
     (head, face_vids, edges, face, blocks, threads, face_claims, claims, run_face, run_m, run_len, run_row, local,
      psign, rsign, sp, sr, ss, ticks) = fixed.args
+    load_flame_values(head, y)
     return K.flame_f16_kernel_parallel(head, face_vids, edges, face, blocks, threads, face_claims, claims, run_face,
                                        run_m, run_len, run_row, local, psign, rsign, sp, sr, ss, out_pos, out_rot,
                                        out_scale, ticks)

@@ -296,11 +296,27 @@ def check_flame_values(y) -> None:
         raise ValueError(f"FLAME values must have 68 entries, got shape {np.shape(y)}")
 
 
-def put_flame_values(dst: np.ndarray, y) -> None:
-    """FLAME values y (68,), any numeric dtype (checked), into ``dst`` (68,) float32: the buffer of a kernel that
-    runs the head itself (``FastSession.head_args``)."""
+_F32 = np.dtype(np.float32)  # (numpy's dtype of a built-in type is one object: an identity test)
+
+
+def flame_values_arg(y) -> np.ndarray:
+    """FLAME values y (68,), any numeric dtype (checked), as the C-contiguous float32 vector a bound kernel that runs
+    the head itself takes each call (itself where it is one, else a copy); the kernel copies it into its head's
+    buffer (:func:`load_flame_values`). Attribute checks only: numpy's ``shape`` and a slice assignment cost 37 us
+    p50 on a cold CPU (benchmarks/README.md, round eighteen)."""
+    if type(y) is np.ndarray and y.dtype is _F32 and y.shape == (68,) and y.strides == (4,):
+        return y
+    y = np.ascontiguousarray(y, np.float32)
     check_flame_values(y)
-    dst[:] = y
+    return y
+
+
+@nb.njit(**_NB)
+def load_flame_values(head, y):
+    """y (68,) into the head arguments' FLAME values (``head[0]``, ``FastSession.head_args``)."""
+    dst = head[0]
+    for i in range(dst.shape[0]):
+        dst[i] = y[i]
 
 
 class SubsetLBS:
