@@ -251,8 +251,8 @@ def deform_delta_kernel_parallel(q13, threads, head, verts, geo, codes, held, ou
     The threads share
     the delta blocks as they go: thread 0 takes them from the first on and writes in place (as the serial kernel), the
     others from the last down, each block into ``spare`` (arrays shaped as ``out``). Then, with a message buffer, two
-    threads write the body from the outputs where they are (``encode_fast.write_body``: one the masks, the other the
-    data fields); without one, the back blocks are copied to where the front's outputs end, in block order, a loop
+    threads write the body from the outputs where they are (``encode_fast.write_body``: one the changed mask, the
+    other the rest); without one, the back blocks are copied to where the front's outputs end, in block order, a loop
     per back thread (with two threads one iteration, which numba runs on the calling thread: the copies done by the
     thread that wrote them, after a spin-wait for the front's end, measured the same, round thirteen). Every value
     is computed by the same code either way: the same bytes. A split
