@@ -98,6 +98,27 @@ def test_direct_delta_frames_are_the_state_paths(fast: FastAvatar, enc: str, coo
     assert direct_frames == 5 and narrow > 0 and wide > 0  # key frames at 0 and 4; positions sent both ways
 
 
+def test_a_direct_delta_and_its_encoder_hold_no_cycle(fast: FastAvatar) -> None:
+    """The encoder runs its DirectDelta's settle before reading what it holds (``pending``) through a weak reference:
+    a finished session's DirectDelta (MBs of buffers) is freed by reference counting alone, and its encoder goes on."""
+    import gc
+    import weakref
+
+    fmt, gather, ids, rows = session_of(fast, "q13", "flame", False)
+    encoder = delta_encoder(fmt, "flame", gather, ids, rows)
+    n = fast.neutral
+    gc.collect()
+    gc.disable()
+    try:
+        direct = DirectDelta(fast, encoder, head=fast.session().head_args())
+        freed = weakref.ref(direct)
+        del direct
+        assert freed() is None
+    finally:
+        gc.enable()
+    encoder.encode(0, 0, {}, n.position, n.rotation, n.scale)  # (its pending settle: a no-op now)
+
+
 def test_candidates_the_fast_path_does_not_deform_are_refused(fast: FastAvatar) -> None:
     n = fast.neutral
     still = int(np.flatnonzero(~fast.selected)[0])

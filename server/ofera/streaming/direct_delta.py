@@ -28,6 +28,8 @@ Triangle binding only (the barycentric binding's positions are float64 sums of v
 from __future__ import annotations
 
 import threading
+import weakref
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numba
@@ -450,7 +452,7 @@ class DirectDelta:
         self._settle_lock = threading.Lock()
         self._buf: np.ndarray | None = None  # the next head_select's message buffer, if settle took it
         self._unsettled: tuple[bool, tuple[int, int, int]] | None = None
-        encoder.pending = self.settle  # (before the encoder's own frames: key frames, the state path)
+        encoder.pending = _settle_of(weakref.ref(self))  # (before the encoder's own frames: key frames, the state path)
         # no head (select): arrays of the head's types, y empty (one compiled kernel for both)
         like = fast.lbs.flame_args(np.zeros(68, np.float32), np.zeros(50, np.float32), np.zeros((5, 3, 3), np.float32))
         self._no_head = (*(np.zeros((0,) * x.ndim, x.dtype) for x in like), np.zeros(2, np.int64))
@@ -524,6 +526,19 @@ class DirectDelta:
         if not ok:
             raise ValueError(_OUT_OF_RANGE)
         return Written((n, n_p, w, n_r, n_s), buf, end, share)
+
+
+def _settle_of(direct: weakref.ref) -> Callable[[], None]:
+    """``DirectDelta.settle`` of the DirectDelta ``direct`` refers to, while it lives: what its encoder runs before
+    reading its held state (``DeltaEncoder.pending``), without a reference cycle (an encoder and its DirectDelta hold
+    MBs of buffers, which a cycle would keep until the next full garbage collection)."""
+
+    def settle() -> None:
+        alive = direct()
+        if alive is not None:
+            alive.settle()
+
+    return settle
 
 
 class Written(NamedTuple):
