@@ -607,7 +607,7 @@ def compact_flags(flags, lo, hi, counts, lists, out_moved):
 
 @nb.njit(**_NB)
 def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p, dec, out_wide, out_res, out_pos,
-                     decode=True):
+                     decode):
     """The moved positions (candidates moved[:n_p]): their codes (q13, else f16 bits), split into int8 changes from
     the held codes (out_res) and whole codes (out_wide set, out_pos); held codes updated, and their decodings if
     ``decode`` (False: :func:`decode_moved` writes them later). Returns (w, the number sent whole; ok: False if an
@@ -648,7 +648,7 @@ def encode_positions(q13, pos, rows, ids, moved, n_p, psign, lo, k, step, held_p
 
 
 @nb.njit(**_NB)
-def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot, decode=True):
+def encode_rotations_q13(rot, rows, ids, moved, n_r, rsign, rot_lut, held_r, dec, gathered, out_rot, decode):
     """The moved rotations (candidates moved[:n_r]): their q13 codes (out_rot), held codes updated, and their
     decodings if ``decode`` (as :func:`encode_positions`). Three loops: the rows gathered into `gathered` ((4 n_r)
     float32, signs applied), :func:`pack_rotation` over them in SIMD lanes, then the scatter. Packing the rows where
@@ -739,14 +739,14 @@ def delta_q13_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, lo, k, step
     (gathered: (4 K) float32 scratch). Returns (n, n_p, w, n_r, n_s)."""
     n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_moved)
     w, _ = encode_positions(True, pos, rows, ids, work[0], n_p, psign, lo, k, step, held_p, dec, out_wide, out_res,
-                      out_pos)
-    encode_rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot)
-    encode_scales(True, scale, rows, ids, work[2], n_s, table, scale_lut, held_s, dec, out_scale)
+                            out_pos, True)
+    encode_rotations_q13(rot, rows, ids, work[1], n_r, rsign, rot_lut, held_r, dec, gathered, out_rot, True)
+    encode_scales(True, scale, rows, ids, work[2], n_s, table, scale_lut, held_s, dec, out_scale, True)
     return n, n_p, w, n_r, n_s
 
 
 @nb.njit(**_NB)
-def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, dec, out_scale, decode=True):
+def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, dec, out_scale, decode):
     """The moved scales (candidates moved[:n_s], values scale[rows[j]]): their q13 codes (``table``, ``scale_lut``),
     else f16 bits (the q13 arguments stand-ins); held codes updated, and their decodings if ``decode`` (as
     :func:`encode_positions`). False if an f16 value is NaN, infinite or beyond +-65504."""
@@ -773,7 +773,7 @@ def encode_scales(q13, scale, rows, ids, moved, n_s, table, scale_lut, held_s, d
 
 
 @nb.njit(**_NB)
-def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot, decode=True):
+def encode_rotations_f16(rot, rows, ids, moved, n_r, rsign, held_r, dec, out_rot, decode):
     """The moved rotations' f16 bits (candidates moved[:n_r], values rot[rows[j]] times rsign), each rotation's four
     as one uint64 (component c in bits 16 c: held_r and out_rot are the (.., 4) uint16 arrays viewed so); held codes
     updated, and their decodings if ``decode`` (as :func:`encode_positions`). False if one is NaN, infinite or beyond
@@ -803,9 +803,9 @@ def delta_f16_kernel(pos, rot, scale, rows, runs, ids, psign, rsign, tol, held_p
     n, n_p, n_r, n_s = _select(pos, rot, scale, runs, psign, rsign, tol, dec, flags, work, out_moved)
     # f16: lo, k, step unused (psign stands in)
     w, ok = encode_positions(False, pos, rows, ids, work[0], n_p, psign, psign, psign, psign, held_p, dec, out_wide,
-                       out_res, out_pos)
-    ok &= encode_rotations_f16(rot, rows, ids, work[1], n_r, rsign, held_r, dec, out_rot)
-    ok &= encode_scales(False, scale, rows, ids, work[2], n_s, NO_TABLE, NO_LUT, held_s, dec, out_scale)
+                             out_res, out_pos, True)
+    ok &= encode_rotations_f16(rot, rows, ids, work[1], n_r, rsign, held_r, dec, out_rot, True)
+    ok &= encode_scales(False, scale, rows, ids, work[2], n_s, NO_TABLE, NO_LUT, held_s, dec, out_scale, True)
     return n, n_p, w, n_r, n_s, ok
 
 
