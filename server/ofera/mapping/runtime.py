@@ -8,6 +8,10 @@ IOBinding here, about 45 us against 90 us per call).
 
 BDA is folded into the mapper: ``map(x) = EPM(clamp(x @ W.T + b, 0, 1))``; an identity BDA skips the
 matrix product and only clamps.
+
+ONNX Runtime is the reference and runs any graph. A graph of Gemm, Relu and Add nodes (every EPM ``ofera epm export``
+writes) also gets a program (``program``: :mod:`ofera.mapping.epm_program`), which the streaming pipeline's fast path
+runs in one numba call (:mod:`ofera.mapping.epm_fast`); ``program_note`` says why a graph has none.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import onnxruntime as ort
 
 from ..errors import OferaError
 from .bda import BDA, load_bda
+from .epm_program import EpmProgram, UnsupportedGraph, load_epm_program
 from .layouts import ARKIT51_NAMES
 
 N_IN = 51
@@ -46,7 +51,8 @@ def session_options(threads: int = 1) -> ort.SessionOptions:
 class Mapper:
     """arkit51 (51,) -> FLAME values (68,) float32; see the module docstring."""
 
-    def __init__(self, session: ort.InferenceSession, bda: BDA | None = None, source: str = "") -> None:
+    def __init__(self, session: ort.InferenceSession, bda: BDA | None = None, source: str = "",
+                 program: EpmProgram | None = None, program_note: str = "") -> None:
         inputs, outputs = session.get_inputs(), session.get_outputs()
         if len(inputs) != 1 or len(outputs) < 1:
             raise MapperError(f"{source}: an EPM has one input (B, 51) and one output (B, 68), "
@@ -62,6 +68,10 @@ class Mapper:
             raise MapperError(f"{source}: the EPM's input names are not arkit51 (metadata input_names)")
         self.session = session
         self.source = source
+        if program is not None and (program.n_in, program.n_out) != (N_IN, N_OUT):
+            program, program_note = None, f"the program maps {program.n_in} -> {program.n_out} values"
+        self.program = program  # the same graph for the fast path (epm_fast.FastEpm), or None: program_note says why
+        self.program_note = program_note
         self.input_name, self.output_name = inputs[0].name, outputs[0].name
         self.fixed_batch = isinstance(shape_in[0], int)
         self.bda = bda if bda is not None else BDA.identity()
@@ -87,7 +97,14 @@ class Mapper:
                                         providers=["CPUExecutionProvider"])
         except Exception as exc:  # noqa: BLE001 - onnxruntime raises its own exception types
             raise MapperError(f"{path}: cannot load as ONNX: {exc}") from exc
-        return cls(sess, load_bda(bda), source=str(path))
+        program, note = None, ""
+        try:
+            program = load_epm_program(path)
+        except UnsupportedGraph as exc:
+            note = f"ONNX Runtime only: {exc}"
+        except ImportError:  # the onnx package reads the graph (a dependency of the server; absent: ORT alone)
+            note = "ONNX Runtime only: the onnx package is not installed"
+        return cls(sess, load_bda(bda), source=str(path), program=program, program_note=note)
 
     @classmethod
     def default(cls, bda: BDA | str | Path | None = None, threads: int = 1) -> Mapper:

@@ -27,6 +27,7 @@ from ..avatar.model import GaussianAvatar
 from ..avatar.state import GaussianState
 from ..head import HeadSubject, lbs
 from ..mapping.bda import BDA
+from ..mapping.epm_fast import FastEpm
 from ..mapping.flame_values import split_flame_values
 from ..mapping.layouts import LayoutAdapter
 from ..mapping.runtime import Mapper
@@ -204,6 +205,9 @@ class Pipeline:
         self.mapper = Mapper(base.session, None, source=base.source) if not self.arkit else None
         # Head model + deformation: the fast path's per-stream buffers, or the reference deformer.
         self.fast = assets.fast.session(parallel=assets.parallel) if assets.fast is not None else None
+        # The fast path's EPM: the same graph in one numba call (ONNX Runtime, the reference, runs any other graph)
+        self.epm = FastEpm(base.program) if self.fast is not None and not self.arkit and base.program is not None \
+            else None
         self.deformer = assets.avatar.deformer() if self.fast is None else None
         if self.arkit and self.fast is None:  # the reference morph-target blend (numpy)
             from ..avatar.fast_vertex import morph_blend_reference
@@ -231,7 +235,8 @@ class Pipeline:
         a = self.bda.apply(x, out=self._x51)
         t2 = clock()
         # arkit51: the "epm" stage is skipped (0 us): the BDA output (clamped to [0, 1]) is the morph weights
-        values = a.copy() if self.arkit else self.mapper.map(a, out=self._y).copy()
+        values = (a.copy() if self.arkit else self.epm(a, self._y).copy() if self.epm is not None
+                  else self.mapper.map(a, out=self._y).copy())
         t3 = clock()
         return values, {"layout": (t1 - t0) // 1000, "bda": (t2 - t1) // 1000, "epm": (t3 - t2) // 1000}
 
