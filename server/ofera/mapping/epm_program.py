@@ -1,4 +1,4 @@
-"""An EPM's ONNX graph as a program for the fast path (:mod:`ofera.mapping.epm_fast`): Gemm, Relu and Add nodes, the
+"""An EPM's ONNX graph as a program for the fast path (:mod:`ofera.mapping.map_fast`): Gemm, Relu and Add nodes, the
 MLPs ``ofera epm export`` writes (linear layers with their batch norms folded in, ReLUs, residual sums). No numba
 here: the mapper compiles the program when it loads a file, and only the fast path runs it.
 

@@ -11,7 +11,7 @@ matrix product and only clamps.
 
 ONNX Runtime is the reference and runs any graph. A graph of Gemm, Relu and Add nodes (every EPM ``ofera epm export``
 writes) also gets a program (``program``: :mod:`ofera.mapping.epm_program`), which the streaming pipeline's fast path
-runs in one numba call (:mod:`ofera.mapping.epm_fast`); ``program_note`` says why a graph has none.
+runs in one numba call (:mod:`ofera.mapping.map_fast`); ``program_note`` says why a graph has none.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ class Mapper:
         self.source = source
         if program is not None and (program.n_in, program.n_out) != (N_IN, N_OUT):
             program, program_note = None, f"the program maps {program.n_in} -> {program.n_out} values"
-        self.program = program  # the same graph for the fast path (epm_fast.FastEpm), or None: program_note says why
+        self.program = program  # the same graph for the fast path (map_fast.FastEpm), or None: program_note says why
         self.program_note = program_note
         self.input_name, self.output_name = inputs[0].name, outputs[0].name
         self.fixed_batch = isinstance(shape_in[0], int)

@@ -27,9 +27,9 @@ from ..avatar.model import GaussianAvatar
 from ..avatar.state import GaussianState
 from ..head import HeadSubject, lbs
 from ..mapping.bda import BDA
-from ..mapping.epm_fast import FastEpm
 from ..mapping.flame_values import split_flame_values
 from ..mapping.layouts import LayoutAdapter
+from ..mapping.map_fast import FastEpm, FastLayout
 from ..mapping.runtime import Mapper
 from .confidence import DEFAULT_THRESHOLD, RegionHold
 
@@ -198,6 +198,7 @@ class Pipeline:
         self.adapter = LayoutAdapter(layout)
         self.hold = RegionHold(confidence_threshold)  # bs.conf: low-confidence regions keep their last values
         self.bda = bda if bda is not None else assets.bda
+        self._bda_identity = self.bda.is_identity  # (a property comparing W with the identity: read once)
         base = assets.mapper
         # The BDA runs as its own stage; the mapper gets an identity BDA (a clamp, a no-op on [0, 1]).
         # An arkit51 avatar has no mapper: its head's morph weights are the aligned ARKit weights.
@@ -205,7 +206,9 @@ class Pipeline:
         self.mapper = Mapper(base.session, None, source=base.source) if not self.arkit else None
         # Head model + deformation: the fast path's per-stream buffers, or the reference deformer.
         self.fast = assets.fast.session(parallel=assets.parallel) if assets.fast is not None else None
-        # The fast path's EPM: the same graph in one numba call (ONNX Runtime, the reference, runs any other graph)
+        # The fast path's map: the layout's product and the EPM's graph, one numba call each (mapping.map_fast; ONNX
+        # Runtime, the reference, runs a graph that has no program)
+        self.layout_fast = FastLayout(self.adapter, keep=self.hold.last) if self.fast is not None else None
         self.epm = FastEpm(base.program) if self.fast is not None and not self.arkit and base.program is not None \
             else None
         self.deformer = assets.avatar.deformer() if self.fast is None else None
@@ -230,9 +233,13 @@ class Pipeline:
         fresh array (the caller's: rooms publish them, params frames carry them)."""
         clock = time.perf_counter_ns
         t0 = clock()
-        x = self.hold(self.adapter(weights), conf)
+        if self.layout_fast is not None and conf is None:  # the hold's memory refreshed in the same call (as hold does)
+            x = self.layout_fast(weights, True)
+        else:
+            x = self.hold(self.adapter(weights) if self.layout_fast is None else self.layout_fast(weights), conf)
         t1 = clock()
-        a = self.bda.apply(x, out=self._x51)
+        # x is in [0, 1] already: an identity BDA (the default) gives x itself, to the bit (34 us cold, round nineteen)
+        a = x if self._bda_identity else self.bda.apply(x, out=self._x51)
         t2 = clock()
         # arkit51: the "epm" stage is skipped (0 us): the BDA output (clamped to [0, 1]) is the morph weights
         values = (a.copy() if self.arkit else self.epm(a, self._y).copy() if self.epm is not None

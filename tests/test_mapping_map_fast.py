@@ -1,5 +1,6 @@
-"""The EPM's fast path (mapping.epm_program + mapping.epm_fast) against ONNX Runtime, its reference: the shipped EPM,
-an exported one, graphs of every shape a program takes, and the graphs it leaves to ONNX Runtime."""
+"""The map stage's fast path (mapping.map_fast) against its references: the layout's product against LayoutAdapter
+(numpy), the EPM program (mapping.epm_program) against ONNX Runtime on the shipped EPM, an exported one, graphs of
+every shape a program takes, and the graphs it leaves to ONNX Runtime."""
 
 from __future__ import annotations
 
@@ -9,8 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from ofera.avatar import load_avatar
-from ofera.mapping.epm_fast import FastEpm
 from ofera.mapping.epm_program import UnsupportedGraph, compile_epm
+from ofera.mapping.layouts import LAYOUT_NAMES, LayoutAdapter
+from ofera.mapping.map_fast import FastEpm, FastLayout
 from ofera.mapping.runtime import Mapper
 from ofera.streaming.pipeline import AvatarAssets, Pipeline
 from onnx import TensorProto, helper, numpy_helper
@@ -40,6 +42,28 @@ def _mapper(tmp_path, model: onnx.ModelProto) -> Mapper:
     path = tmp_path / "epm.onnx"
     onnx.save(model, str(path))
     return Mapper.load(path)
+
+
+@pytest.mark.parametrize("layout", sorted(LAYOUT_NAMES))
+def test_the_layouts_product_is_the_adapters(layout):
+    adapter = LayoutAdapter(layout)
+    fast = FastLayout(LayoutAdapter(layout))
+    k = adapter.layout.length
+    x = _inputs(40, k, seed=k)
+    x[:10] = x[:10] * 3 - 1  # outside [0, 1]: both clamp
+    kept = np.zeros(51 if k != 52 else 52, np.float32)
+    keeping = FastLayout(LayoutAdapter(layout), keep=kept[:adapter.out.shape[0]])
+    for row in x:
+        assert fast(row) is fast.out
+        _agree(fast.out, adapter(row))
+        before = kept.copy()
+        keeping(row)
+        assert np.array_equal(kept, before)  # (keep only when asked)
+        keeping(row, True)
+        assert np.array_equal(kept[:adapter.out.shape[0]], keeping.out)
+    for bad in (np.zeros(k + 1, np.float32), np.zeros(1, np.float32), [0.5] * k):
+        with pytest.raises(ValueError, match=f"expected {k} values for {layout!r}"):
+            fast(bad)
 
 
 def test_the_shipped_epm_runs_in_the_fast_path():
