@@ -13,9 +13,10 @@ other processes hits them alike.
 
 Steps: the server's `decode` stage (``SessionCore.receive`` of one ``bs``), ``msgpack.unpackb`` of it, one small
 numpy call (``np.isfinite(w).all()``, 52 weights), the same check in Python (a float sum over a memoryview,
-``ofera_protocol._fields``), a numba kernel over 5 000 q13 rotations (80 kB in, 20 kB out), and an empty parallel
+``ofera_protocol._fields``), a numba kernel over 5 000 q13 rotations (80 kB in, 20 kB out), an empty parallel
 region on numba's threads (one add per thread: what any prange kernel pays to wake the pool; the fast path's
-``kernel_threads`` setting).
+``kernel_threads`` setting), and the pipeline's map stage (layout, BDA, EPM: ``Pipeline.map`` of a decoded bs on the
+default avatar) on the fast path (``ofera.mapping.map_fast``: numba) and on the reference (numpy and ONNX Runtime).
 
 Prints a table; writes --json and a PNG next to it. JSON: {"gaps_ms", "reps", "results": {step: {"back_to_back":
 {p50, p99, min}, "after_<G>ms": {...}, "sleep_<G>ms": {...}}}, "ratios": {step: {gap: p50 after / p50 back to
@@ -51,9 +52,12 @@ def parallel_region(per_thread: np.ndarray) -> None:
 def steps() -> dict[str, Callable[[], Any]]:
     """The measured steps, each a call with its inputs bound (made once, outside the timing)."""
     import msgpack
+    from ofera.avatar import load_avatar
+    from ofera.mapping.runtime import Mapper
     from ofera.streaming.config import Settings
     from ofera.streaming.core import SessionCore
     from ofera.streaming.encode_fast import q13_rotation_kernel
+    from ofera.streaming.pipeline import AvatarAssets, Pipeline
     from ofera_protocol import AvatarInfo, Blendshapes, Hello, encode
 
     core = SessionCore(Settings(bs_rate=1e9, bs_burst=1e9), 0)
@@ -69,6 +73,10 @@ def steps() -> dict[str, Callable[[], Any]]:
     per_thread = np.zeros(numba.get_num_threads())
     parallel_region(per_thread)
     buf = w.tobytes()
+    avatar, mapper = load_avatar("default"), Mapper.default()
+    fast_map = Pipeline(AvatarAssets.create("default", avatar, mapper), "arkit52")
+    reference_map = Pipeline(AvatarAssets.create("default", avatar, mapper, fast=False), "arkit52")
+    decoded = np.frombuffer(buf, np.float32)  # a decoded bs's weights: a read-only view
     return {
         "server bs decode (SessionCore.receive)": lambda: core.receive(bs, next(clock) * 14_000_000),
         "msgpack.unpackb (bs)": lambda: msgpack.unpackb(bs),
@@ -76,6 +84,8 @@ def steps() -> dict[str, Callable[[], Any]]:
         "Python finite check (52)": lambda: math.isfinite(sum(memoryview(buf).cast("f"))),
         "numba: 5k q13 rotations": lambda: q13_rotation_kernel(rot, none, 5000, one, codes),
         f"numba: empty parallel region ({numba.get_num_threads()} threads)": lambda: parallel_region(per_thread),
+        "map stage, fast path (layout + BDA + EPM)": lambda: fast_map.map(decoded),
+        "map stage, reference (numpy + ONNX Runtime)": lambda: reference_map.map(decoded),
     }
 
 

@@ -138,7 +138,7 @@ def test_cold_cache_smoke(tmp_path) -> None:
     out = tmp_path / "cold_cache.json"
     load("cold_cache").main(["--gaps", "0.5,2", "--reps", "5", "--sleep", "--json", str(out)])
     r = check_outputs(out)
-    assert r["gaps_ms"] == [0.5, 2.0] and len(r["results"]) == 6
+    assert r["gaps_ms"] == [0.5, 2.0] and len(r["results"]) == 8
     for name, series in r["results"].items():
         assert set(series) == {"back_to_back", "after_0.5ms", "after_2ms", "sleep_0.5ms", "sleep_2ms"}, name
         assert series["back_to_back"]["n"] == 4 * 5 and series["after_2ms"]["n"] == 5
