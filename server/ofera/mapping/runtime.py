@@ -1,8 +1,8 @@
 """The run-time mapper: arkit51 blendshapes -> BDA -> EPM (ONNX Runtime) -> 68 FLAME values.
 
-No torch here: the server imports numpy, onnxruntime and onnx (which reads the graph for its program). The session is single-threaded
-(``intra_op_num_threads = 1``: for a 51 -> 128 -> 68 MLP, thread hand-offs cost more than they save,
-and each streaming session owns one mapper). Per frame, ``map`` writes into preallocated buffers
+No torch here: the server imports numpy, onnxruntime and onnx (which reads the graph for its program). The session
+is single-threaded (``intra_op_num_threads = 1``: for a 51 -> 128 -> 68 MLP, thread hand-offs cost more than they
+save, and each streaming session owns one mapper). Per frame, ``map`` writes into preallocated buffers
 (the aligned input is written in place; ``session.run`` with a ready float32 array was faster than
 IOBinding here, about 45 us against 90 us per call).
 
