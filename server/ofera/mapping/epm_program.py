@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import OferaError
+
 GEMM, RELU, ADD = 0, 1, 2
 _STEP = 8  # fields of a step: op, a, b, dst, w_off, b_off, n_in, n_out
 
@@ -37,7 +39,7 @@ class EpmProgram:
     n_out: int
 
 
-class UnsupportedGraph(ValueError):
+class UnsupportedGraph(OferaError, ValueError):
     """A graph the fast path does not run (ONNX Runtime does): the message names the node or shape."""
 
 
