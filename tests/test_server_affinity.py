@@ -45,18 +45,32 @@ cpu = min(os.sched_getaffinity(0))
 pinned = pin_process(frozenset({cpu, 100000}))  # CPUs this process may not use are left out
 late = threading.Thread(target=stop.wait)  # ... and one started after it
 late.start()
+import numpy as np
+from numba.np.ufunc import parallel
+
+@numba.njit(parallel=True)
+def total(a):
+    s = 0.0
+    for i in numba.prange(a.size):
+        s += a[i]
+    return s
+
+a = np.ones(1 << 20)
+sums = [total(a) for _ in range(50)]  # the pool starts here, sized as the pinning said
 tasks = {}
 for t in os.listdir("/proc/self/task"):
     tasks[t] = sorted(os.sched_getaffinity(int(t)))
 stop.set()
-print(json.dumps({"cpu": cpu, "pinned": sorted(pinned), "tasks": tasks, "numba": numba.config.NUMBA_NUM_THREADS}))
+print(json.dumps({"cpu": cpu, "pinned": sorted(pinned), "tasks": tasks, "numba": numba.config.NUMBA_NUM_THREADS,
+                  "pool": parallel.NUM_THREADS, "threads": numba.get_num_threads(), "sums": sorted(set(sums))}))
 """
 
 
 def test_every_thread_is_pinned_and_numba_sized_to_it() -> None:
     out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120, check=True)
     r = json.loads(out.stdout.strip().splitlines()[-1])
-    assert r["pinned"] == [r["cpu"]] and r["numba"] == 1
+    assert r["pinned"] == [r["cpu"]] and r["numba"] == r["pool"] == r["threads"] == 1
+    assert r["sums"] == [1 << 20]  # (with the pool started for more threads than the config said: heap corruption)
     assert len(r["tasks"]) >= 3 and all(cpus == [r["cpu"]] for cpus in r["tasks"].values())
 
 

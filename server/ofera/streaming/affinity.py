@@ -73,4 +73,8 @@ def _limit_numba(count: int) -> None:
     from numba.np.ufunc import parallel
 
     if not parallel._is_initialized and numba.config.NUMBA_NUM_THREADS > count:
-        numba.config.NUMBA_NUM_THREADS = count
+        # Both: numba's pool starts NUM_THREADS threads (read when numba.np.ufunc.parallel was imported), while the
+        # parallel kernels size their per-thread work from the config. Set apart, a threaded frame wrote past its
+        # buffers (a pinned server whose numba came in before the pinning crashed: "malloc(): unaligned tcache
+        # chunk detected", round nineteen).
+        numba.config.NUMBA_NUM_THREADS = parallel.NUM_THREADS = count

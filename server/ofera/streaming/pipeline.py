@@ -29,7 +29,6 @@ from ..head import HeadSubject, lbs
 from ..mapping.bda import BDA
 from ..mapping.flame_values import split_flame_values
 from ..mapping.layouts import LayoutAdapter
-from ..mapping.map_fast import FastEpm, FastLayout
 from ..mapping.runtime import Mapper
 from .confidence import DEFAULT_THRESHOLD, RegionHold
 
@@ -207,10 +206,15 @@ class Pipeline:
         # Head model + deformation: the fast path's per-stream buffers, or the reference deformer.
         self.fast = assets.fast.session(parallel=assets.parallel) if assets.fast is not None else None
         # The fast path's map: the layout's product and the EPM's graph, one numba call each (mapping.map_fast; ONNX
-        # Runtime, the reference, runs a graph that has no program)
-        self.layout_fast = FastLayout(self.adapter, keep=self.hold.last) if self.fast is not None else None
-        self.epm = FastEpm(base.program) if self.fast is not None and not self.arkit and base.program is not None \
-            else None
+        # Runtime, the reference, runs a graph that has no program). Imported here, as the fast paths are: numba is
+        # imported only once the server has pinned its CPUs (streaming.affinity).
+        self.layout_fast: Any = None
+        self.epm: Any = None
+        if self.fast is not None:
+            from ..mapping.map_fast import FastEpm, FastLayout
+
+            self.layout_fast = FastLayout(self.adapter, keep=self.hold.last)
+            self.epm = FastEpm(base.program) if not self.arkit and base.program is not None else None
         self.deformer = assets.avatar.deformer() if self.fast is None else None
         if self.arkit and self.fast is None:  # the reference morph-target blend (numpy)
             from ..avatar.fast_vertex import morph_blend_reference
