@@ -300,7 +300,8 @@ def main(argv: list[str] | None = None) -> dict:
             "server_ms": "frame timing 'total': bs received -> frame computed (includes queueing)",
             "compute_ms": "sum of layout, bda, epm, head, deform of the frame's timing",
             "head_deform_encode_ms": "head + deform + encode of the frame's timing (the issue's server compute)",
-            "cpu": "cores used on average during the run: the client process (this one) and the server",
+            "cpu": "cores used on average during the run: the client process (this one) and the server; steal_pct: the "
+                   "machine's CPU time its hypervisor gave to other guests meanwhile (%)",
             "server_metrics_ms": "means from /metrics: encode stage, bs received -> frame handed to the socket",
             "transport_floor_ms": "round trip of a tiny request answered by a message of bytes_per_frame between "
                                   "two Python processes (a websockets server, the client on ofera.client.transport "
@@ -329,10 +330,10 @@ def main(argv: list[str] | None = None) -> dict:
                      r["compute_ms"]["p50"], r["compute_ms"]["p99"], (st.get("head") or {}).get("p50"),
                      (st.get("deform") or {}).get("p50"), r["server_metrics_ms"].get("encode"),
                      (r["head_deform_encode_ms"] or {}).get("p50"), (r["head_deform_encode_ms"] or {}).get("p99"),
-                     r["bytes_per_frame"], r["cpu"]["client_cores"], r["cpu"]["server_cores"]])
+                     r["bytes_per_frame"], r["cpu"]["client_cores"], r["cpu"]["server_cores"], r["cpu"]["steal_pct"]])
     print(C.table(rows, ["impl", "frames", "skipped", "e2e p50", "p90", "p99", "p99.9", "max", "compute p50",
                          "p99", "head p50", "deform p50", "encode mean", "h+d+e p50", "h+d+e p99", "bytes/frame",
-                         "client cores", "server cores"]))
+                         "client cores", "server cores", "steal %"]))
     print("load average:", C.machine()["loadavg_at_start"])
     if "ratios" in report:
         print("reference / fast:", report["ratios"])

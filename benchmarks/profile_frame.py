@@ -231,7 +231,8 @@ def main(argv: list[str] | None = None) -> dict:
               "results": results, "transport_floor_ms": floor,
               "definitions": {"stages": __doc__.split("\n\n")[2], "percentiles": "per stage over the frames that "
                               "arrived; e2e_ms includes skipped bs (first later frame), answered_e2e_ms does not",
-                              "cpu": "cores used on average over the run: this process (the client) and the server"},
+                              "cpu": "cores used on average over the run: this process (the client) and the server; "
+                                     "steal_pct: the machine's CPU time its hypervisor gave to other guests (%)"},
               "machine": {**C.machine(), "loadavg_before_runs": load_before}, "notes": notes}
     rows = []
     for s in ORDER:

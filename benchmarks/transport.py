@@ -353,7 +353,8 @@ def main(argv: list[str] | None = None) -> dict:
             "fast": "ofera.client.transport.open_websocket on the asyncio loop (ofera.client.connect's default)",
             "websockets": "the websockets library's asyncio client (compression off, max_queue 2)",
             "ratios": "b_over_a = b / a of each statistic",
-            "cpu": "cores used on average over the measured run: the clients (this process) and the server",
+            "cpu": "cores used on average over the measured run: the clients (this process) and the server; "
+                   "steal_pct: the machine's CPU time its hypervisor gave to other guests (%)",
         },
         "machine": machine,
     }

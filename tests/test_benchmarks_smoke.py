@@ -51,6 +51,7 @@ def test_latency_smoke(tmp_path) -> None:  # (228-293 s on the 2-core VM, benchm
     for run in (r, r["reference"]):  # every bs sent after warm-up is either answered or counted as skipped
         assert run["frames"] + run["frames_skipped"] == run["frames_sent"] == int(1.0 * 72) - int(0.3 * 72)
         assert run["drop_fraction"] == round(run["frames_skipped"] / run["frames_sent"], 4)
+        assert 0 <= run["cpu"]["steal_pct"] <= 100  # (Linux: /proc/stat's steal over the run)
 
 
 @pytest.mark.timeout(300)
@@ -131,6 +132,7 @@ def test_transport_smoke(tmp_path) -> None:
             assert run["n"] == 20 and 0 < run["min"] <= run["p50"] <= run["p99"] and run["cpu_ms"] >= 0
         assert set(r["ratios"][size]) == {"websockets_over_fast", "fast_over_socket"}
     assert r["cpu"]["client_cores"] is not None and r["cpu"]["server_cores"] is not None
+    assert 0 <= r["cpu"]["steal_pct"] <= 100
 
 
 @pytest.mark.timeout(120)
