@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 from types import SimpleNamespace
 
 import numpy as np
+from ofera.streaming import roles
 from ofera.streaming.metrics import Metrics
 from ofera.streaming.roles import CodecWriter, LatestSlot, PendingBs, Source, Viewer
 from ofera_protocol import Blendshapes, FrameFormat, decode_server_message
@@ -164,3 +165,45 @@ def test_fast_frame_writer_gives_the_codec_bytes() -> None:
                 frame = decode_server_message(bytes(stamped), fmt)
                 assert set(frame.timing) == {*timing, "encode"} and frame.timing["encode"] >= 0
                 assert bytes(stamped) == ref.encode(7, 11, frame.timing, pos, rot, scale)
+
+
+def test_work_left_for_after_a_frame_runs_once_the_client_has_read_it_or_before_the_next_frame(monkeypatch) -> None:
+    """Source._after (a delta frame's decodings, thread-choice records): AFTER_FRAME_S after the frame is delivered,
+    not at once (the client reading it may share the loop's CPU); or before the next frame is computed, if it comes
+    first (its kernels need the decodings)."""
+    metrics = Metrics()
+
+    async def main() -> None:
+        with ThreadPoolExecutor(1) as pool:
+            pipeline = FakePipeline()
+            source = Source(pipeline, pool, metrics)
+            ran: list[tuple[str, float]] = []
+            delivered: list[float] = []
+            loop = asyncio.get_running_loop()
+            source.subscribers.append(lambda frame: delivered.append(loop.time()))
+            task = asyncio.create_task(source.run())
+            real_run = pipeline.run
+
+            def run_leaving_work(w):  # (the compute thread appends, as FastSession.defer does)
+                source._after.append((lambda seq: ran.append((f"after {seq}", loop.time())), (int(w[0]),)))
+                return real_run(w)
+
+            pipeline.run = run_leaving_work
+            source.offer(pending(0))
+            await until(lambda: ran)
+            assert ran[0][0] == "after 0" and ran[0][1] - delivered[0] >= roles.AFTER_FRAME_S * 0.9
+            assert metrics.registry.get_sample_value("ofera_frames_computed_total") == 1  # (the metrics at once)
+
+            monkeypatch.setattr(roles, "AFTER_FRAME_S", 30.0)  # frame 1's work still waits when frame 2 comes
+            source.offer(pending(1))
+            await until(lambda: len(delivered) == 2)
+            await asyncio.sleep(0.02)
+            assert len(ran) == 1 and len(source._after) == 1
+            source.offer(pending(2))
+            await until(lambda: len(delivered) == 3)
+            assert [name for name, _ in ran] == ["after 0", "after 1"] and ran[1][1] < delivered[2]
+            assert len(source._after) == 1  # frame 2's, in 30 s
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    run(main())

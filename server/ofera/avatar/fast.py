@@ -281,7 +281,7 @@ class FastSession:
         self.threads = numba.get_num_threads()
         self._frame: tuple[bool, int] | None = None  # the frame under way: (its thread choice, its start in ns)
         # Where an automatic frame's time goes to the thread choice: None, at once; else defer((fn, args)), whose taker
-        # runs fn(*args) later (the server's Source: once the frame is delivered; a cold record took 16 us p50). A
+        # runs fn(*args) later (the server's Source: once the client read the frame; a cold record took 16 us p50). A
         # queue's append, not the taker's own method: that would be a reference cycle (Source -> pipeline -> here)
         self.defer: Callable[[tuple[Callable[..., Any], tuple]], None] | None = None
         self.lbs = fast.lbs.clone()

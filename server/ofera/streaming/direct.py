@@ -75,7 +75,8 @@ class DirectDeltaFrames:
 
     def deform(self, pipeline: Pipeline, values: Any) -> tuple[Any, dict[str, int]]:
         """The frame's kernel call; the decodings of what it sent (``DirectDelta.settle``) go to the fast session's
-        ``defer`` (the source runs them once the frame is delivered, on the loop's thread), or to the next frame."""
+        ``defer`` (the source runs them on the loop's thread once the client has read the frame: roles.AFTER_FRAME_S),
+        or to the next frame."""
         written = pipeline.deform_values_delta(values, self.direct)
         defer = pipeline.fast.defer
         if defer is not None:

@@ -478,8 +478,8 @@ class DirectDelta:
         """Write the decodings of the codes the last frame sent into the encoder's ``dec`` (``settle_kernel``), if
         not yet done: the frame's kernel leaves them (about 0.1 ms of its time at 100k) for after the frame is on its
         way, and the next frame's selection reads them. Every kernel call here and the encoder's own ``encode``
-        settle first, so a caller only chooses when the work runs (a session: once its frame is delivered, through
-        ``FastSession.defer``). Thread-safe: a settle running on another thread is waited for."""
+        settle first, so a caller only chooses when the work runs (a session: once the client has read its frame,
+        through ``FastSession.defer``). Thread-safe: a settle running on another thread is waited for."""
         with self._settle_lock:
             self._settle_now()
 

@@ -130,6 +130,12 @@ class SessionFatal(Exception):
         self.err = err
 
 
+AFTER_FRAME_S = 0.002
+"""How long after a frame is delivered its source runs the work the frame left for later (``Source._after``), unless
+the next frame starts first: a client on this machine decodes a 150 kB delta frame in about 0.6 ms (round
+nineteen)."""
+
+
 class Source:
     """Client role 1: its bs drive one avatar's pipeline (newest bs wins). Publishes ComputedFrames."""
 
@@ -163,10 +169,13 @@ class Source:
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
-        # Work a frame does not wait for, (fn, args) run once it is delivered (_account): a direct frame's encode
-        # histogram, the fast session's thread-choice record; appended from the compute thread (deque appends are
-        # atomic). A cold histogram observation took 17 us p50, a record 8.5-16 (benchmarks/README.md, round sixteen)
+        # Work a frame does not wait for, (fn, args), run AFTER_FRAME_S after it is delivered or before the next
+        # frame is computed, whichever comes first (_run_after): a direct frame's encode histogram, the fast session's
+        # thread-choice record, a delta frame's decodings (DirectDelta.settle); appended from the compute thread (deque
+        # appends are atomic). A cold histogram observation took 17 us p50, a record 8.5-16 (benchmarks/README.md,
+        # round sixteen), a settle 276 (round eighteen).
         self._after: deque[tuple[Callable[..., Any], tuple]] = deque()
+        self._after_timer: asyncio.TimerHandle | None = None
         fast = getattr(pipeline, "fast", None)
         if fast is not None and hasattr(fast, "defer"):
             fast.defer = self._after.append
@@ -240,6 +249,7 @@ class Source:
                 self._wake.clear()
                 await self._wake.wait()
             pending = await self.slot.get()
+            self._run_after()  # (the last frame's, if its time has not come: before this frame's kernels need it)
             try:
                 if self.needs_state is not None and not self.needs_state():
                     frame = self._compute(pending)  # map only (~0.05 ms): cheaper here than a hop to the pool
@@ -256,12 +266,22 @@ class Source:
             for deliver in list(self.subscribers):
                 deliver(frame)
             # The metrics after the viewers' tasks (woken above) have written the frame: on a cold CPU the
-            # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py).
+            # histograms' Python code costs about 0.1 ms a frame (benchmarks/cold_cache.py). The rest later still,
+            # once the client has read the frame: it would run on the loop's thread, where the kernel's wake-up of a
+            # client reading a local socket often puts the client too (benchmarks/README.md, round nineteen).
             loop.call_soon(self._account, frame.timing)
+            if self._after and self._after_timer is None:
+                self._after_timer = loop.call_later(AFTER_FRAME_S, self._run_after)
 
     def _account(self, timing: dict[str, int]) -> None:
         self.metrics.frames_computed.inc()
         self.metrics.observe_timings(timing)
+
+    def _run_after(self) -> None:
+        """Run the work frames left for later (``_after``), now."""
+        if self._after_timer is not None:
+            self._after_timer.cancel()
+            self._after_timer = None
         while self._after:
             fn, args = self._after.popleft()
             fn(*args)
