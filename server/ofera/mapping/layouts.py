@@ -269,6 +269,11 @@ class LayoutAdapter:
         self._mt = np.ascontiguousarray(conversion_matrix(self.layout, self.target).T)  # (K, N)
         self.out = np.zeros(self.target.length, dtype=np.float32)
 
+    @property
+    def mt(self) -> np.ndarray:
+        """(K, N) float32: the conversion matrix, transposed (``w @ mt``; the fast path's kernel reads it)."""
+        return self._mt
+
     def __call__(self, w: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         w = np.asarray(w, dtype=np.float32)
         if w.shape[-1] != self.layout.length:

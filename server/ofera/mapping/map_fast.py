@@ -20,6 +20,7 @@ import numpy as np
 
 from ..jit import NB, Bound
 from .epm_program import GEMM, RELU, EpmProgram
+from .layouts import LayoutAdapter
 
 
 @nb.njit(**NB)
@@ -82,14 +83,14 @@ class FastLayout:
     call). w is copied into a buffer of its own first, so that the call always has one type (a decoded bs is a
     read-only view)."""
 
-    def __init__(self, adapter, keep: np.ndarray | None = None) -> None:
+    def __init__(self, adapter: LayoutAdapter, keep: np.ndarray | None = None) -> None:
         self.adapter = adapter
         self.out = adapter.out
         self._w = np.zeros(adapter.layout.length, np.float32)
         keep = np.zeros_like(self.out) if keep is None else keep
         if keep.shape != self.out.shape or keep.dtype != np.float32 or not keep.flags.writeable:
             raise ValueError(f"keep must be a writable float32 array of {self.out.shape}")
-        self._call = Bound(_layout_bound, (adapter._mt, self.out, keep))
+        self._call = Bound(_layout_bound, (adapter.mt, self.out, keep))
 
     def __call__(self, w: np.ndarray, keep: bool = False) -> np.ndarray:
         """w (K,) -> out (N,); ValueError naming the layout if w is not K values."""

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from ofera_protocol import Avatar as WireAvatar
@@ -31,6 +31,9 @@ from ..mapping.flame_values import split_flame_values
 from ..mapping.layouts import LayoutAdapter
 from ..mapping.runtime import Mapper
 from .confidence import DEFAULT_THRESHOLD, RegionHold
+
+if TYPE_CHECKING:  # (imported at run time by the fast path alone: numba)
+    from ..mapping.map_fast import FastEpm, FastLayout
 
 KERNEL_THREADS: dict[str, bool | None] = {"serial": False, "auto": None, "parallel": True}
 """The kernel_threads setting -> `AvatarAssets.parallel` (`ofera.avatar.fast.FastAvatar.session`'s `parallel`)."""
@@ -208,8 +211,8 @@ class Pipeline:
         # The fast path's map: the layout's product and the EPM's graph, one numba call each (mapping.map_fast; ONNX
         # Runtime, the reference, runs a graph that has no program). Imported here, as the fast paths are: numba is
         # imported only once the server has pinned its CPUs (streaming.affinity).
-        self.layout_fast: Any = None
-        self.epm: Any = None
+        self.layout_fast: FastLayout | None = None
+        self.epm: FastEpm | None = None
         if self.fast is not None:
             from ..mapping.map_fast import FastEpm, FastLayout
 
