@@ -168,9 +168,10 @@ def test_fast_frame_writer_gives_the_codec_bytes() -> None:
 
 
 def test_work_left_for_after_a_frame_runs_once_the_client_has_read_it_or_before_the_next_frame(monkeypatch) -> None:
-    """Source._after (a delta frame's decodings, thread-choice records): AFTER_FRAME_S after the frame is delivered,
-    not at once (the client reading it may share the loop's CPU); or before the next frame is computed, if it comes
-    first (its kernels need the decodings)."""
+    """Source._after (a delta frame's decodings, thread-choice records): for a session alone on its server,
+    AFTER_FRAME_S after the frame is delivered, not at once (the client reading it may share the loop's CPU), or
+    before the next frame is computed, if it comes first (its kernels need the decodings); with other sessions, at
+    once."""
     metrics = Metrics()
 
     async def main() -> None:
@@ -189,6 +190,7 @@ def test_work_left_for_after_a_frame_runs_once_the_client_has_read_it_or_before_
                 return real_run(w)
 
             pipeline.run = run_leaving_work
+            source.alone = lambda: True  # (a session alone on its server; with others, the work runs at once)
             source.offer(pending(0))
             await until(lambda: ran)
             assert ran[0][0] == "after 0" and ran[0][1] - delivered[0] >= roles.AFTER_FRAME_S * 0.9
@@ -203,6 +205,10 @@ def test_work_left_for_after_a_frame_runs_once_the_client_has_read_it_or_before_
             await until(lambda: len(delivered) == 3)
             assert [name for name, _ in ran] == ["after 0", "after 1"] and ran[1][1] < delivered[2]
             assert len(source._after) == 1  # frame 2's, in 30 s
+            source.alone = lambda: False  # other sessions: at once
+            source.offer(pending(3))
+            await until(lambda: len(ran) == 4)
+            assert [name for name, _ in ran[2:]] == ["after 2", "after 3"] and ran[3][1] - delivered[3] < 1.0
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
 

@@ -131,9 +131,10 @@ class SessionFatal(Exception):
 
 
 AFTER_FRAME_S = 0.002
-"""How long after a frame is delivered its source runs the work the frame left for later (``Source._after``), unless
-the next frame starts first: a client on this machine decodes a 150 kB delta frame in about 0.6 ms (round
-nineteen)."""
+"""How long after a frame is delivered the source of a session alone on its server runs the work the frame left for
+later (``Source._after``), unless the next frame starts first: a client on this machine decodes a 150 kB delta frame
+in about 0.6 ms (round nineteen). With other sessions the work runs at once: their frames share the loop (four
+compact sessions' p99 5.6 / 7.2 -> 7.3 / 8.0 ms with the delay)."""
 
 
 class Source:
@@ -169,13 +170,16 @@ class Source:
         self._wake = asyncio.Event()
         self.skipped = 0
         self.computed = 0
-        # Work a frame does not wait for, (fn, args), run AFTER_FRAME_S after it is delivered or before the next
-        # frame is computed, whichever comes first (_run_after): a direct frame's encode histogram, the fast session's
-        # thread-choice record, a delta frame's decodings (DirectDelta.settle); appended from the compute thread (deque
-        # appends are atomic). A cold histogram observation took 17 us p50, a record 8.5-16 (benchmarks/README.md,
-        # round sixteen), a settle 276 (round eighteen).
+        # Work a frame does not wait for, (fn, args), run once it is delivered (a session alone: AFTER_FRAME_S
+        # later) or before the next frame is computed, whichever comes first (_run_after): a direct frame's encode
+        # histogram, the fast session's thread-choice record, a delta frame's decodings (DirectDelta.settle); appended
+        # from the compute thread (deque appends are atomic). A cold histogram observation took 17 us p50, a record
+        # 8.5-16 (benchmarks/README.md, round sixteen), a settle 276 (round eighteen).
         self._after: deque[tuple[Callable[..., Any], tuple]] = deque()
-        self._after_timer: asyncio.TimerHandle | None = None
+        self._after_timer: asyncio.Handle | None = None
+        # alone: None or False-returning: that work runs at once (other sessions' frames share the loop); True: it
+        # waits AFTER_FRAME_S for this session's client to read the frame (a session alone on its server: Session).
+        self.alone: Callable[[], bool] | None = None
         fast = getattr(pipeline, "fast", None)
         if fast is not None and hasattr(fast, "defer"):
             fast.defer = self._after.append
@@ -271,7 +275,9 @@ class Source:
             # client reading a local socket often puts the client too (benchmarks/README.md, round nineteen).
             loop.call_soon(self._account, frame.timing)
             if self._after and self._after_timer is None:
-                self._after_timer = loop.call_later(AFTER_FRAME_S, self._run_after)
+                alone = self.alone is not None and self.alone()
+                self._after_timer = (loop.call_later(AFTER_FRAME_S, self._run_after) if alone
+                                     else loop.call_soon(self._run_after))
 
     def _account(self, timing: dict[str, int]) -> None:
         self.metrics.frames_computed.inc()

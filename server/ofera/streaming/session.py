@@ -253,9 +253,10 @@ class Session:
             self.source.eager.append((key, self.viewer.make))
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full
+        hub = self.hub
         if s.compute_in_loop == "alone":
-            hub = self.hub
             self.source.in_loop = lambda: hub.active == 1
+        self.source.alone = lambda: hub.active == 1  # (its frame's deferred work waits for its client: roles)
         self.viewer.on_ready = self.source.wake
         log.info("session %s: avatar %s, layout %s, encoding %s, coords %s%s", self.id, aid, hello.layout,
                  hello.encoding, hello.coords, f", device {hello.device!r}" if hello.device else "")
@@ -275,6 +276,7 @@ class Session:
             self.source.direct = None
             self.source.demand = None
             self.source.in_loop = None
+            self.source.alone = None
             self.viewer.on_ready = None
             m.sessions.labels("source").dec()
             m.sessions.labels("viewer").dec()
