@@ -23,6 +23,17 @@ from .epm_program import GEMM, RELU, EpmProgram
 from .layouts import LayoutAdapter
 
 
+@nb.njit(inline="always", **NB)
+def _add_products(x, w, w0, n_out, y):
+    """y (n_out,) += x @ W, W (len(x), n_out) row by row in the flat float32 w from offset w0: input order, SIMD
+    lanes over the outputs (the one product of both kernels here)."""
+    for i in range(np.uint64(x.shape[0])):
+        xi = x[i]
+        row = w0 + i * n_out
+        for j in range(n_out):
+            y[j] += xi * w[row + j]
+
+
 @nb.njit(**NB)
 def epm_kernel(steps, weights, biases, scratch, output, x, out):
     """One frame through a program: x (n_in,) float32 clamped to [0, 1] (the identity BDA's clamp) into slot 0, the
@@ -35,15 +46,10 @@ def epm_kernel(steps, weights, biases, scratch, output, x, out):
         n_in, n_out = np.uint64(steps[k, 6]), np.uint64(steps[k, 7])
         y = scratch[dst]
         if op == GEMM:
-            w0, b0 = np.uint64(steps[k, 4]), np.uint64(steps[k, 5])
-            src = scratch[a]
+            b0 = np.uint64(steps[k, 5])
             for j in range(n_out):
                 y[j] = biases[b0 + j]
-            for i in range(n_in):
-                xi = src[i]
-                row = w0 + i * n_out
-                for j in range(n_out):
-                    y[j] += xi * weights[row + j]
+            _add_products(scratch[a][:n_in], weights, np.uint64(steps[k, 4]), n_out, y)
         elif op == RELU:
             src = scratch[a]
             for j in range(n_out):
@@ -59,16 +65,13 @@ def epm_kernel(steps, weights, biases, scratch, output, x, out):
 
 @nb.njit(**NB)
 def layout_kernel(w, mt, out, keep, keep_too):
-    """``LayoutAdapter``'s conversion: w (K,) float32 weights, mt (K, N) float32 the conversion matrix (transposed) ->
-    out (N,) = clamp(w @ mt, 0, 1), copied into keep (N,) too if ``keep_too``."""
+    """``LayoutAdapter``'s conversion: w (K,) float32 weights, mt (K * N,) float32 the conversion matrix (transposed,
+    flat) -> out (N,) = clamp(w @ mt, 0, 1), copied into keep (N,) too if ``keep_too``."""
     zero, one = np.float32(0.0), np.float32(1.0)
     n = np.uint64(out.shape[0])
     for j in range(n):
         out[j] = zero
-    for i in range(np.uint64(w.shape[0])):
-        wi = w[i]
-        for j in range(n):
-            out[j] += wi * mt[i, j]
+    _add_products(w, mt, np.uint64(0), n, out)
     for j in range(n):
         out[j] = min(max(out[j], zero), one)
     if keep_too:
@@ -90,7 +93,7 @@ class FastLayout:
         keep = np.zeros_like(self.out) if keep is None else keep
         if keep.shape != self.out.shape or keep.dtype != np.float32 or not keep.flags.writeable:
             raise ValueError(f"keep must be a writable float32 array of {self.out.shape}")
-        self._call = Bound(_layout_bound, (adapter.mt, self.out, keep))
+        self._call = Bound(_layout_bound, (adapter.mt.reshape(-1), self.out, keep))
 
     def __call__(self, w: np.ndarray, keep: bool = False) -> np.ndarray:
         """w (K,) -> out (N,); ValueError naming the layout if w is not K values."""
@@ -102,18 +105,18 @@ class FastLayout:
         return self.out
 
 
-def _fixed_layout_kernel(fixed, w, keep_too):
-    return layout_kernel(w, *fixed.args, keep_too)
+@nb.njit(**NB)
+def _layout_bound(fixed, w, keep_too):
+    """:func:`layout_kernel` with FastLayout's arguments (jit.Bound)."""
+    mt, out, keep = fixed.args
+    layout_kernel(w, mt, out, keep, keep_too)
 
 
-_layout_bound = nb.njit(**NB)(_fixed_layout_kernel)
-
-
-def _fixed_epm_kernel(fixed, x, out):
-    return epm_kernel(*fixed.args, x, out)
-
-
-_epm_bound = nb.njit(**NB)(_fixed_epm_kernel)
+@nb.njit(**NB)
+def _epm_bound(fixed, x, out):
+    """:func:`epm_kernel` with FastEpm's arguments (jit.Bound)."""
+    steps, weights, biases, scratch, output = fixed.args
+    epm_kernel(steps, weights, biases, scratch, output, x, out)
 
 
 class FastEpm:
