@@ -87,6 +87,18 @@ def cycle_counter(typingctx):
     return types.uint64(), codegen
 
 
+@intrinsic
+def os_thread_id(typingctx):
+    """The calling thread's Linux thread id (glibc's ``gettid``), int32: which OS thread runs an iteration of a parallel
+    loop (``ofera.thread_placement``). Linux only; a symbol, not an address, so cacheable."""
+
+    def codegen(context, builder, signature, args):
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(32), []), "gettid")
+        return builder.call(fn, [])
+
+    return types.int32(), codegen
+
+
 @structref.register
 class _FixedType(types.StructRef):
     """numba type of :class:`Fixed`."""

@@ -71,6 +71,7 @@ from ..head.lbs_fast import (
 )
 from ..jit import Bound
 from ..thread_choice import ACTIVITY, Activity, ThreadChoice, load_average, use_threads
+from ..thread_placement import PLACEMENT
 from . import kernels as K
 from .binding import BarycentricBinding, TriangleBinding, normalize_quaternions
 from .deform import make_deformer
@@ -274,6 +275,7 @@ class FastSession:
         self.parallel = parallel  # None: automatic (use_threads of the sessions active in `activity`)
         self.activity = activity
         self.choice = ThreadChoice()
+        self.placement = PLACEMENT  # where a threaded frame's workers run (away from the calling thread's CPU)
         self.threaded = False  # whether the last frame ran on numba's threads
         # numba's thread count, read once: numba.get_num_threads() took 37 us p50 on a cold CPU (round thirteen), and a
         # frame asked it up to four times. A parallel kernel told of more threads than run is still right (they
@@ -346,6 +348,8 @@ class FastSession:
             par = use_threads(self.activity.note(id(self)), self.threads, load_average) \
                 and self.choice.choose()
         self.threaded = par
+        if par:
+            self.placement.before_parallel()
         return par
 
     def _start(self) -> bool:
