@@ -54,9 +54,9 @@ def serve(
                                                         "both cores where it measures that faster), serial, or "
                                                         "parallel (every frame on both cores) (default auto) [env "
                                                         "OFERA_KERNEL_THREADS].")] = None,
-    compute_in_loop: Annotated[str | None, typer.Option(help="alone: a lone session computes on the event loop's "
-                                                         "thread, no hand-off to the pool; never (default) [env "
-                                                         "OFERA_COMPUTE_IN_LOOP].")] = None,
+    compute_in_loop: Annotated[str | None, typer.Option(help="alone (default): a lone session computes on the "
+                                                         "event loop's thread, no hand-off to the pool; never: always "
+                                                         "on the pool [env OFERA_COMPUTE_IN_LOOP].")] = None,
     cpus: Annotated[str | None, typer.Option(help="CPUs to run on, e.g. 0 or 2-3 (Linux affinity of every thread; "
                                               "keep the server off its clients' cores) [env OFERA_CPUS]; default: "
                                               "any.")] = None,

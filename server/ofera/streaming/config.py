@@ -68,13 +68,13 @@ class Settings(BaseSettings):
         "p99 0.2-0.5 ms lower; on the AMD VM of round eight threads were slower for dense frames, which auto's "
         "measurement sees (benchmarks/README.md, rounds eight, ten and eleven). Same bits in every mode.")
     compute_in_loop: Literal["alone", "never"] = Field(
-        "never", description="alone: a session that is the only one connected computes its frames on the event "
-        "loop's thread (no hand-off to the compute pool and back: queue 0.17 against 0.32 ms p50); never: always on "
-        "the pool. On the 2-core VM (December 2026, five alternating pairs each) a lone dense f16 session's e2e was "
-        "p50 5.12 / p99 7.07 ms alone against 5.65 / 8.37, a q13 delta session's 7.92 / 12.99 against 7.30 / 12.60: "
-        "where the frame's work runs decides which vCPU a wake-up must reach (benchmarks/README.md, round nine); on "
-        "the Intel VM of round eleven, with the frame's kernels on both cores, both were worse (f16 e2e p50 4.1-4.8 "
-        "against 2.9-3.1 ms). Never by default.")
+        "alone", description="alone (default): a session that is the only one connected computes its frames on the "
+        "event loop's thread (no hand-off to the compute pool and back: queue 0.13 against 0.18-0.22 ms p50); "
+        "never: always on the pool. On the 2-core Intel VM of 7 December 2026, with a threaded frame's workers kept "
+        "off the caller's CPU (ofera.thread_placement), a lone q13 delta session's e2e was p50 2.07 / p99 3.09 ms "
+        "alone against 2.37 / 4.09 (medians of four alternating pairs; better in two more), a dense f16 session's "
+        "the same either way (eight pairs). Before that placement, the loop's CPU was where the scheduler packed the frame's second "
+        "thread too, and alone was worse on that VM (benchmarks/README.md, rounds nine, eleven and twenty).")
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     key_interval: int = Field(720, ge=0, description="Delta sessions (hello.delta): a key frame every this many "
                               "frames sent (besides join and resync); 0: only on join and resync.")
