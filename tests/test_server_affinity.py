@@ -81,3 +81,47 @@ def test_cpus_no_process_may_use_are_refused() -> None:
     with pytest.raises(ValueError, match=r"none of CPUs \[100000\] can be used"):
         pin_process(frozenset({100000}))
     assert os.sched_getaffinity(0) == before
+
+
+SPIN_PROBE = """
+import json, os, sys, time
+import numba, numpy as np
+from ofera.streaming.affinity import bound_spinning
+set_now = bound_spinning() if sys.argv[1] == "bound" else None
+from ofera.thread_placement import workers
+
+@numba.njit(parallel=True)
+def total(a):
+    s = 0.0
+    for i in numba.prange(a.size):
+        s += a[i]
+    return s
+
+a = np.ones(1 << 16)
+total(a)
+team = workers()
+def ran(tid):  # ns this thread has run (schedstat)
+    return int(open(f"/proc/self/task/{tid}/schedstat").read().split()[0])
+spins = []
+for _ in range(9):
+    time.sleep(0.03)
+    before = ran(team[0]); total(a); time.sleep(0.03)
+    spins.append((ran(team[0]) - before) / 1e6)
+print(json.dumps({"set": set_now, "env": os.environ.get("GOMP_SPINCOUNT"), "again": bound_spinning(),
+                  "ms": sorted(spins)[4]}))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or len(os.sched_getaffinity(0)) < 2, reason="two CPUs")
+def test_idle_workers_spin_briefly_unless_the_user_says_otherwise() -> None:
+    def probe(mode: str, **env: str) -> dict:
+        environ = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+        out = subprocess.run([sys.executable, "-c", SPIN_PROBE, mode], capture_output=True, text=True, timeout=120,
+                             check=True, env={**environ, **env})
+        return json.loads(out.stdout)
+
+    bound = probe("bound")
+    assert bound["set"] is True and bound["env"] == "10000" and bound["again"] is False  # (the pool has started)
+    assert bound["ms"] < 2.0  # a worker's time per region: its share of the sum, then ~0.3 ms of spinning
+    user = probe("bound", OMP_WAIT_POLICY="active")
+    assert user["set"] is False and user["env"] is None  # the user's policy stands

@@ -73,8 +73,9 @@ class Settings(BaseSettings):
         "never: always on the pool. On the 2-core Intel VM of 7 December 2026, with a threaded frame's workers kept "
         "off the caller's CPU (ofera.thread_placement), a lone q13 delta session's e2e was p50 2.07 / p99 3.09 ms "
         "alone against 2.37 / 4.09 (medians of four alternating pairs; better in two more), a dense f16 session's "
-        "the same either way (eight pairs). Before that placement, the loop's CPU was where the scheduler packed the frame's second "
-        "thread too, and alone was worse on that VM (benchmarks/README.md, rounds nine, eleven and twenty).")
+        "the same either way (eight pairs). Before that placement, the loop's CPU was where the scheduler packed "
+        "the frame's second thread too, and alone was worse on that VM (benchmarks/README.md, rounds nine, eleven "
+        "and twenty).")
     warmup: bool = Field(True, description="Load and run the default avatar's pipeline before accepting.")
     key_interval: int = Field(720, ge=0, description="Delta sessions (hello.delta): a key frame every this many "
                               "frames sent (besides join and resync); 0: only on join and resync.")

@@ -252,7 +252,11 @@ def connect_lines(host: str, port: int, tls: bool = False) -> list[str]:
 def serve(settings: Settings) -> None:
     """Warm up, then run until Ctrl-C (sessions are closed with 1001, the compute pool stopped).
     Loading failures (missing avatar or EPM files...) raise before anything listens. The `cpus` setting pins the
-    process first (before numba sizes its thread pool)."""
+    process first (before numba sizes its thread pool); numba's idle workers spin at most about 0.3 ms
+    (``affinity.bound_spinning``)."""
+    from .affinity import bound_spinning
+
+    bound_spinning()
     if settings.cpu_set is not None:
         from .affinity import pin_process
 
