@@ -15,6 +15,7 @@ Linux only (thread affinity, glibc's ``gettid``); elsewhere :meth:`Placement.bef
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import sys
 import threading
@@ -23,6 +24,8 @@ import numba
 import numpy as np
 
 from .jit import NB, os_thread_id
+
+log = logging.getLogger(__name__)
 
 
 def _libc_getcpu():
@@ -57,9 +60,7 @@ class Placement:
         if getattr(local, "cpu", None) == cpu:
             return
         local.cpu = cpu  # (also when nothing is pinned below: tried once per move)
-        team = getattr(local, "team", None)
-        if team is None:
-            team = local.team = workers()
+        team = self.team()
         others = [c for c in sorted(os.sched_getaffinity(os.getpid())) if c != cpu]
         if not others or not team:
             return
@@ -70,7 +71,8 @@ class Placement:
             local.team = local.cpu = None
             return
         except OSError as exc:  # (a CPU the cpuset no longer allows, say): this caller stays as it is
-            self.failed = f"pinning numba's workers failed: {exc}"
+            self.failed = f"pinning numba's workers failed: {exc}; their frames run where the OS puts them"
+            log.warning(self.failed)
             local.team = ()
             return
         self.pins += 1
