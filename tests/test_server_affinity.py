@@ -34,6 +34,15 @@ def test_the_setting_is_checked_and_read() -> None:
         Settings(cpus="2-1")
 
 
+TOTAL = """
+@numba.njit(parallel=True)
+def total(a):
+    s = 0.0
+    for i in numba.prange(a.size):
+        s += a[i]
+    return s
+"""  # a parallel sum: the probes' numba pool starts on its first call
+
 PROBE = """
 import json, os, threading, time
 import numba  # imported before the pinning, its pool not started
@@ -47,14 +56,7 @@ late = threading.Thread(target=stop.wait)  # ... and one started after it
 late.start()
 import numpy as np
 from numba.np.ufunc import parallel
-
-@numba.njit(parallel=True)
-def total(a):
-    s = 0.0
-    for i in numba.prange(a.size):
-        s += a[i]
-    return s
-
+""" + TOTAL + """
 a = np.ones(1 << 20)
 sums = [total(a) for _ in range(50)]  # the pool starts here, sized as the pinning said
 tasks = {}
@@ -89,14 +91,7 @@ import numba, numpy as np
 from ofera.streaming.affinity import bound_spinning
 set_now = bound_spinning() if sys.argv[1] == "bound" else None
 from ofera.thread_placement import workers
-
-@numba.njit(parallel=True)
-def total(a):
-    s = 0.0
-    for i in numba.prange(a.size):
-        s += a[i]
-    return s
-
+""" + TOTAL + """
 a = np.ones(1 << 16)
 total(a)
 team = workers()
