@@ -77,7 +77,7 @@ def test_workers_are_pinned_away_from_the_callers_cpu_and_again_only_when_it_mov
     assert placement.failed is None
 
 
-def test_a_worker_that_ended_is_found_again_and_a_failed_pin_is_reported_once():
+def test_a_worker_that_ended_is_found_again():
     placement = Placement()
 
     def run():
@@ -91,6 +91,35 @@ def test_a_worker_that_ended_is_found_again_and_a_failed_pin_is_reported_once():
         return True
 
     assert _in_thread(run)
+
+
+def test_a_refused_pin_is_reported_once_and_not_tried_again(monkeypatch, caplog):
+    import ofera.thread_placement as tp
+
+    placement = Placement()
+    team = _in_thread(placement.team)
+    real = os.sched_setaffinity
+    tried = []
+
+    def refusing(pid, cpus):
+        if pid in team:
+            tried.append(pid)
+            raise OSError(22, "Invalid argument")
+        return real(pid, cpus)
+
+    monkeypatch.setattr(tp.os, "sched_setaffinity", refusing)
+    allowed = sorted(os.sched_getaffinity(0))
+
+    def run():
+        placement._local.team = team  # (this thread's record: the team found above, as if its own)
+        for cpu in (allowed[0], allowed[1], allowed[0]):
+            real(0, {cpu})
+            placement.before_parallel()
+
+    with caplog.at_level("WARNING", logger="ofera.thread_placement"):
+        _in_thread(run)
+    assert len(tried) == 1 and placement.pins == 0
+    assert "Invalid argument" in placement.failed and len(caplog.records) == 1
 
 
 def test_a_threaded_session_frame_places_its_workers():

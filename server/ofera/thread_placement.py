@@ -4,7 +4,7 @@ A threaded kernel (``parallel=True``) wakes numba's OpenMP workers when it start
 On the 2-vCPU VM of December 2026 (a kernel that packs tasks onto few vCPUs) it put the worker on the caller's own
 CPU in most frames while the other CPU idled: the worker then ran the frame while the caller waited, runnable, beside
 it, and a parallel region's head waited for a vertex block the preempted thread had claimed (threaded delta frames'
-head p90 1.6 ms against 0.16 serial; ``perf sched``, benchmarks/README.md, round twenty). The caller's own thread
+head p90 1.59 ms against 0.23 serial; ``perf sched``, benchmarks/README.md, round twenty). The caller's own thread
 moves (the server's loop wakes it where it runs), so no fixed split holds: :meth:`Placement.before_parallel`, called
 by a frame before its parallel region, pins the calling thread's workers to the other CPUs this process may use, and
 again only when the caller is found on another CPU (a ``sched_getcpu``, 0.1 us; a pin, 1.5 us).

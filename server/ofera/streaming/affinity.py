@@ -55,7 +55,7 @@ def pin_process(cpus: frozenset[int]) -> frozenset[int]:
 
 SPIN_COUNT = 10000
 """How long an idle numba (OpenMP) worker of the server spins before it sleeps, in libgomp's ``GOMP_SPINCOUNT`` units
-(about 30 ns each on the Intel VM of 7 December 2026: 0.3 ms): long enough for the gap between a frame's two parallel
+(25-30 ns each on the Intel VM of 7 December 2026: 0.3 ms): long enough for the gap between a frame's two parallel
 regions, not for the 13.9 ms between frames. libgomp's own default (300000: 7.4 ms after every region) kept a lone
 session's worker spinning for half of every frame interval once two threads were all libgomp managed (a lone session
 on the loop's thread): the server used 0.69 cores against 0.21, with the same e2e (four ABBA pairs, round twenty)."""
