@@ -75,19 +75,29 @@ def test_delta_client_reconstructs_every_frame(encoding: str, coords: str) -> No
 
 
 def test_delta_frames_encoded_in_the_compute_thread(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A delta session encodes in the compute thread (Source.eager): its source computes only while the viewer's
-    slot is empty, so no frame it encodes is replaced before the socket. Its frames' timing carries "encode"."""
-    threads: list[str] = []
-    encode = DeltaEncoder.encode
+    """A delta session encodes in the thread that computes its frame, inside ``Source._compute`` (Source.eager; the
+    pool's thread, or the loop's for a lone session): its source computes only while the viewer's slot is empty, so no
+    frame it encodes is replaced before the socket. Its frames' timing carries "encode"."""
+    inside: list[bool] = []
+    computing = threading.local()
+    encode, compute = DeltaEncoder.encode, R.Source._compute
 
     def spy(self, *args, **kwargs):
-        threads.append(threading.current_thread().name)
+        inside.append(getattr(computing, "on", False))
         return encode(self, *args, **kwargs)
 
+    def computed(self, pending):
+        computing.on = True
+        try:
+            return compute(self, pending)
+        finally:
+            computing.on = False
+
     monkeypatch.setattr(DeltaEncoder, "encode", spy)
+    monkeypatch.setattr(R.Source, "_compute", computed)
     frames = run(stream(main_server().url, sweep(6)))
     assert [f.seq for f, _, _ in frames] == list(range(6))
-    assert threads and all(name.startswith("ofera-compute") for name in threads), threads
+    assert inside and all(inside), inside
     assert all(f.timing["encode"] >= 0 and f.timing["queue"] >= 0 for f, _, _ in frames)  # whole-frame timing
 
 

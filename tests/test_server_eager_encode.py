@@ -43,18 +43,25 @@ Failure = Callable[[int, int], bool]
 """(frame seq, how many encodings of that frame so far, this one included) -> whether this one raises."""
 
 
+IN_COMPUTE = threading.local()
+"""``.on`` while this thread runs ``Source._compute`` (set by the ``observed`` fixture)."""
+
+
 class RecordingWriter:
-    """Wraps a frame writer: records (seq, thread name) of every encode; `fail(seq, calls)` -> raise or not."""
+    """Wraps a frame writer: records (seq, thread name) of every encode, and whether it ran inside
+    ``Source._compute`` (``in_compute``); `fail(seq, calls)` -> raise or not."""
 
     def __init__(self, inner: Any, fail: Failure | None = None) -> None:
         self.inner = inner
         self.fail = fail
         self.calls: list[tuple[int, str]] = []
+        self.in_compute: list[bool] = []
         self._lock = threading.Lock()
 
     def encode(self, seq: int, *args: Any, **kwargs: Any) -> Any:
         with self._lock:
             self.calls.append((seq, threading.current_thread().name))
+            self.in_compute.append(getattr(IN_COMPUTE, "on", False))
             n = sum(1 for s, _ in self.calls if s == seq)
         if self.fail is not None and self.fail(seq, n):
             raise RuntimeError(f"encoding failure {n} of frame {seq}")
@@ -184,6 +191,14 @@ def observed(monkeypatch: pytest.MonkeyPatch) -> Any:
 
     obs = SimpleNamespace(sources=[], writers=[], viewer_encodes=[], fail=None)
     source_init, viewer_encode, make_writer = Source.__init__, Viewer._encode, session.make_writer
+    source_compute = Source._compute
+
+    def compute(self: Source, pending: Any) -> Any:
+        IN_COMPUTE.on = True
+        try:
+            return source_compute(self, pending)
+        finally:
+            IN_COMPUTE.on = False
 
     def init(self: Source, *args: Any, **kwargs: Any) -> None:
         source_init(self, *args, **kwargs)
@@ -199,6 +214,7 @@ def observed(monkeypatch: pytest.MonkeyPatch) -> Any:
         return w
 
     monkeypatch.setattr(roles.Source, "__init__", init)
+    monkeypatch.setattr(roles.Source, "_compute", compute)
     monkeypatch.setattr(roles.Viewer, "_encode", encode)
     monkeypatch.setattr(session, "make_writer", writer)
     return obs
@@ -214,7 +230,9 @@ async def frames_of(c: Any, count: int) -> list:
 
 
 def test_a_v1_q13_session_encodes_its_frames_in_the_compute_thread(observed: Any) -> None:
-    """(A dense f16 session goes further: its deformation writes the frames, test_server_direct_f16.)"""
+    """In the thread that computes the frame, right after it (``Source._compute``: the compute pool's thread, or the
+    loop's for a session alone, ``compute_in_loop``). (A dense f16 session goes further: its deformation writes the
+    frames, test_server_direct_f16.)"""
     async def main() -> None:
         c = await connect(main_server().url, avatar=SMALL, encoding="q13")
         frames = await frames_of(c, 5)
@@ -227,7 +245,7 @@ def test_a_v1_q13_session_encodes_its_frames_in_the_compute_thread(observed: Any
     run(main())
     (writer,) = observed.writers
     assert [seq for seq, _ in writer.calls] == list(range(5))  # once per frame ...
-    assert all(name.startswith("ofera-compute") for _, name in writer.calls)
+    assert writer.in_compute == [True] * 5
     assert observed.viewer_encodes == []  # ... in Source._compute: the viewer found every frame cached
 
 
