@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import threading
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from ofera.streaming import roles as R
 from ofera.streaming.server import ServerThread
 from ofera_protocol import LAYOUTS, to_coords
 from ofera_protocol.delta import DeltaEncoder
+from test_server_eager_encode import mark_compute
 from test_server_support import SMALL, main_server, run, settings
 
 
@@ -79,22 +79,14 @@ def test_delta_frames_encoded_in_the_compute_thread(monkeypatch: pytest.MonkeyPa
     pool's thread, or the loop's for a lone session): its source computes only while the viewer's slot is empty, so no
     frame it encodes is replaced before the socket. Its frames' timing carries "encode"."""
     inside: list[bool] = []
-    computing = threading.local()
-    encode, compute = DeltaEncoder.encode, R.Source._compute
+    computing = mark_compute(monkeypatch)
+    encode = DeltaEncoder.encode
 
     def spy(self, *args, **kwargs):
         inside.append(getattr(computing, "on", False))
         return encode(self, *args, **kwargs)
 
-    def computed(self, pending):
-        computing.on = True
-        try:
-            return compute(self, pending)
-        finally:
-            computing.on = False
-
     monkeypatch.setattr(DeltaEncoder, "encode", spy)
-    monkeypatch.setattr(R.Source, "_compute", computed)
     frames = run(stream(main_server().url, sweep(6)))
     assert [f.seq for f, _, _ in frames] == list(range(6))
     assert inside and all(inside), inside

@@ -43,17 +43,31 @@ Failure = Callable[[int, int], bool]
 """(frame seq, how many encodings of that frame so far, this one included) -> whether this one raises."""
 
 
-IN_COMPUTE = threading.local()
-"""``.on`` while this thread runs ``Source._compute`` (set by the ``observed`` fixture)."""
+def mark_compute(monkeypatch: pytest.MonkeyPatch) -> threading.local:
+    """Patches ``Source._compute`` (in this process: the test server runs in a thread) so that the returned
+    thread-local's ``on`` is True while the calling thread runs it."""
+    inside, compute = threading.local(), roles.Source._compute
+
+    def marked(self: Source, pending: Any) -> Any:
+        inside.on = True
+        try:
+            return compute(self, pending)
+        finally:
+            inside.on = False
+
+    monkeypatch.setattr(roles.Source, "_compute", marked)
+    return inside
 
 
 class RecordingWriter:
     """Wraps a frame writer: records (seq, thread name) of every encode, and whether it ran inside
-    ``Source._compute`` (``in_compute``); `fail(seq, calls)` -> raise or not."""
+    ``Source._compute`` (``in_compute``, where ``inside`` from :func:`mark_compute` is given); `fail(seq, calls)` ->
+    raise or not."""
 
-    def __init__(self, inner: Any, fail: Failure | None = None) -> None:
+    def __init__(self, inner: Any, fail: Failure | None = None, inside: threading.local | None = None) -> None:
         self.inner = inner
         self.fail = fail
+        self.inside = inside
         self.calls: list[tuple[int, str]] = []
         self.in_compute: list[bool] = []
         self._lock = threading.Lock()
@@ -61,7 +75,7 @@ class RecordingWriter:
     def encode(self, seq: int, *args: Any, **kwargs: Any) -> Any:
         with self._lock:
             self.calls.append((seq, threading.current_thread().name))
-            self.in_compute.append(getattr(IN_COMPUTE, "on", False))
+            self.in_compute.append(getattr(self.inside, "on", False))
             n = sum(1 for s, _ in self.calls if s == seq)
         if self.fail is not None and self.fail(seq, n):
             raise RuntimeError(f"encoding failure {n} of frame {seq}")
@@ -191,14 +205,7 @@ def observed(monkeypatch: pytest.MonkeyPatch) -> Any:
 
     obs = SimpleNamespace(sources=[], writers=[], viewer_encodes=[], fail=None)
     source_init, viewer_encode, make_writer = Source.__init__, Viewer._encode, session.make_writer
-    source_compute = Source._compute
-
-    def compute(self: Source, pending: Any) -> Any:
-        IN_COMPUTE.on = True
-        try:
-            return source_compute(self, pending)
-        finally:
-            IN_COMPUTE.on = False
+    inside = mark_compute(monkeypatch)
 
     def init(self: Source, *args: Any, **kwargs: Any) -> None:
         source_init(self, *args, **kwargs)
@@ -209,12 +216,11 @@ def observed(monkeypatch: pytest.MonkeyPatch) -> Any:
         return viewer_encode(self, frame)
 
     def writer(*args: Any, **kwargs: Any) -> RecordingWriter:
-        w = RecordingWriter(make_writer(*args, **kwargs), obs.fail)
+        w = RecordingWriter(make_writer(*args, **kwargs), obs.fail, inside)
         obs.writers.append(w)
         return w
 
     monkeypatch.setattr(roles.Source, "__init__", init)
-    monkeypatch.setattr(roles.Source, "_compute", compute)
     monkeypatch.setattr(roles.Viewer, "_encode", encode)
     monkeypatch.setattr(session, "make_writer", writer)
     return obs

@@ -65,16 +65,19 @@ def bound_spinning() -> bool:
     """Set ``GOMP_SPINCOUNT`` to :data:`SPIN_COUNT` for this process unless the user set it or ``OMP_WAIT_POLICY``;
     libgomp reads it once, when numba's thread pool starts. Returns whether it was set (False too when the pool had
     already started)."""
-    if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ:
+    if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ or _numba_pool_started():
         return False
-    numba = sys.modules.get("numba")
-    if numba is not None:
-        from numba.np.ufunc import parallel
-
-        if parallel._is_initialized:
-            return False
     os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
     return True
+
+
+def _numba_pool_started() -> bool:
+    """Whether numba's thread pool has started (its size and libgomp's settings are then fixed)."""
+    if "numba" not in sys.modules:
+        return False
+    from numba.np.ufunc import parallel
+
+    return bool(parallel._is_initialized)
 
 
 def cpus_in_use() -> list[int] | None:
@@ -91,12 +94,12 @@ def usable_cpus() -> int:
 def _limit_numba(count: int) -> None:
     """numba sizes its pool from the affinity when first imported; if it was imported before the pinning and its
     pool has not started, the pool is sized down here (a started pool keeps its threads: they share the CPUs)."""
-    numba = sys.modules.get("numba")
-    if numba is None:
+    if "numba" not in sys.modules or _numba_pool_started():
         return
+    import numba
     from numba.np.ufunc import parallel
 
-    if not parallel._is_initialized and numba.config.NUMBA_NUM_THREADS > count:
+    if numba.config.NUMBA_NUM_THREADS > count:
         # Both: numba's pool starts NUM_THREADS threads (read when numba.np.ufunc.parallel was imported), while the
         # parallel kernels size their per-thread work from the config. Set apart, a threaded frame wrote past its
         # buffers (a pinned server whose numba came in before the pinning crashed: "malloc(): unaligned tcache

@@ -254,9 +254,13 @@ class Session:
         viewer = self.viewer  # a viewer with an unsent frame already (a client not reading) stops the computing
         self.source.demand = lambda: not viewer.slot.full
         hub = self.hub
+
+        def alone() -> bool:  # the only session on this server
+            return hub.active == 1
+
         if s.compute_in_loop == "alone":
-            self.source.in_loop = lambda: hub.active == 1
-        self.source.alone = lambda: hub.active == 1  # (its frame's deferred work waits for its client: roles)
+            self.source.in_loop = alone
+        self.source.alone = alone  # (its frame's deferred work waits for its client: roles)
         self.viewer.on_ready = self.source.wake
         log.info("session %s: avatar %s, layout %s, encoding %s, coords %s%s", self.id, aid, hello.layout,
                  hello.encoding, hello.coords, f", device {hello.device!r}" if hello.device else "")
